@@ -1,0 +1,3 @@
+from hmdrt.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,132 @@
+"""Per-eye pinhole cameras with asymmetric frusta, and eccentricity maps.
+
+Pixel coordinates are continuous: (0, 0) is the top-left corner of the image, pixel (i, j) has its
+centre at (i + 0.5, j + 0.5), x grows right and y grows down. Eccentricity is the true angle between
+a pixel's view ray and the gaze ray (weier2016 section 3.1; kim2021 section 4.1), never a pixel distance.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from hmdrt.optics.profiles import HmdProfile
+from hmdrt.spatial import Pose
+
+
+@nb.njit(parallel=True, cache=True, fastmath=False)
+def _eye_directions(xy, tan_l, tan_r, tan_u, tan_d, width, height, rot, out):
+    sx = (tan_r - tan_l) / width
+    sy = (tan_u - tan_d) / height
+    for i in nb.prange(xy.shape[0]):
+        tx = tan_l + xy[i, 0] * sx
+        ty = tan_u - xy[i, 1] * sy
+        inv = 1.0 / math.sqrt(tx * tx + ty * ty + 1.0)
+        ex, ey, ez = tx * inv, ty * inv, -inv
+        out[i, 0] = rot[0, 0] * ex + rot[0, 1] * ey + rot[0, 2] * ez
+        out[i, 1] = rot[1, 0] * ex + rot[1, 1] * ey + rot[1, 2] * ez
+        out[i, 2] = rot[2, 0] * ex + rot[2, 1] * ey + rot[2, 2] * ez
+
+
+@nb.njit(parallel=True, cache=True)
+def _eccentricity(xy, tan_l, tan_r, tan_u, tan_d, width, height, gaze, out):
+    sx = (tan_r - tan_l) / width
+    sy = (tan_u - tan_d) / height
+    gx, gy, gz = gaze[0], gaze[1], gaze[2]
+    for i in nb.prange(xy.shape[0]):
+        tx = tan_l + xy[i, 0] * sx
+        ty = tan_u - xy[i, 1] * sy
+        # angle between (tx, ty, -1) and the gaze: atan2(|a x g|, a.g) keeps precision near 0 and 180
+        cx = ty * gz + gy
+        cy = -gx - tx * gz
+        cz = tx * gy - ty * gx
+        dot = tx * gx + ty * gy - gz
+        out[i] = math.degrees(math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), dot))
+
+
+@nb.njit(parallel=True, cache=True)
+def _pixel_centres(width, row0, rows, out):
+    for r in nb.prange(rows):
+        for x in range(width):
+            out[r * width + x, 0] = x + 0.5
+            out[r * width + x, 1] = row0 + r + 0.5
+
+
+def pixel_centres(width: int, height: int, rows: slice | None = None) -> np.ndarray:
+    """Pixel-centre coordinates (n, 2) float32 in scanline order, optionally for a band of rows."""
+    r0, r1, _ = (rows or slice(0, height)).indices(height)
+    xy = np.empty((max(r1 - r0, 0) * width, 2), dtype=np.float32)
+    _pixel_centres(width, r0, max(r1 - r0, 0), xy)
+    return xy
+
+
+@dataclass(frozen=True)
+class EyeCamera:
+    """One eye: frustum tangents, pixel grid, and its world pose."""
+
+    width: int
+    height: int
+    tan_left: float  # tangent of the left half-angle, negative when the frustum spans the axis
+    tan_right: float
+    tan_up: float
+    tan_down: float  # negative when the frustum spans the axis
+    position: np.ndarray  # (3,) float64, world
+    rotation: np.ndarray  # (3, 3) float64, world-from-eye
+
+    @classmethod
+    def for_eye(cls, profile: HmdProfile, head: Pose, eye: str = "left") -> EyeCamera:
+        """The camera of one eye of `profile` worn at head pose `head` (eye offset by IPD / 2)."""
+        fov = profile.eye_fov(eye)
+        rot = head.rotation()
+        offset = (-0.5 if eye == "left" else 0.5) * profile.ipd_mm * 1e-3
+        t = math.tan
+        r = math.radians
+        return cls(
+            profile.width,
+            profile.height,
+            t(r(fov.left)),
+            t(r(fov.right)),
+            t(r(fov.up)),
+            t(r(fov.down)),
+            np.asarray(head.position, dtype=np.float64) + rot[:, 0] * offset,
+            rot,
+        )
+
+    def _frustum(self) -> tuple:
+        return self.tan_left, self.tan_right, self.tan_up, self.tan_down, float(self.width), float(self.height)
+
+    def directions(self, xy: np.ndarray) -> np.ndarray:
+        """World-space unit view-ray directions (n, 3) float32 through pixel coordinates xy (n, 2)."""
+        out = np.empty((len(xy), 3), dtype=np.float32)
+        _eye_directions(np.ascontiguousarray(xy, dtype=np.float32), *self._frustum(), self.rotation, out)
+        return out
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (n, 2) and view depth along -Z (n,) of world points (n, 3); depth <= 0 is behind."""
+        local = (np.asarray(points, dtype=np.float64) - self.position) @ self.rotation
+        depth = -local[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tx = local[:, 0] / depth
+            ty = local[:, 1] / depth
+        x = (tx - self.tan_left) / (self.tan_right - self.tan_left) * self.width
+        y = (self.tan_up - ty) / (self.tan_up - self.tan_down) * self.height
+        return np.stack([x, y], axis=1), depth
+
+    def eccentricity(self, gaze: np.ndarray, xy: np.ndarray | None = None) -> np.ndarray:
+        """Degrees between each view ray and the unit gaze direction (head frame).
+
+        Returns an (height, width) map over pixel centres, or (n,) for given coordinates xy (n, 2).
+        """
+        pts = pixel_centres(self.width, self.height) if xy is None else np.ascontiguousarray(xy, dtype=np.float32)
+        out = np.empty(len(pts), dtype=np.float32)
+        _eccentricity(pts, *self._frustum(), np.asarray(gaze, dtype=np.float64), out)
+        return out.reshape(self.height, self.width) if xy is None else out
+
+    def gaze_pixel(self, gaze: np.ndarray) -> np.ndarray:
+        """Continuous pixel coordinates (2,) where the gaze ray (head frame) meets the image plane."""
+        g = np.asarray(gaze, dtype=np.float64)
+        world = self.position + self.rotation @ g
+        return self.project(world[None])[0][0]

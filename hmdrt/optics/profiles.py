@@ -1,0 +1,106 @@
+"""HMD display profiles: per-eye resolution, field of view, IPD and refresh rate.
+
+Built-in profiles follow the headsets the papers used (DK2 in weier2016, FOVE 0 in weier2018) and
+current ones. Field-of-view values are per eye, in the OpenXR XrFovf convention (left and down
+negative, degrees); the right eye mirrors the left. Values marked approximate are public
+measurements of the headset, not manufacturer specifications.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated
+
+import msgspec
+
+from hmdrt.errors import ConfigError
+
+Pixels = Annotated[int, msgspec.Meta(ge=1, le=16384)]
+HalfAngle = Annotated[float, msgspec.Meta(gt=-89.0, lt=89.0)]
+
+
+class Fov(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Per-eye frustum half-angles in degrees (OpenXR XrFovf: left and down are negative)."""
+
+    left: HalfAngle
+    right: HalfAngle
+    up: HalfAngle
+    down: HalfAngle
+
+    def __post_init__(self) -> None:
+        if not (self.left < self.right and self.down < self.up):
+            raise ValueError("fov needs left < right and down < up")
+
+    @classmethod
+    def symmetric(cls, horizontal_deg: float, vertical_deg: float) -> Fov:
+        return cls(-horizontal_deg / 2, horizontal_deg / 2, vertical_deg / 2, -vertical_deg / 2)
+
+    @classmethod
+    def from_tangents(cls, left: float, right: float, up: float, down: float) -> Fov:
+        deg = math.degrees
+        return cls(-deg(math.atan(left)), deg(math.atan(right)), deg(math.atan(up)), -deg(math.atan(down)))
+
+    def mirrored(self) -> Fov:
+        return Fov(-self.right, -self.left, self.up, self.down)
+
+
+class HmdProfile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """One headset: per-eye pixels, left-eye FOV, inter-pupillary distance and refresh rate."""
+
+    name: str
+    width: Pixels
+    height: Pixels
+    fov: Fov
+    refresh_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)]
+    ipd_mm: Annotated[float, msgspec.Meta(ge=0, le=100)] = 63.5
+
+    def eye_fov(self, eye: str) -> Fov:
+        return self.fov if eye == "left" else self.fov.mirrored()
+
+    @property
+    def period_ns(self) -> int:
+        return round(1e9 / self.refresh_hz)
+
+    def with_resolution(self, width: int, height: int) -> HmdProfile:
+        """The same optics at another per-eye pixel count."""
+        if width < 1 or height < 1:
+            raise ConfigError(f"resolution must be at least 1x1 pixels, got {width}x{height}")
+        return msgspec.structs.replace(self, width=width, height=height)
+
+
+PROFILES: dict[str, HmdProfile] = {
+    p.name: p
+    for p in (
+        # Oculus SDK 0.4 default eye FOV tangents for DK2 (left eye): approximate.
+        HmdProfile("dk2", 1182, 1464, Fov.from_tangents(1.0586, 1.0924, 1.3292, 1.3292), 75.0, 63.5),
+        HmdProfile("rift_s", 1280, 1440, Fov.symmetric(90.0, 94.0), 80.0, 63.5),
+        # FOVE 0: "up to 100 degrees" from the manufacturer, taken as the vertical extent: approximate.
+        HmdProfile("fove0", 1280, 1440, Fov.symmetric(90.0, 100.0), 70.0, 64.0),
+        # Vive Pro raw projection tangents as reported by OpenVR (left eye): approximate.
+        HmdProfile("vive_pro_eye", 1440, 1600, Fov.from_tangents(1.3966, 1.2435, 1.4677, 1.4690), 90.0, 65.0),
+        # Reduced resolution with rift_s optics, sized so a 2-core CPU holds the refresh rate.
+        HmdProfile("sim-cpu", 192, 216, Fov.symmetric(90.0, 94.0), 30.0, 63.5),
+    )
+}
+
+
+def get_profile(name_or_path: str) -> HmdProfile:
+    """A built-in profile by name, or one read from a TOML file with the HmdProfile fields."""
+    if name_or_path in PROFILES:
+        return PROFILES[name_or_path]
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        raise ConfigError(
+            f"unknown profile {name_or_path!r}; built-in profiles: {', '.join(PROFILES)}, or a .toml file"
+        )
+    try:
+        data = tomllib.loads(path.read_text())
+        return msgspec.convert(data, HmdProfile)
+    except OSError as exc:
+        raise ConfigError(f"cannot read profile {path}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"profile {path} is not valid TOML: {exc}") from None
+    except msgspec.ValidationError as exc:
+        raise ConfigError(f"profile {path}: {exc}") from None

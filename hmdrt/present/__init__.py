@@ -1,0 +1,1 @@
+"""Presentation: linear radiance to display-encoded 8-bit sRGB, and image files."""

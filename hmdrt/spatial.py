@@ -1,0 +1,88 @@
+"""Poses, quaternions and gaze angles in the OpenXR convention: right-handed, +Y up, -Z forward, metres.
+
+Quaternions are (w, x, y, z) and unit length. Gaze angles: yaw positive to the right, pitch positive up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hmdrt.errors import ConfigError
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) float64 of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quat_from_yaw_pitch(yaw_deg: float, pitch_deg: float) -> np.ndarray:
+    """Orientation that turns -Z forward by yaw (positive right) then pitch (positive up)."""
+    yaw = np.radians(-yaw_deg) / 2  # a right turn is a negative rotation about +Y
+    pitch = np.radians(pitch_deg) / 2
+    q_yaw = np.array([np.cos(yaw), 0.0, np.sin(yaw), 0.0])
+    q_pitch = np.array([np.cos(pitch), np.sin(pitch), 0.0, 0.0])
+    return quat_multiply(q_yaw, q_pitch)
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b of two (w, x, y, z) quaternions."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
+
+
+def gaze_direction(yaw_deg: float, pitch_deg: float) -> np.ndarray:
+    """Unit gaze direction (3,) in the head frame for yaw (right +) and pitch (up +) in degrees."""
+    yaw, pitch = np.radians(yaw_deg), np.radians(pitch_deg)
+    return np.array([np.sin(yaw) * np.cos(pitch), np.sin(pitch), -np.cos(yaw) * np.cos(pitch)])
+
+
+def parse_gaze(text: str) -> tuple[float, float]:
+    """Parse "YAW,PITCH" in degrees; both finite and within +-90."""
+    parts = text.split(",")
+    try:
+        yaw, pitch = (float(p) for p in parts)
+    except ValueError:
+        raise ConfigError(f"gaze must be YAW,PITCH in degrees (e.g. 10,-5), got {text!r}") from None
+    if not (np.isfinite(yaw) and np.isfinite(pitch) and abs(yaw) <= 90 and abs(pitch) <= 90):
+        raise ConfigError(f"gaze angles must be finite and within +-90 degrees, got {text!r}")
+    return yaw, pitch
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Head pose: position (m) and orientation (w, x, y, z) in world space."""
+
+    position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    orientation: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+
+    @classmethod
+    def looking(cls, position, yaw_deg: float = 0.0, pitch_deg: float = 0.0) -> Pose:
+        return cls(np.asarray(position, dtype=np.float64), quat_from_yaw_pitch(yaw_deg, pitch_deg))
+
+    @classmethod
+    def look_at(cls, position, target) -> Pose:
+        """Pose at `position` whose -Z axis points at `target` (no roll)."""
+        d = np.asarray(target, dtype=np.float64) - np.asarray(position, dtype=np.float64)
+        yaw = np.degrees(np.arctan2(d[0], -d[2]))
+        pitch = np.degrees(np.arctan2(d[1], np.hypot(d[0], d[2])))
+        return cls.looking(position, yaw, pitch)
+
+    def rotation(self) -> np.ndarray:
+        return quat_to_matrix(self.orientation)

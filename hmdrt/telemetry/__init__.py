@@ -1,0 +1,1 @@
+"""Telemetry: per-stage timings and ray counts of a frame."""

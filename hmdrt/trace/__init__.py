@@ -1,0 +1,1 @@
+"""Ray tracing: the Embree tracer, Whitted shading kernels, and the G-buffer."""

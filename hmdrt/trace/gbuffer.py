@@ -1,0 +1,77 @@
+"""The G-buffer: per traced sample, the attributes of its primary hit and of its first secondary hit.
+
+These are the pixel attributes of kim2021 Table 1 (object id, normal, shadow count, texture existence,
+at the primary and the secondary hit) plus depth and the reflect/refract weights that weier2016
+(section 3.3) and the foveated methods need.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numba as nb
+import numpy as np
+
+from hmdrt.trace.blocks import BLOCK
+
+
+class HitAttributes(NamedTuple):
+    depth: np.ndarray  # (n,) float32 hit distance along the ray; inf on a miss
+    normal_geometric: np.ndarray  # (n, 3) float32, facing the ray; zero on a miss
+    normal_shading: np.ndarray  # (n, 3) float32
+    object_id: np.ndarray  # (n,) int32; -1 on a miss
+    shadow_count: np.ndarray  # (n,) int16 shadow rays (point + area) that found an occluder
+    textured: np.ndarray  # (n,) bool: the material has a texture
+    reflect: np.ndarray  # (n,) float32 weight of the mirror ray
+    refract: np.ndarray  # (n,) float32 weight of the refracted ray
+
+    @classmethod
+    def empty(cls, n: int) -> HitAttributes:
+        return cls(
+            np.full(n, np.inf, np.float32),
+            np.zeros((n, 3), np.float32),
+            np.zeros((n, 3), np.float32),
+            np.full(n, -1, np.int32),
+            np.zeros(n, np.int16),
+            np.zeros(n, bool),
+            np.zeros(n, np.float32),
+            np.zeros(n, np.float32),
+        )
+
+
+class GBuffer(NamedTuple):
+    primary: HitAttributes
+    secondary: HitAttributes  # the heavier of the reflected / refracted rays; a miss where none was spawned
+
+    @classmethod
+    def empty(cls, n: int) -> GBuffer:
+        return cls(HitAttributes.empty(n), HitAttributes.empty(n))
+
+
+@nb.njit(cache=True)
+def _store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, stop):
+    depth, a_ng, a_ns, a_obj, a_shadow, a_tex, a_kr, a_kt = attrs
+    hits, ng, ns, obj, material = surf.hit, surf.normal_geometric, surf.normal_shading, surf.object_id, surf.material
+    for i in range(start, stop):
+        r = rows[i]
+        if r < 0:
+            continue
+        depth[r] = t[i]
+        a_obj[r] = obj[i]
+        if not hits[i]:
+            continue
+        for c in range(3):
+            a_ng[r, c] = ng[i, c]
+            a_ns[r, c] = ns[i, c]
+        a_shadow[r] = shadow_count[i]
+        a_tex[r] = textured[material[i]]
+        a_kr[r] = kr[i]
+        a_kt[r] = kt[i]
+
+
+@nb.njit(parallel=True, cache=True)
+def store_kernel(attrs, rows, t, surf, textured, shadow_count, kr, kt):
+    """attrs[rows[i]] = attributes of hit i, for every i with rows[i] >= 0."""
+    n = rows.shape[0]
+    for b in nb.prange((n + BLOCK - 1) // BLOCK):
+        _store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, b * BLOCK, min(n, (b + 1) * BLOCK))

@@ -1,0 +1,334 @@
+"""Direct lighting for Whitted shading: point lights with hard shadows, area lights with stratified
+shadow samples, ambient occlusion with cosine-weighted samples, and Phong/Lambert local shading.
+
+Ray generation and shading are separate passes around the occlusion queries. A ray that cannot
+contribute (light behind the surface, no hit) gets tfar = -1, which Embree skips at almost no cost,
+and it is not counted as traced.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numba as nb
+import numpy as np
+
+from hmdrt.scene.pack import Lights
+from hmdrt.trace.blocks import BLOCK
+from hmdrt.trace.sampling import DIM_AO, DIM_AREA, cosine_hemisphere, grid_shape, stratified
+
+AREA_SHORTEN = 1.0 - 1e-4  # stop area shadow rays just short of the emitter's own geometry
+
+
+class RayBatch(NamedTuple):
+    origins: np.ndarray  # (n, 3) float32
+    directions: np.ndarray  # (n, 3) float32
+    tfar: np.ndarray  # (n,) float32; -1 marks a ray that is not traced
+
+    @classmethod
+    def empty(cls, n: int) -> RayBatch:
+        return cls(np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32))
+
+    def active(self) -> int:
+        return int(np.count_nonzero(self.tfar > 0))
+
+
+class LightPlan(NamedTuple):
+    """Per-hit shadow-ray layout: area light a owns columns base[a] .. base[a] + samples[a]."""
+
+    area_base: np.ndarray  # (a,) int64
+    area_nx: np.ndarray  # (a,) int64 strata per light
+    area_ny: np.ndarray
+    area_total: int
+    ao_nx: int
+    ao_ny: int
+    ao_samples: int
+    ao_distance: float
+
+
+def light_plan(lights: Lights, ao_samples: int, ao_distance: float) -> LightPlan:
+    shapes = [grid_shape(int(s)) for s in lights.area_samples]
+    base = (
+        np.concatenate([[0], np.cumsum(lights.area_samples)[:-1]]).astype(np.int64)
+        if len(shapes)
+        else np.zeros(0, np.int64)
+    )
+    ao = grid_shape(ao_samples) if ao_samples else (1, 1)
+    return LightPlan(
+        base,
+        np.array([s[0] for s in shapes], np.int64),
+        np.array([s[1] for s in shapes], np.int64),
+        int(lights.area_samples.sum()),
+        ao[0],
+        ao[1],
+        ao_samples,
+        float(ao_distance),
+    )
+
+
+@nb.njit(cache=True, inline="always")
+def _spawn(origins, directions, far, j, position, ng, offset, i, tx, ty, tz, shorten):
+    """Ray j from hit i towards (tx, ty, tz), starting on the side of the geometric normal."""
+    off = offset[i]
+    ox = position[i, 0] + ng[i, 0] * off
+    oy = position[i, 1] + ng[i, 1] * off
+    oz = position[i, 2] + ng[i, 2] * off
+    dx, dy, dz = tx - ox, ty - oy, tz - oz
+    dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+    inv = 1.0 / dist if dist > 0.0 else 0.0
+    origins[j, 0], origins[j, 1], origins[j, 2] = ox, oy, oz
+    directions[j, 0], directions[j, 1], directions[j, 2] = dx * inv, dy * inv, dz * inv
+    far[j] = dist * shorten if dist > 0.0 else -1.0
+
+
+@nb.njit(cache=True, inline="always")
+def _inactive(origins, directions, far, j):
+    origins[j, 0] = origins[j, 1] = origins[j, 2] = 0.0
+    directions[j, 0] = directions[j, 1] = 0.0
+    directions[j, 2] = 1.0
+    far[j] = -1.0
+
+
+@nb.njit(cache=True)
+def _light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
+    l_pos, a_corner, a_u, a_v, a_normal, a_samples = (
+        lights.point_position,
+        lights.area_corner,
+        lights.area_u,
+        lights.area_v,
+        lights.area_normal,
+        lights.area_samples,
+    )
+    a_base, a_nx, a_ny, a_total = plan.area_base, plan.area_nx, plan.area_ny, plan.area_total
+    ao_n, ao_nx, ao_ny, ao_dist = plan.ao_samples, plan.ao_nx, plan.ao_ny, plan.ao_distance
+    hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
+    p_org, p_dir, p_far = point
+    a_org, a_dir, a_far = area
+    o_org, o_dir, o_far = ao
+    n_point = l_pos.shape[0]
+    for i in range(start, stop):
+        hit = hits[i]
+        px, py, pz = position[i, 0], position[i, 1], position[i, 2]
+        gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
+        for l in range(n_point):
+            j = i * n_point + l
+            lx, ly, lz = l_pos[l, 0], l_pos[l, 1], l_pos[l, 2]
+            if hit and (lx - px) * gx + (ly - py) * gy + (lz - pz) * gz > 0.0:
+                _spawn(p_org, p_dir, p_far, j, position, ng, offset, i, lx, ly, lz, 1.0)
+            else:
+                _inactive(p_org, p_dir, p_far, j)
+        for a in range(a_base.shape[0]):
+            for k in range(a_samples[a]):
+                j = i * a_total + a_base[a] + k
+                if not hit:
+                    _inactive(a_org, a_dir, a_far, j)
+                    continue
+                s, t = stratified(keys[i], k, DIM_AREA + a, a_nx[a], a_ny[a])
+                qx = a_corner[a, 0] + s * a_u[a, 0] + t * a_v[a, 0]
+                qy = a_corner[a, 1] + s * a_u[a, 1] + t * a_v[a, 1]
+                qz = a_corner[a, 2] + s * a_u[a, 2] + t * a_v[a, 2]
+                lx, ly, lz = qx - px, qy - py, qz - pz
+                facing_light = lx * gx + ly * gy + lz * gz > 0.0
+                emits = lx * a_normal[a, 0] + ly * a_normal[a, 1] + lz * a_normal[a, 2] < 0.0
+                if facing_light and emits:
+                    _spawn(a_org, a_dir, a_far, j, position, ng, offset, i, qx, qy, qz, AREA_SHORTEN)
+                else:
+                    _inactive(a_org, a_dir, a_far, j)
+        for k in range(ao_n):
+            j = i * ao_n + k
+            if not hit:
+                _inactive(o_org, o_dir, o_far, j)
+                continue
+            s, t = stratified(keys[i], k, DIM_AO, ao_nx, ao_ny)
+            dx, dy, dz = cosine_hemisphere(gx, gy, gz, s, t)
+            _spawn(o_org, o_dir, o_far, j, position, ng, offset, i, px + dx, py + dy, pz + dz, 0.0)
+            o_far[j] = ao_dist
+
+
+@nb.njit(parallel=True, cache=True)
+def light_rays_kernel(lights, plan, surf, keys, point, area, ao):
+    """Point-light, area-light and AO rays of every hit: hit i owns a fixed block of each batch."""
+    n = surf.hit.shape[0]
+    for b in nb.prange((n + BLOCK - 1) // BLOCK):
+        _light_rays_block(lights, plan, surf, keys, point, area, ao, b * BLOCK, min(n, (b + 1) * BLOCK))
+
+
+@nb.njit(cache=True, inline="always")
+def _phong(ns, albedo, i, wlocal, ks, shininess, vx, vy, vz, lx, ly, lz, er, eg, eb):
+    """Lambert + Phong (rgb) at hit i, viewer along -v, lit from unit direction l with irradiance e."""
+    nx, ny, nz = ns[i, 0], ns[i, 1], ns[i, 2]
+    cos = nx * lx + ny * ly + nz * lz
+    if cos <= 0.0:
+        return 0.0, 0.0, 0.0
+    spec = 0.0
+    if ks > 0.0:
+        # Phong: reflect l about n, compare with the direction back to the viewer (-v)
+        rv = -((2.0 * cos * nx - lx) * vx + (2.0 * cos * ny - ly) * vy + (2.0 * cos * nz - lz) * vz)
+        if rv > 0.0:
+            spec = ks * rv**shininess
+    return (
+        er * (wlocal * albedo[i, 0] * cos + spec),
+        eg * (wlocal * albedo[i, 1] * cos + spec),
+        eb * (wlocal * albedo[i, 2] * cos + spec),
+    )
+
+
+@nb.njit(cache=True)
+def _shade_block(
+    lights,
+    plan,
+    mats,
+    surf,
+    dirs_in,
+    ambient,
+    background,
+    point,
+    point_occ,
+    area,
+    area_occ,
+    ao_occ,
+    local,
+    shadow_count,
+    start,
+    stop,
+):
+    l_int, a_normal, a_size, a_rad, a_samples = (
+        lights.point_intensity,
+        lights.area_normal,
+        lights.area_size,
+        lights.area_radiance,
+        lights.area_samples,
+    )
+    a_base, a_total, ao_n = plan.area_base, plan.area_total, plan.ao_samples
+    refl, trans, spec_k, shin, emission = (
+        mats.reflectance,
+        mats.transmittance,
+        mats.specular,
+        mats.shininess,
+        mats.emission,
+    )
+    hits, ns, albedo, material = surf.hit, surf.normal_shading, surf.albedo, surf.material
+    p_dir, p_far = point.directions, point.tfar
+    a_dir, a_far = area.directions, area.tfar
+    n_point = l_int.shape[0]
+    for i in range(start, stop):
+        if not hits[i]:
+            for c in range(3):
+                local[i, c] = background[c]
+            shadow_count[i] = 0
+            continue
+        k = material[i]
+        wlocal = 1.0 - refl[k] - trans[k]
+        ks, sh = spec_k[k], shin[k]
+        vx, vy, vz = dirs_in[i, 0], dirs_in[i, 1], dirs_in[i, 2]
+        ar = ag = ab = 0.0
+        shadowed = 0
+        for l in range(n_point):
+            j = i * n_point + l
+            if p_far[j] <= 0.0:
+                continue
+            if point_occ[j]:
+                shadowed += 1
+                continue
+            inv_r2 = 1.0 / (p_far[j] * p_far[j])
+            cr, cg, cb = _phong(
+                ns,
+                albedo,
+                i,
+                wlocal,
+                ks,
+                sh,
+                vx,
+                vy,
+                vz,
+                p_dir[j, 0],
+                p_dir[j, 1],
+                p_dir[j, 2],
+                l_int[l, 0] * inv_r2,
+                l_int[l, 1] * inv_r2,
+                l_int[l, 2] * inv_r2,
+            )
+            ar, ag, ab = ar + cr, ag + cg, ab + cb
+        for a in range(a_base.shape[0]):
+            n_s = a_samples[a]
+            for s in range(n_s):
+                j = i * a_total + a_base[a] + s
+                if a_far[j] <= 0.0:
+                    continue
+                if area_occ[j]:
+                    shadowed += 1
+                    continue
+                lx, ly, lz = a_dir[j, 0], a_dir[j, 1], a_dir[j, 2]
+                cos_l = -(lx * a_normal[a, 0] + ly * a_normal[a, 1] + lz * a_normal[a, 2])
+                r = a_far[j] / AREA_SHORTEN
+                scale = cos_l * a_size[a] / (r * r * n_s)
+                cr, cg, cb = _phong(
+                    ns,
+                    albedo,
+                    i,
+                    wlocal,
+                    ks,
+                    sh,
+                    vx,
+                    vy,
+                    vz,
+                    lx,
+                    ly,
+                    lz,
+                    a_rad[a, 0] * scale,
+                    a_rad[a, 1] * scale,
+                    a_rad[a, 2] * scale,
+                )
+                ar, ag, ab = ar + cr, ag + cg, ab + cb
+        open_sky = 1.0
+        if ao_n > 0:
+            blocked = 0
+            for s in range(ao_n):
+                if ao_occ[i * ao_n + s]:
+                    blocked += 1
+            open_sky = 1.0 - blocked / ao_n
+        local[i, 0] = emission[k, 0] + ar + wlocal * ambient[0] * albedo[i, 0] * open_sky
+        local[i, 1] = emission[k, 1] + ag + wlocal * ambient[1] * albedo[i, 1] * open_sky
+        local[i, 2] = emission[k, 2] + ab + wlocal * ambient[2] * albedo[i, 2] * open_sky
+        shadow_count[i] = shadowed
+
+
+@nb.njit(parallel=True, cache=True)
+def shade_kernel(
+    lights,
+    plan,
+    mats,
+    surf,
+    dirs_in,
+    ambient,
+    background,
+    point,
+    point_occ,
+    area,
+    area_occ,
+    ao_occ,
+    local,
+    shadow_count,
+):
+    """Local radiance (n, 3) at each hit, background on misses, and each hit's count of shadowed light samples."""
+    n = surf.hit.shape[0]
+    for b in nb.prange((n + BLOCK - 1) // BLOCK):
+        _shade_block(
+            lights,
+            plan,
+            mats,
+            surf,
+            dirs_in,
+            ambient,
+            background,
+            point,
+            point_occ,
+            area,
+            area_occ,
+            ao_occ,
+            local,
+            shadow_count,
+            b * BLOCK,
+            min(n, (b + 1) * BLOCK),
+        )

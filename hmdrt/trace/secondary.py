@@ -1,0 +1,198 @@
+"""Secondary rays of Whitted ray tracing: mirror reflection and Fresnel-weighted refraction.
+
+Children are written compactly (count, prefix sum, write) since only reflective or refractive hits
+spawn them. A child carries throughput = parent throughput x its weight, and the weights of a hit's
+children sum to at most 1 (trace.bsdf.split), so energy never rises through a bounce.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numba as nb
+import numpy as np
+
+from hmdrt.rng import hash32
+from hmdrt.trace.blocks import BLOCK
+from hmdrt.trace.bsdf import reflect, refract, split
+
+MIN_THROUGHPUT = 1e-4  # children whose every channel would carry less than this are not traced
+
+
+class Rays(NamedTuple):
+    """A wavefront of rays and what they carry back to their pixel sample."""
+
+    origins: np.ndarray  # (n, 3) float32
+    directions: np.ndarray  # (n, 3) float32
+    throughput: np.ndarray  # (n, 3) float32
+    owner: np.ndarray  # (n,) int64 index of the sample the ray belongs to
+    key: np.ndarray  # (n,) int64 random stream of the ray
+    principal: np.ndarray  # (n,) bool: the heavier child of its parent (the "first secondary hit")
+
+    @classmethod
+    def empty(cls, n: int) -> Rays:
+        return cls(
+            np.empty((n, 3), np.float32),
+            np.empty((n, 3), np.float32),
+            np.empty((n, 3), np.float32),
+            np.empty(n, np.int64),
+            np.empty(n, np.int64),
+            np.empty(n, bool),
+        )
+
+
+@nb.njit(cache=True)
+def _interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, start, stop):
+    refl, trans, ior = mats.reflectance, mats.transmittance, mats.ior
+    hits, ns, entering, material = surf.hit, surf.normal_shading, surf.entering, surf.material
+    dirs, thr = rays.directions, rays.throughput
+    for i in range(start, stop):
+        kr_out[i] = kt_out[i] = 0.0
+        counts[i] = 0
+        if not hits[i]:
+            continue
+        k = material[i]
+        if refl[k] <= 0.0 and trans[k] <= 0.0:
+            continue
+        cos_i = -(dirs[i, 0] * ns[i, 0] + dirs[i, 1] * ns[i, 1] + dirs[i, 2] * ns[i, 2])
+        kr, kt = split(refl[k], trans[k], cos_i, 1.0 / ior[k] if entering[i] else ior[k])
+        kr_out[i], kt_out[i] = kr, kt
+        if spawn:
+            peak = max(thr[i, 0], thr[i, 1], thr[i, 2])
+            counts[i] = int(kr * peak > MIN_THROUGHPUT) + int(kt * peak > MIN_THROUGHPUT)
+
+
+@nb.njit(parallel=True, cache=True)
+def interaction_kernel(mats, surf, rays, spawn, kr_out, kt_out, counts):
+    """Weights of the reflected and refracted rays at every hit, and how many children each spawns."""
+    n = surf.hit.shape[0]
+    for b in nb.prange((n + BLOCK - 1) // BLOCK):
+        _interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, b * BLOCK, min(n, (b + 1) * BLOCK))
+
+
+@nb.njit(cache=True, inline="always")
+def _child(
+    origins,
+    directions,
+    throughput,
+    owner,
+    keys,
+    principal,
+    j,
+    position,
+    ng,
+    off,
+    parent_thr,
+    parent_owner,
+    i,
+    tx,
+    ty,
+    tz,
+    weight,
+    key,
+    is_principal,
+):
+    for c in range(3):
+        origins[j, c] = position[i, c] + ng[i, c] * off
+        throughput[j, c] = parent_thr[i, c] * weight
+    directions[j, 0], directions[j, 1], directions[j, 2] = tx, ty, tz
+    owner[j] = parent_owner[i]
+    keys[j] = key
+    principal[j] = is_principal
+
+
+@nb.njit(cache=True)
+def _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, start, stop):
+    ior = mats.ior
+    position, ng, ns, entering, material, offset = (
+        surf.position,
+        surf.normal_geometric,
+        surf.normal_shading,
+        surf.entering,
+        surf.material,
+        surf.offset,
+    )
+    dirs, thr, owner, keys = rays.directions, rays.throughput, rays.owner, rays.key
+    o_org, o_dir, o_thr, o_owner, o_key, o_principal = out
+    for i in range(start, stop):
+        kr, kt = kr_in[i], kt_in[i]
+        peak = max(thr[i, 0], thr[i, 1], thr[i, 2])
+        want_r, want_t = kr * peak > MIN_THROUGHPUT, kt * peak > MIN_THROUGHPUT
+        if not (want_r or want_t):
+            continue
+        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
+        nx, ny, nz = ns[i, 0], ns[i, 1], ns[i, 2]
+        j = first[i]
+        principal_is_reflection = kr >= kt
+        if want_r:
+            rx, ry, rz = reflect(dx, dy, dz, nx, ny, nz)
+            if rx * gx + ry * gy + rz * gz <= 0.0:  # the shading normal sent it below the surface
+                rx, ry, rz = reflect(dx, dy, dz, gx, gy, gz)
+            _child(
+                o_org,
+                o_dir,
+                o_thr,
+                o_owner,
+                o_key,
+                o_principal,
+                j,
+                position,
+                ng,
+                offset[i],
+                thr,
+                owner,
+                i,
+                rx,
+                ry,
+                rz,
+                kr,
+                hash32(keys[i], depth, 1),
+                principal_is_reflection,
+            )
+            j += 1
+        if want_t:
+            eta = 1.0 / ior[material[i]] if entering[i] else ior[material[i]]
+            ok, tx, ty, tz = refract(dx, dy, dz, nx, ny, nz, eta)
+            if not ok or tx * gx + ty * gy + tz * gz >= 0.0:
+                ok, tx, ty, tz = refract(dx, dy, dz, gx, gy, gz, eta)
+            if not ok:  # the shading and geometric normals disagree on TIR: send the share straight on
+                tx, ty, tz = dx, dy, dz
+            _child(
+                o_org,
+                o_dir,
+                o_thr,
+                o_owner,
+                o_key,
+                o_principal,
+                j,
+                position,
+                ng,
+                -offset[i],
+                thr,
+                owner,
+                i,
+                tx,
+                ty,
+                tz,
+                kt,
+                hash32(keys[i], depth, 2),
+                not principal_is_reflection,
+            )
+
+
+@nb.njit(parallel=True, cache=True)
+def spawn_kernel(mats, surf, rays, kr_in, kt_in, first, depth, out):
+    """Write the children of every hit at out[first[i]:] (reflection first, then refraction)."""
+    n = surf.hit.shape[0]
+    for b in nb.prange((n + BLOCK - 1) // BLOCK):
+        _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, b * BLOCK, min(n, (b + 1) * BLOCK))
+
+
+@nb.njit(cache=True)
+def accumulate_kernel(radiance, rays, local):
+    """radiance[owner] += throughput * local, serially (several rays may share an owner)."""
+    for i in range(rays.owner.shape[0]):
+        o = rays.owner[i]
+        for c in range(3):
+            radiance[o, c] += rays.throughput[i, c] * local[i, c]

@@ -1,0 +1,164 @@
+"""The Embree tracer: hit distances, differential agreement with trimesh, robustness and self-intersection."""
+
+import numpy as np
+import pytest
+
+from hmdrt.optics import EyeCamera, get_profile
+from hmdrt.optics.camera import pixel_centres
+from hmdrt.scene import Scene
+from hmdrt.scene.builtin import bunny
+from hmdrt.scene.model import Material, Mesh, PointLight
+from hmdrt.scene.pack import pack
+from hmdrt.scene.shapes import quad, sphere
+from hmdrt.spatial import Pose
+from hmdrt.trace.tracer import Tracer
+
+from .helpers import render, trace_gbuffer
+
+
+def _tracer(meshes) -> Tracer:
+    mats = {"m": Material()}
+    return Tracer(pack(Scene("t", meshes, mats)).geometry)
+
+
+def test_sphere_hit_distance_matches_the_analytic_value():
+    centre, radius = np.array([0.3, -0.2, -5.0]), 1.25
+    mesh = sphere("s", centre, radius, "m", subdivisions=6)
+    # the tessellation lies between the circumscribed sphere and the sphere through its face planes
+    tri = mesh.vertices[mesh.faces]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    inner = np.min(np.einsum("ij,ij->i", tri[:, 0] - centre, normals))
+    rng = np.random.default_rng(3)
+    offsets = rng.normal(size=(500, 3))
+    offsets *= 0.8 * radius * rng.random((500, 1)) ** (1 / 3) / np.linalg.norm(offsets, axis=1, keepdims=True)
+    target = centre + offsets  # inside the sphere, so every ray hits
+    dirs = (target / np.linalg.norm(target, axis=1, keepdims=True)).astype(np.float32)
+    origins = np.zeros_like(dirs)
+    with _tracer([mesh]) as tr:
+        hits = tr.intersect(origins, dirs)
+
+    def analytic(r):
+        b = dirs @ centre
+        return b - np.sqrt(b * b - (centre @ centre - r * r))
+
+    assert np.all(hits.prim >= 0)
+    assert np.all(hits.t >= analytic(radius) - 1e-5)
+    assert np.all(hits.t <= analytic(inner) + 1e-5)
+    assert np.max(np.abs(hits.t - analytic(radius))) < 2e-3
+
+
+def _brute_force_first_hit(vertices, faces, origins, dirs):
+    """Moller-Trumbore against every triangle in float64: the slow, independent oracle."""
+    tri = vertices[faces]
+    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    first = np.full(len(origins), -1)
+    for r, (o, d) in enumerate(zip(origins.astype(np.float64), dirs.astype(np.float64), strict=True)):
+        p = np.cross(d, e2)
+        det = np.einsum("ij,ij->i", e1, p)
+        ok = np.abs(det) > 1e-12
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = o - v0
+        u = np.einsum("ij,ij->i", s, p) * inv
+        q = np.cross(s, e1)
+        v = (q @ d) * inv
+        t = np.einsum("ij,ij->i", e2, q) * inv
+        valid = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
+        if valid.any():
+            first[r] = np.flatnonzero(valid)[np.argmin(t[valid])]
+    return first
+
+
+def test_embree_agrees_with_a_brute_force_intersector():
+    mesh = bunny().meshes[0]
+    mesh.material = "m"
+    cam = EyeCamera.for_eye(
+        get_profile("sim-cpu").with_resolution(40, 40), Pose.look_at((0, 0.45, -2.0), (0, 0.45, -2.6))
+    )
+    dirs = cam.directions(pixel_centres(40, 40))
+    origins = np.tile(cam.position.astype(np.float32), (len(dirs), 1))
+    with _tracer([mesh]) as tr:
+        ours = tr.intersect(origins, dirs)
+    theirs = _brute_force_first_hit(mesh.vertices, mesh.faces, origins, dirs)
+    hit = theirs >= 0
+    assert 0.2 < hit.mean() < 0.9  # the view sees both bunny and background
+    assert np.mean((ours.prim >= 0) == hit) > 0.995
+    both = hit & (ours.prim >= 0)
+    assert np.mean(ours.prim[both] == theirs[both]) > 0.99
+
+
+def test_degenerate_triangles_and_grazing_rays_give_no_nan():
+    v = np.array([[0, 0, -2], [1, 0, -2], [2, 0, -2], [0, 1, -2], [0, 1, -2], [0, 1, -2]], float)
+    degenerate = Mesh("deg", v, np.array([[0, 1, 2], [3, 4, 5]]), "m")  # a line and a point
+    floor = quad("floor", (-5, -1, 5), (10, 0, 0), (0, 0, -10), "m")
+    mats = {"m": Material(specular=0.5, reflectance=0.3, transmittance=0.3)}
+    scene = Scene("deg", [degenerate, floor], mats, [PointLight(position=(0, 3, 0), intensity=(5, 5, 5))])
+    cam = EyeCamera.for_eye(
+        get_profile("sim-cpu").with_resolution(32, 32), Pose.looking((0, -1.0, 0))
+    )  # eye level with the floor
+    xy = pixel_centres(32, 32)
+    rgb, gbuf, _ = trace_gbuffer(scene, cam, xy)
+    assert np.all(np.isfinite(rgb))
+    assert np.all(np.isfinite(gbuf.primary.normal_shading))
+
+
+def test_empty_scene_traces_to_background():
+    scene = Scene("empty", [], {"m": Material()}, background=(0.2, 0.3, 0.4))
+    image, stats = render(scene, 8, 8)
+    np.testing.assert_allclose(image.reshape(-1, 3), np.tile([0.2, 0.3, 0.4], (64, 1)), rtol=1e-6)
+    assert stats.rays["shadow"] == 0
+
+
+def _lit_plane(scale: float) -> Scene:
+    """A plane under a point light, everything scaled by `scale`; no surface can shadow itself."""
+    plane = quad("plane", (-10 * scale, 0, 10 * scale), (20 * scale, 0, 0), (0, 0, -20 * scale), "m")
+    ball = sphere("ball", (0.0, 1.0 * scale, -4.0 * scale), 0.5 * scale, "mirror", subdivisions=4)
+    mats = {"m": Material(diffuse=(0.7, 0.7, 0.7)), "mirror": Material(reflectance=0.9, diffuse=(0, 0, 0))}
+    light = PointLight(position=(1.0 * scale, 5.0 * scale, 1.0 * scale), intensity=(25.0 * scale**2,) * 3)
+    return Scene(
+        "plane",
+        [plane, ball],
+        mats,
+        [light],
+        background=(0.3, 0.5, 0.8),
+        start=Pose.looking((0.0, 1.5 * scale, 2.0 * scale), 0.0, -25.0),
+    )
+
+
+@pytest.mark.parametrize("scale", [1e-4, 1e4])
+def test_self_intersection_offsets_hold_across_scales(scale):
+    reference, _ = render(_lit_plane(1.0), 48, 48, ipd_mm=0.0)
+    scaled, _ = render(_lit_plane(scale), 48, 48, ipd_mm=0.0)
+    np.testing.assert_allclose(scaled, reference, atol=2e-3)
+
+
+def test_a_lit_plane_has_no_shadow_acne():
+    scene = _lit_plane(1.0)
+    scene.meshes = scene.meshes[:1]  # the plane alone: nothing can shadow it
+    cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(64, 64), scene.start)
+    _, gbuf, stats = trace_gbuffer(scene, cam, pixel_centres(64, 64))
+    on_plane = gbuf.primary.object_id == 0
+    assert on_plane.sum() > 1000
+    assert stats.rays["shadow"] == on_plane.sum()
+    assert np.all(gbuf.primary.shadow_count[on_plane] == 0)
+
+
+def test_intersect_validates_its_input():
+    with _tracer([quad("q", (0, 0, 0), (1, 0, 0), (0, 1, 0), "m")]) as tr:
+        with pytest.raises(TypeError):
+            tr.intersect(np.zeros((2, 3)), np.zeros((2, 3)))
+        with pytest.raises(ValueError):
+            tr.intersect(np.zeros((2, 3), np.float32), np.zeros((3, 3), np.float32))
+        assert len(tr.intersect(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)).prim) == 0
+
+
+def test_tiles_on_the_thread_pool_give_the_same_hits_as_one_call():
+    scene = bunny()
+    geometry = pack(scene).geometry
+    cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(96, 96), scene.start)
+    dirs = cam.directions(pixel_centres(96, 96))
+    origins = np.tile(cam.position.astype(np.float32), (len(dirs), 1))
+    with Tracer(geometry, threads=1, tile_rays=1 << 30) as one, Tracer(geometry, threads=2, tile_rays=1024) as many:
+        a, b = one.intersect(origins, dirs), many.intersect(origins, dirs)
+    np.testing.assert_array_equal(a.prim, b.prim)
+    np.testing.assert_array_equal(a.t, b.t)
