@@ -53,7 +53,7 @@ def main() -> None:
     threads = os.cpu_count() or 1
     pool = ThreadPoolExecutor(threads)
     tracer = Tracer(geometry)
-    tiles = tracer._tiles(n)
+    tiles = tracer.tiles(n)
 
     def run_bare() -> None:
         bare.run(origins, dirs, output=1)

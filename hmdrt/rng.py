@@ -2,7 +2,6 @@
 batching, threading or evaluation order (DESIGN.md: a seeded run reproduces bit for bit)."""
 
 import numba as nb
-import numpy as np
 
 _MASK = 0xFFFFFFFF
 
@@ -26,16 +25,3 @@ def hash32(a: int, b: int, c: int) -> int:
 def uniform(a: int, b: int, c: int) -> float:
     """A float in [0, 1) determined by (a, b, c)."""
     return hash32(a, b, c) * (1.0 / 4294967296.0)
-
-
-@nb.njit(parallel=True, cache=True)
-def _uniform_array(keys, b, c, out):
-    for i in nb.prange(keys.shape[0]):
-        out[i] = uniform(keys[i], b, c)
-
-
-def uniform_array(keys: np.ndarray, b: int, c: int) -> np.ndarray:
-    """uniform(keys[i], b, c) for every key, float64 (n,)."""
-    out = np.empty(len(keys), dtype=np.float64)
-    _uniform_array(np.ascontiguousarray(keys, dtype=np.int64), b, c, out)
-    return out

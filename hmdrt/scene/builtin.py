@@ -50,8 +50,10 @@ def whitted() -> Scene:
     )
 
 
-def _tunnel_lights(length: float, count: int, intensity: float) -> list[PointLight]:
-    return [PointLight(position=(0.0, 0.6, -z), intensity=(intensity,) * 3) for z in np.linspace(4, length - 10, count)]
+def _tunnel_scene(name: str, meshes: list[Mesh], mats: dict[str, Material], length: float) -> Scene:
+    """A tunnel along -Z lit by five point lights on its axis, seen from its mouth."""
+    lights = [PointLight(position=(0.0, 0.6, -z), intensity=(2.5,) * 3) for z in np.linspace(4, length - 10, 5)]
+    return Scene(name, meshes, mats, lights, ambient=(0.06, 0.06, 0.06), start=Pose.looking((0.0, -0.4, 0.0)))
 
 
 def tunnel_maps(length: float = 60.0, section: float = 6.0) -> Scene:
@@ -77,14 +79,7 @@ def tunnel_maps(length: float = 60.0, section: float = 6.0) -> Scene:
         )
         for i in range(n_sections)
     ]
-    return Scene(
-        "tunnel_maps",
-        meshes,
-        mats,
-        _tunnel_lights(length, 5, 2.5),
-        ambient=(0.06, 0.06, 0.06),
-        start=Pose.looking((0.0, -0.4, 0.0)),
-    )
+    return _tunnel_scene("tunnel_maps", meshes, mats, length)
 
 
 def tunnel_geom(length: float = 60.0, detail: int = 1) -> Scene:
@@ -98,14 +93,7 @@ def tunnel_geom(length: float = 60.0, detail: int = 1) -> Scene:
 
     segments, rings = 256 * detail, int(10 * length) * detail
     meshes = [shapes.tunnel("wall", radius, length, "rock", segments, rings, radius_fn=bumpy, z0=2.0)]
-    return Scene(
-        "tunnel_geom",
-        meshes,
-        mats,
-        _tunnel_lights(length, 5, 2.5),
-        ambient=(0.06, 0.06, 0.06),
-        start=Pose.looking((0.0, -0.4, 0.0)),
-    )
+    return _tunnel_scene("tunnel_geom", meshes, mats, length)
 
 
 def voxel_city(size: int = 24, seed: int = 1) -> Scene:

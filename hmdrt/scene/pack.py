@@ -65,7 +65,6 @@ class PackedScene(NamedTuple):
     geometry: Geometry
     materials: Materials
     lights: Lights
-    material_names: tuple[str, ...]
     has_textures: np.ndarray  # (k,) bool, per material (the G-buffer's texture flag)
 
 
@@ -116,66 +115,74 @@ def _geometry(scene: Scene, material_index: dict[str, int]) -> Geometry:
     )
 
 
-def _materials(scene: Scene) -> Materials:
-    mats = list(scene.materials.values())
-    k = len(mats)
-    col = lambda f: np.array([f(m) for m in mats], dtype=np.float32).reshape(k, 3)  # noqa: E731
-    num = lambda f, t=np.float32: np.array([f(m) for m in mats], dtype=t).reshape(k)  # noqa: E731
-    kinds = {type(None): TEX_NONE, Checker: TEX_CHECKER, Noise: TEX_NOISE, Image: TEX_IMAGE}
+def _column(items: list, get, dtype=np.float32, width: int | None = None) -> np.ndarray:
+    """One field of every item as an array of shape (len(items),) or (len(items), width)."""
+    shape = (len(items),) if width is None else (len(items), width)
+    return np.array([get(x) for x in items], dtype=dtype).reshape(shape)
+
+
+def _texture_field(material, attr: str, default):
+    return getattr(material.texture, attr, default)
+
+
+def _texture_images(scene: Scene, mats: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Image textures concatenated into one texel array, with each material's offset, height and width."""
     offsets, heights, widths, chunks, total = [], [], [], [], 0
     for m in mats:
+        img = None
         if isinstance(m.texture, Image):
             if m.texture.image not in scene.images:
                 raise SceneError(f"texture image {m.texture.image!r} is not loaded")
             img = np.asarray(scene.images[m.texture.image], dtype=np.float32)
-            offsets.append(total)
-            heights.append(img.shape[0])
-            widths.append(img.shape[1])
             chunks.append(img.reshape(-1, 3))
-            total += img.shape[0] * img.shape[1]
-        else:
-            offsets.append(0)
-            heights.append(0)
-            widths.append(0)
-    tex = lambda attr, default: lambda m: getattr(m.texture, attr, default)  # noqa: E731
+        offsets.append(total)
+        heights.append(0 if img is None else img.shape[0])
+        widths.append(0 if img is None else img.shape[1])
+        total += heights[-1] * widths[-1]
+    texels = np.concatenate(chunks) if chunks else np.zeros((1, 3), dtype=np.float32)
+    return np.array(offsets, np.int64), np.array(heights, np.int32), np.array(widths, np.int32), texels
+
+
+def _materials(scene: Scene) -> Materials:
+    mats = list(scene.materials.values())
+    kinds = {type(None): TEX_NONE, Checker: TEX_CHECKER, Noise: TEX_NOISE, Image: TEX_IMAGE}
+    no_colors = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
     return Materials(
-        col(lambda m: m.diffuse),
-        num(lambda m: m.specular),
-        num(lambda m: m.shininess),
-        num(lambda m: m.reflectance),
-        num(lambda m: m.transmittance),
-        num(lambda m: m.ior),
-        col(lambda m: m.emission),
-        num(lambda m: kinds[type(m.texture)], np.int32),
-        num(lambda m: getattr(m.texture, "mapping", "uv") == "world", bool),
-        num(tex("scale", 1.0)),
-        col(lambda m: tex("colors", ((0, 0, 0), (0, 0, 0)))(m)[0]),
-        col(lambda m: tex("colors", ((0, 0, 0), (0, 0, 0)))(m)[1]),
-        num(tex("octaves", 1), np.int32),
-        num(tex("seed", 0), np.int32),
-        np.array(offsets, dtype=np.int64),
-        np.array(heights, dtype=np.int32),
-        np.array(widths, dtype=np.int32),
-        np.concatenate(chunks) if chunks else np.zeros((1, 3), dtype=np.float32),
+        _column(mats, lambda m: m.diffuse, width=3),
+        _column(mats, lambda m: m.specular),
+        _column(mats, lambda m: m.shininess),
+        _column(mats, lambda m: m.reflectance),
+        _column(mats, lambda m: m.transmittance),
+        _column(mats, lambda m: m.ior),
+        _column(mats, lambda m: m.emission, width=3),
+        _column(mats, lambda m: kinds[type(m.texture)], np.int32),
+        _column(mats, lambda m: _texture_field(m, "mapping", "uv") == "world", bool),
+        _column(mats, lambda m: _texture_field(m, "scale", 1.0)),
+        _column(mats, lambda m: _texture_field(m, "colors", no_colors)[0], width=3),
+        _column(mats, lambda m: _texture_field(m, "colors", no_colors)[1], width=3),
+        _column(mats, lambda m: _texture_field(m, "octaves", 1), np.int32),
+        _column(mats, lambda m: _texture_field(m, "seed", 0), np.int32),
+        *_texture_images(scene, mats),
     )
 
 
 def _lights(scene: Scene) -> Lights:
     points = [l for l in scene.lights if isinstance(l, PointLight)]
     areas = [l for l in scene.lights if isinstance(l, AreaLight)]
-    arr = lambda xs, f: np.array([f(x) for x in xs], dtype=np.float64).reshape(len(xs), 3)  # noqa: E731
-    cross = np.cross(arr(areas, lambda a: a.edge_u), arr(areas, lambda a: a.edge_v)).reshape(len(areas), 3)
+    edge_u = _column(areas, lambda a: a.edge_u, np.float64, 3)
+    edge_v = _column(areas, lambda a: a.edge_v, np.float64, 3)
+    cross = np.cross(edge_u, edge_v).reshape(len(areas), 3)
     size = np.linalg.norm(cross, axis=1)
     return Lights(
-        arr(points, lambda p: p.position),
-        arr(points, lambda p: p.intensity),
-        arr(areas, lambda a: a.corner),
-        arr(areas, lambda a: a.edge_u),
-        arr(areas, lambda a: a.edge_v),
+        _column(points, lambda p: p.position, np.float64, 3),
+        _column(points, lambda p: p.intensity, np.float64, 3),
+        _column(areas, lambda a: a.corner, np.float64, 3),
+        edge_u,
+        edge_v,
         cross / np.maximum(size, 1e-300)[:, None],
         size,
-        arr(areas, lambda a: a.radiance),
-        np.array([a.samples for a in areas], dtype=np.int32),
+        _column(areas, lambda a: a.radiance, np.float64, 3),
+        _column(areas, lambda a: a.samples, np.int32),
     )
 
 
@@ -183,4 +190,4 @@ def pack(scene: Scene) -> PackedScene:
     """Flat arrays of one scene; raises SceneError on references or data that cannot be traced."""
     index = {name: i for i, name in enumerate(scene.materials)}
     mats = _materials(scene)
-    return PackedScene(_geometry(scene, index), mats, _lights(scene), tuple(scene.materials), mats.tex_kind != TEX_NONE)
+    return PackedScene(_geometry(scene, index), mats, _lights(scene), mats.tex_kind != TEX_NONE)

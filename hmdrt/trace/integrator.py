@@ -27,13 +27,11 @@ class Whitted:
     """Shades camera samples of one scene; build once, call trace_samples per frame."""
 
     def __init__(self, scene: Scene, threads: int | None = None):
-        self.scene = scene
         self.packed = pack(scene)
         self.tracer = Tracer(self.packed.geometry, threads)
-        self.plan = light_plan(self.packed.lights, scene.ao_samples, scene.ao_distance)
+        self.plan = light_plan(self.packed.lights, scene)
         self.max_depth = scene.max_depth
-        self.ambient = np.asarray(scene.ambient, dtype=np.float64)
-        self.background = np.asarray(scene.background, dtype=np.float64)
+        self.secondary = scene.has_secondary
         self.n_point = len(self.packed.lights.point_position)
         per_hit = 1 + self.n_point + self.plan.area_total + self.plan.ao_samples
         self.chunk = max(4096, RAYS_PER_CHUNK // per_hit)
@@ -95,7 +93,7 @@ class Whitted:
                     radiance += local
                 else:
                     accumulate_kernel(radiance, rays, local)
-            spawn = depth < self.max_depth and self.scene.has_secondary
+            spawn = depth < self.max_depth and self.secondary
             if spawn or gbuffer is not None and depth <= 1:
                 with stats.stage("secondary" if spawn else "gbuffer"):
                     kr, kt, counts = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.int64)
@@ -116,37 +114,19 @@ class Whitted:
     def _shade(self, surf, rays: Rays, stats: FrameStats) -> tuple[np.ndarray, np.ndarray]:
         """Local radiance of every hit (background on misses) and its count of shadowed light samples."""
         n = len(surf.hit)
-        point = RayBatch.empty(n * self.n_point)
-        area = RayBatch.empty(n * self.plan.area_total)
-        ao = RayBatch.empty(n * self.plan.ao_samples)
-        if len(point.tfar) + len(area.tfar) + len(ao.tfar):
+        per_hit = (self.n_point, self.plan.area_total, self.plan.ao_samples)
+        point, area, ao = (RayBatch.empty(n * k) for k in per_hit)
+        if sum(per_hit):
             with stats.stage("lightgen"):
                 light_rays_kernel(self.packed.lights, self.plan, surf, rays.key, point, area, ao)
-        occluded = {}
         for kind, batch in (("shadow", point), ("area", area), ("ao", ao)):
             if len(batch.tfar):
                 with stats.stage(kind):
-                    occluded[kind] = self.tracer.occluded(batch.origins, batch.directions, batch.tfar)
+                    batch.occluded[:] = self.tracer.occluded(batch.origins, batch.directions, batch.tfar)
                 stats.count(kind, batch.active())
-            else:
-                occluded[kind] = np.zeros(0, bool)
         local = np.empty((n, 3), np.float64)
         shadow_count = np.empty(n, np.int16)
         with stats.stage("shade"):
-            shade_kernel(
-                self.packed.lights,
-                self.plan,
-                self.packed.materials,
-                surf,
-                rays.directions,
-                self.ambient,
-                self.background,
-                point,
-                occluded["shadow"],
-                area,
-                occluded["area"],
-                occluded["ao"],
-                local,
-                shadow_count,
-            )
+            args = (self.packed.lights, self.plan, self.packed.materials, surf, rays.directions, point, area, ao)
+            shade_kernel(*args, local, shadow_count)
         return local, shadow_count

@@ -14,6 +14,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
+from hmdrt.scene.model import Scene
 from hmdrt.scene.pack import Lights
 from hmdrt.trace.blocks import BLOCK
 from hmdrt.trace.sampling import DIM_AO, DIM_AREA, cosine_hemisphere, grid_shape, stratified
@@ -22,20 +23,26 @@ AREA_SHORTEN = 1.0 - 1e-4  # stop area shadow rays just short of the emitter's o
 
 
 class RayBatch(NamedTuple):
+    """Occlusion rays and, once traced, whether each found an occluder."""
+
     origins: np.ndarray  # (n, 3) float32
     directions: np.ndarray  # (n, 3) float32
     tfar: np.ndarray  # (n,) float32; -1 marks a ray that is not traced
+    occluded: np.ndarray  # (n,) bool
 
     @classmethod
     def empty(cls, n: int) -> RayBatch:
-        return cls(np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32))
+        return cls(
+            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32), np.zeros(n, bool)
+        )
 
     def active(self) -> int:
         return int(np.count_nonzero(self.tfar > 0))
 
 
 class LightPlan(NamedTuple):
-    """Per-hit shadow-ray layout: area light a owns columns base[a] .. base[a] + samples[a]."""
+    """How a scene is lit: the per-hit shadow-ray layout (area light a owns columns
+    area_base[a] .. area_base[a] + samples[a]), ambient occlusion, ambient and background."""
 
     area_base: np.ndarray  # (a,) int64
     area_nx: np.ndarray  # (a,) int64 strata per light
@@ -45,25 +52,24 @@ class LightPlan(NamedTuple):
     ao_ny: int
     ao_samples: int
     ao_distance: float
+    ambient: np.ndarray  # (3,) float64
+    background: np.ndarray  # (3,) float64
 
 
-def light_plan(lights: Lights, ao_samples: int, ao_distance: float) -> LightPlan:
+def light_plan(lights: Lights, scene: Scene) -> LightPlan:
     shapes = [grid_shape(int(s)) for s in lights.area_samples]
-    base = (
-        np.concatenate([[0], np.cumsum(lights.area_samples)[:-1]]).astype(np.int64)
-        if len(shapes)
-        else np.zeros(0, np.int64)
-    )
-    ao = grid_shape(ao_samples) if ao_samples else (1, 1)
+    ao = grid_shape(scene.ao_samples) if scene.ao_samples else (1, 1)
     return LightPlan(
-        base,
+        (np.cumsum(lights.area_samples) - lights.area_samples).astype(np.int64),
         np.array([s[0] for s in shapes], np.int64),
         np.array([s[1] for s in shapes], np.int64),
         int(lights.area_samples.sum()),
         ao[0],
         ao[1],
-        ao_samples,
-        float(ao_distance),
+        scene.ao_samples,
+        float(scene.ao_distance),
+        np.asarray(scene.ambient, dtype=np.float64),
+        np.asarray(scene.background, dtype=np.float64),
     )
 
 
@@ -103,9 +109,9 @@ def _light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
     a_base, a_nx, a_ny, a_total = plan.area_base, plan.area_nx, plan.area_ny, plan.area_total
     ao_n, ao_nx, ao_ny, ao_dist = plan.ao_samples, plan.ao_nx, plan.ao_ny, plan.ao_distance
     hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
-    p_org, p_dir, p_far = point
-    a_org, a_dir, a_far = area
-    o_org, o_dir, o_far = ao
+    p_org, p_dir, p_far = point.origins, point.directions, point.tfar
+    a_org, a_dir, a_far = area.origins, area.directions, area.tfar
+    o_org, o_dir, o_far = ao.origins, ao.directions, ao.tfar
     n_point = l_pos.shape[0]
     for i in range(start, stop):
         hit = hits[i]
@@ -148,51 +154,33 @@ def _light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
 
 @nb.njit(parallel=True, cache=True)
 def light_rays_kernel(lights, plan, surf, keys, point, area, ao):
-    """Point-light, area-light and AO rays of every hit: hit i owns a fixed block of each batch."""
+    """Fill the point-light, area-light and AO batches; hit i owns a fixed block of each."""
     n = surf.hit.shape[0]
     for b in nb.prange((n + BLOCK - 1) // BLOCK):
         _light_rays_block(lights, plan, surf, keys, point, area, ao, b * BLOCK, min(n, (b + 1) * BLOCK))
 
 
 @nb.njit(cache=True, inline="always")
-def _phong(ns, albedo, i, wlocal, ks, shininess, vx, vy, vz, lx, ly, lz, er, eg, eb):
-    """Lambert + Phong (rgb) at hit i, viewer along -v, lit from unit direction l with irradiance e."""
+def _lit(ns, albedo, i, wlocal, ks, shininess, view, light, e):
+    """Lambert + Phong (rgb) at hit i for a viewer along -view, light arriving from unit direction
+    `light` with irradiance scale e (rgb, 1/r^2 included); vectors are 3-tuples."""
     nx, ny, nz = ns[i, 0], ns[i, 1], ns[i, 2]
+    lx, ly, lz = light
     cos = nx * lx + ny * ly + nz * lz
     if cos <= 0.0:
         return 0.0, 0.0, 0.0
     spec = 0.0
     if ks > 0.0:
-        # Phong: reflect l about n, compare with the direction back to the viewer (-v)
-        rv = -((2.0 * cos * nx - lx) * vx + (2.0 * cos * ny - ly) * vy + (2.0 * cos * nz - lz) * vz)
+        # Phong: reflect the light direction about n and compare with the direction back to the viewer
+        rv = -((2.0 * cos * nx - lx) * view[0] + (2.0 * cos * ny - ly) * view[1] + (2.0 * cos * nz - lz) * view[2])
         if rv > 0.0:
             spec = ks * rv**shininess
-    return (
-        er * (wlocal * albedo[i, 0] * cos + spec),
-        eg * (wlocal * albedo[i, 1] * cos + spec),
-        eb * (wlocal * albedo[i, 2] * cos + spec),
-    )
+    w = wlocal * cos
+    return e[0] * (w * albedo[i, 0] + spec), e[1] * (w * albedo[i, 1] + spec), e[2] * (w * albedo[i, 2] + spec)
 
 
 @nb.njit(cache=True)
-def _shade_block(
-    lights,
-    plan,
-    mats,
-    surf,
-    dirs_in,
-    ambient,
-    background,
-    point,
-    point_occ,
-    area,
-    area_occ,
-    ao_occ,
-    local,
-    shadow_count,
-    start,
-    stop,
-):
+def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count, start, stop):
     l_int, a_normal, a_size, a_rad, a_samples = (
         lights.point_intensity,
         lights.area_normal,
@@ -209,8 +197,9 @@ def _shade_block(
         mats.emission,
     )
     hits, ns, albedo, material = surf.hit, surf.normal_shading, surf.albedo, surf.material
-    p_dir, p_far = point.directions, point.tfar
-    a_dir, a_far = area.directions, area.tfar
+    p_dir, p_far, point_occ = point.directions, point.tfar, point.occluded
+    a_dir, a_far, area_occ = area.directions, area.tfar, area.occluded
+    ao_occ, ambient, background = ao.occluded, plan.ambient, plan.background
     n_point = l_int.shape[0]
     for i in range(start, stop):
         if not hits[i]:
@@ -221,7 +210,7 @@ def _shade_block(
         k = material[i]
         wlocal = 1.0 - refl[k] - trans[k]
         ks, sh = spec_k[k], shin[k]
-        vx, vy, vz = dirs_in[i, 0], dirs_in[i, 1], dirs_in[i, 2]
+        view = (dirs_in[i, 0], dirs_in[i, 1], dirs_in[i, 2])
         ar = ag = ab = 0.0
         shadowed = 0
         for l in range(n_point):
@@ -232,23 +221,8 @@ def _shade_block(
                 shadowed += 1
                 continue
             inv_r2 = 1.0 / (p_far[j] * p_far[j])
-            cr, cg, cb = _phong(
-                ns,
-                albedo,
-                i,
-                wlocal,
-                ks,
-                sh,
-                vx,
-                vy,
-                vz,
-                p_dir[j, 0],
-                p_dir[j, 1],
-                p_dir[j, 2],
-                l_int[l, 0] * inv_r2,
-                l_int[l, 1] * inv_r2,
-                l_int[l, 2] * inv_r2,
-            )
+            e = (l_int[l, 0] * inv_r2, l_int[l, 1] * inv_r2, l_int[l, 2] * inv_r2)
+            cr, cg, cb = _lit(ns, albedo, i, wlocal, ks, sh, view, (p_dir[j, 0], p_dir[j, 1], p_dir[j, 2]), e)
             ar, ag, ab = ar + cr, ag + cg, ab + cb
         for a in range(a_base.shape[0]):
             n_s = a_samples[a]
@@ -263,23 +237,8 @@ def _shade_block(
                 cos_l = -(lx * a_normal[a, 0] + ly * a_normal[a, 1] + lz * a_normal[a, 2])
                 r = a_far[j] / AREA_SHORTEN
                 scale = cos_l * a_size[a] / (r * r * n_s)
-                cr, cg, cb = _phong(
-                    ns,
-                    albedo,
-                    i,
-                    wlocal,
-                    ks,
-                    sh,
-                    vx,
-                    vy,
-                    vz,
-                    lx,
-                    ly,
-                    lz,
-                    a_rad[a, 0] * scale,
-                    a_rad[a, 1] * scale,
-                    a_rad[a, 2] * scale,
-                )
+                e = (a_rad[a, 0] * scale, a_rad[a, 1] * scale, a_rad[a, 2] * scale)
+                cr, cg, cb = _lit(ns, albedo, i, wlocal, ks, sh, view, (lx, ly, lz), e)
                 ar, ag, ab = ar + cr, ag + cg, ab + cb
         open_sky = 1.0
         if ao_n > 0:
@@ -295,40 +254,9 @@ def _shade_block(
 
 
 @nb.njit(parallel=True, cache=True)
-def shade_kernel(
-    lights,
-    plan,
-    mats,
-    surf,
-    dirs_in,
-    ambient,
-    background,
-    point,
-    point_occ,
-    area,
-    area_occ,
-    ao_occ,
-    local,
-    shadow_count,
-):
+def shade_kernel(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count):
     """Local radiance (n, 3) at each hit, background on misses, and each hit's count of shadowed light samples."""
     n = surf.hit.shape[0]
     for b in nb.prange((n + BLOCK - 1) // BLOCK):
-        _shade_block(
-            lights,
-            plan,
-            mats,
-            surf,
-            dirs_in,
-            ambient,
-            background,
-            point,
-            point_occ,
-            area,
-            area_occ,
-            ao_occ,
-            local,
-            shadow_count,
-            b * BLOCK,
-            min(n, (b + 1) * BLOCK),
-        )
+        stop = min(n, (b + 1) * BLOCK)
+        _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count, b * BLOCK, stop)

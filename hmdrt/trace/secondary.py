@@ -71,49 +71,22 @@ def interaction_kernel(mats, surf, rays, spawn, kr_out, kt_out, counts):
 
 
 @nb.njit(cache=True, inline="always")
-def _child(
-    origins,
-    directions,
-    throughput,
-    owner,
-    keys,
-    principal,
-    j,
-    position,
-    ng,
-    off,
-    parent_thr,
-    parent_owner,
-    i,
-    tx,
-    ty,
-    tz,
-    weight,
-    key,
-    is_principal,
-):
+def _child(out, j, surf, parent, i, direction, side, weight, key, principal):
+    """Child ray j of hit i: leaves from the `side` (+1 out, -1 through) of the surface along `direction`."""
+    off = surf.offset[i] * side
     for c in range(3):
-        origins[j, c] = position[i, c] + ng[i, c] * off
-        throughput[j, c] = parent_thr[i, c] * weight
-    directions[j, 0], directions[j, 1], directions[j, 2] = tx, ty, tz
-    owner[j] = parent_owner[i]
-    keys[j] = key
-    principal[j] = is_principal
+        out.origins[j, c] = surf.position[i, c] + surf.normal_geometric[i, c] * off
+        out.throughput[j, c] = parent.throughput[i, c] * weight
+        out.directions[j, c] = direction[c]
+    out.owner[j] = parent.owner[i]
+    out.key[j] = key
+    out.principal[j] = principal
 
 
 @nb.njit(cache=True)
 def _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, start, stop):
-    ior = mats.ior
-    position, ng, ns, entering, material, offset = (
-        surf.position,
-        surf.normal_geometric,
-        surf.normal_shading,
-        surf.entering,
-        surf.material,
-        surf.offset,
-    )
-    dirs, thr, owner, keys = rays.directions, rays.throughput, rays.owner, rays.key
-    o_org, o_dir, o_thr, o_owner, o_key, o_principal = out
+    ior, ng, ns, entering, material = mats.ior, surf.normal_geometric, surf.normal_shading, surf.entering, surf.material
+    dirs, thr, keys = rays.directions, rays.throughput, rays.key
     for i in range(start, stop):
         kr, kt = kr_in[i], kt_in[i]
         peak = max(thr[i, 0], thr[i, 1], thr[i, 2])
@@ -129,27 +102,7 @@ def _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, start, stop)
             rx, ry, rz = reflect(dx, dy, dz, nx, ny, nz)
             if rx * gx + ry * gy + rz * gz <= 0.0:  # the shading normal sent it below the surface
                 rx, ry, rz = reflect(dx, dy, dz, gx, gy, gz)
-            _child(
-                o_org,
-                o_dir,
-                o_thr,
-                o_owner,
-                o_key,
-                o_principal,
-                j,
-                position,
-                ng,
-                offset[i],
-                thr,
-                owner,
-                i,
-                rx,
-                ry,
-                rz,
-                kr,
-                hash32(keys[i], depth, 1),
-                principal_is_reflection,
-            )
+            _child(out, j, surf, rays, i, (rx, ry, rz), 1.0, kr, hash32(keys[i], depth, 1), principal_is_reflection)
             j += 1
         if want_t:
             eta = 1.0 / ior[material[i]] if entering[i] else ior[material[i]]
@@ -158,27 +111,8 @@ def _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, start, stop)
                 ok, tx, ty, tz = refract(dx, dy, dz, gx, gy, gz, eta)
             if not ok:  # the shading and geometric normals disagree on TIR: send the share straight on
                 tx, ty, tz = dx, dy, dz
-            _child(
-                o_org,
-                o_dir,
-                o_thr,
-                o_owner,
-                o_key,
-                o_principal,
-                j,
-                position,
-                ng,
-                -offset[i],
-                thr,
-                owner,
-                i,
-                tx,
-                ty,
-                tz,
-                kt,
-                hash32(keys[i], depth, 2),
-                not principal_is_reflection,
-            )
+            key = hash32(keys[i], depth, 2)
+            _child(out, j, surf, rays, i, (tx, ty, tz), -1.0, kt, key, not principal_is_reflection)
 
 
 @nb.njit(parallel=True, cache=True)

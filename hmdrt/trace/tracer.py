@@ -46,7 +46,8 @@ class Tracer:
             self._scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
         self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="hmdrt-trace")
 
-    def _tiles(self, n: int) -> list[slice]:
+    def tiles(self, n: int) -> list[slice]:
+        """How n rays are split into tiles for the thread pool."""
         step = max(1024, min(self.tile_rays, -(-n // self.threads)))
         return [slice(i, min(i + step, n)) for i in range(0, n, step)]
 
@@ -75,7 +76,7 @@ class Tracer:
             hits.u[s] = r["u"]
             hits.v[s] = r["v"]
 
-        list(self._pool.map(tile, self._tiles(n)))
+        list(self._pool.map(tile, self.tiles(n)))
         return hits
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
@@ -92,7 +93,7 @@ class Tracer:
             dists = float(tfar) if scalar_far else far[s].copy()
             out[s] = self._scene.run(origins[s], directions[s], dists=dists, query="OCCLUDED") != -1
 
-        list(self._pool.map(tile, self._tiles(n)))
+        list(self._pool.map(tile, self.tiles(n)))
         return out
 
     def close(self) -> None:
