@@ -13,13 +13,15 @@ import numpy as np
 
 from hmdrt import __version__
 from hmdrt.errors import ConfigError, HmdrtError
-from hmdrt.foveation import METHODS, FrameRequest, make_method
-from hmdrt.optics import EyeCamera, get_profile
+from hmdrt.foveation import METHODS, make_method
+from hmdrt.optics import get_profile
 from hmdrt.present.encode import linear_to_srgb8, write_png
 from hmdrt.scene import load_scene
+from hmdrt.sequence import FrameInput, SequenceCounts, builtin_path, from_trace, render_frames
 from hmdrt.spatial import gaze_direction, parse_gaze
-from hmdrt.telemetry.stats import FrameStats
+from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
+from replay.trace import read_trace
 
 
 class _Parser(argparse.ArgumentParser):
@@ -37,63 +39,127 @@ def _resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _write_json(path: str | Path, record: dict) -> None:
+    try:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(json.dumps(record, indent=2) + "\n")
+    except OSError as exc:
+        raise HmdrtError(f"cannot write {path}: {exc.strerror}") from None
+
+
+def _inputs(args: argparse.Namespace, start, period_ns: int) -> tuple[list[FrameInput], SequenceCounts | None]:
+    """The frames to render: one still frame, a still sequence, the built-in path, or a trace."""
+    if args.trace and args.trace != "builtin":
+        reading = read_trace(args.trace)
+        frames = args.frames
+        if frames is None:
+            times = [s.t_ns for s in reading.samples]
+            frames = (max(times) - min(times)) // period_ns + 1 if times else 1
+        return from_trace(reading, frames, period_ns, start)
+    frames = args.frames or 1
+    if args.trace == "builtin":
+        return builtin_path(frames, period_ns, start, args.seed), None
+    g = gaze_direction(*parse_gaze(args.gaze))
+    return [FrameInput(f, f * period_ns, start, {"left": g, "right": g}) for f in range(frames)], None
+
+
+def _record(stats: FrameStats, ms: float, width: int, height: int, method: str, scene: str) -> dict:
+    return {
+        "ms_total": round(ms, 3),
+        **stats.to_dict(),
+        "width": width,
+        "height": height,
+        "method": method,
+        "scene": scene,
+    }
+
+
+def _summary(records: list[dict]) -> dict:
+    """The per-frame means of a sequence, with the DESIGN.md render keys."""
+    n = len(records)
+    stages: dict[str, float] = {}
+    for r in records:
+        for k, v in r["stages_ms"].items():
+            stages[k] = stages.get(k, 0.0) + v / n
+    rays = {k: round(sum(r["rays"][k] for r in records) / n) for k in (*RAY_KINDS, "total")}
+    return {
+        **records[-1],
+        "ms_total": round(sum(r["ms_total"] for r in records) / n, 3),
+        "stages_ms": {k: round(v, 3) for k, v in stages.items()},
+        "rays": rays,
+        "stages_run": list(stages),
+        "frames": n,
+    }
+
+
 def cmd_render(args: argparse.Namespace) -> int:
-    """Render one frame of a scene through an HMD profile with a method; write a PNG and a stats JSON."""
+    """Render a frame or a sequence of a scene through an HMD profile with a method; PNGs and stats JSON."""
     profile = get_profile(args.profile)
     if args.resolution:
         profile = profile.with_resolution(*_resolution(args.resolution))
-    yaw, pitch = parse_gaze(args.gaze)
     options = {}
     if args.spp is not None:
-        if args.method != "regular":
+        if args.method.partition("?")[0] != "regular":
             raise ConfigError(f"--spp applies to method regular, not {args.method!r}")
         options["spp"] = args.spp
     if args.threads is not None and args.threads < 1:
         raise ConfigError(f"--threads must be at least 1, got {args.threads}")
+    if args.frames is not None and args.frames < 1:
+        raise ConfigError(f"--frames must be at least 1, got {args.frames}")
+    sequence = args.frames is not None or args.trace is not None
     t0 = time.perf_counter()
     scene = load_scene(args.scene)
+    inputs, counts = _inputs(args, scene.start, profile.period_ns)
+    eyes = ("left", "right") if args.eye == "both" else (args.eye,)
+    records, out = [], Path(args.out)
     with Whitted(scene, threads=args.threads) as tracer:
         method = make_method(args.method, tracer, **options)
         setup_ms = (time.perf_counter() - t0) * 1e3
-        stats = FrameStats()
-        gaze = gaze_direction(yaw, pitch)
-        eyes = ["left", "right"] if args.eye == "both" else [args.eye]
-        t1 = time.perf_counter()
-        images = [
-            method.render(FrameRequest(EyeCamera.for_eye(profile, scene.start, eye), gaze, 0, args.seed), stats)
-            for eye in eyes
-        ]
-        with stats.stage("present"):
-            srgb = linear_to_srgb8(np.concatenate(images, axis=1))
-        ms_total = (time.perf_counter() - t1) * 1e3
-    write_png(args.out, srgb)
-    record = {
-        "ms_total": round(ms_total, 3),
-        **stats.to_dict(),
-        "width": int(srgb.shape[1]),
-        "height": int(srgb.shape[0]),
-        "method": args.method,
-        "scene": scene.name,
-        "profile": profile.name,
-        "eye": args.eye,
-        "spp": getattr(method, "spp", 1),
-        "gaze_deg": [yaw, pitch],
-        "seed": args.seed,
-        "triangles": scene.triangle_count,
-        "threads": tracer.tracer.threads,
-        "setup_ms": round(setup_ms, 3),
-        "hmdrt": __version__,
-    }
-    if args.stats:
+        frames = render_frames(method, profile, inputs, eyes, args.seed)
+        while True:
+            t1 = time.perf_counter()
+            try:
+                inp, images, stats = next(frames)
+            except StopIteration:
+                break
+            with stats.stage("present"):
+                srgb = linear_to_srgb8(np.concatenate(images, axis=1))
+            ms = (time.perf_counter() - t1) * 1e3
+            write_png(out / f"frame_{inp.frame:05d}.png" if sequence else out, srgb)
+            records.append(
+                {
+                    "frame": inp.frame,
+                    "t_ns": inp.t_ns,
+                    **_record(stats, ms, srgb.shape[1], srgb.shape[0], method.name, scene.name),
+                }
+            )
+    if sequence:
         try:
-            Path(args.stats).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.stats).write_text(json.dumps(record, indent=2) + "\n")
+            with (out / "frames.jsonl").open("w") as f:
+                f.writelines(json.dumps(r) + "\n" for r in records)
         except OSError as exc:
-            raise HmdrtError(f"cannot write {args.stats}: {exc.strerror}") from None
-    rays = record["rays"]["total"]
+            raise HmdrtError(f"cannot write {out / 'frames.jsonl'}: {exc.strerror}") from None
+    summary = _summary(records) if sequence else records[0]
+    summary.update(
+        method_spec=args.method,
+        profile=profile.name,
+        eye=args.eye,
+        seed=args.seed,
+        triangles=scene.triangle_count,
+        threads=tracer.tracer.threads,
+        setup_ms=round(setup_ms, 3),
+        hmdrt=__version__,
+        spp=getattr(method, "spp", 1),
+    )
+    if counts is not None:
+        summary["trace"] = vars(counts)
+    if args.stats:
+        _write_json(args.stats, summary)
+    where = f"{out}/ ({len(records)} frames)" if sequence else str(out)
     print(
-        f"{args.out}: {record['width']}x{record['height']} {args.method} on {scene.name} ({profile.name}), "
-        f"{ms_total:.1f} ms, {rays:,} rays"
+        f"{where}: {summary['width']}x{summary['height']} {method.name} on {scene.name} ({profile.name}), "
+        f"{summary['ms_total']:.1f} ms{'/frame' if sequence else ''}, {summary['rays']['total']:,} rays"
+        f"{'/frame' if sequence else ''}"
     )
     return 0
 
@@ -102,24 +168,25 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="hmdrt", description="A simulated HMD runtime with foveated ray tracing.")
     parser.add_argument("--version", action="version", version=f"hmdrt {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    render = sub.add_parser("render", help="render one frame to a PNG and a stats JSON")
+    render = sub.add_parser("render", help="render a frame or a sequence to PNG and a stats JSON")
     render.add_argument(
-        "--scene", required=True, help="built-in scene (e.g. whitted, voxel_city?size=50), .toml or mesh file"
+        "--scene", required=True, help="built-in scene (e.g. whitted, voxel_city?size=50), .toml or mesh"
     )
     render.add_argument(
-        "--profile", required=True, help="HMD profile name (dk2, rift_s, fove0, vive_pro_eye, sim-cpu) or .toml"
+        "--profile", required=True, help="HMD profile (dk2, rift_s, fove0, vive_pro_eye, sim-cpu) or .toml"
     )
     render.add_argument(
         "--method",
         required=True,
-        choices=sorted(METHODS),
         metavar="METHOD",
-        help=f"rendering method: {', '.join(METHODS)}",
+        help=f"rendering method, with options as in weier16?frc=small: {', '.join(METHODS)}",
     )
     render.add_argument("--gaze", default="0,0", help="gaze YAW,PITCH in degrees, right and up positive (default 0,0)")
     render.add_argument("--spp", type=int, help="samples per pixel for method regular (default 36)")
-    render.add_argument("--out", required=True, help="output PNG")
-    render.add_argument("--stats", help="output stats JSON")
+    render.add_argument("--out", required=True, help="output PNG; with --frames or --trace, an output folder")
+    render.add_argument("--stats", help="output stats JSON (for a sequence: per-frame means)")
+    render.add_argument("--frames", type=int, help="render a sequence of N frames at the profile's refresh rate")
+    render.add_argument("--trace", help="native gaze/pose trace (.jsonl[.gz]) driving the sequence, or 'builtin'")
     render.add_argument(
         "--eye", choices=["left", "right", "both"], default="left", help="which eye (both: side by side)"
     )

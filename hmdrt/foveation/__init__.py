@@ -1,26 +1,41 @@
-"""Rendering methods by name. Each composes the shared tracer (trace.integrator.Whitted)."""
+"""Rendering methods by name. Each composes the shared tracer (trace.integrator.Whitted) and the
+shared stages (foveation.stages); "name?key=value&..." selects a method with options."""
 
 from __future__ import annotations
 
-import inspect
-from collections.abc import Callable
+from urllib.parse import parse_qsl
+
+import msgspec
 
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import FrameRequest, Method
 from hmdrt.foveation.reference import Full, Regular
 from hmdrt.trace.integrator import Whitted
 
-METHODS: dict[str, Callable[..., Method]] = {"full": Full, "regular": Regular}
+METHODS: dict[str, type] = {m.name: m for m in (Full, Regular)}
 
-__all__ = ["METHODS", "FrameRequest", "Method", "make_method"]
+__all__ = ["METHODS", "FrameRequest", "Method", "make_method", "method_params"]
 
 
-def make_method(name: str, tracer: Whitted, **options) -> Method:
-    """The method `name` over `tracer`, with its options (e.g. spp for regular)."""
+def method_params(spec: str, **options) -> tuple[str, msgspec.Struct]:
+    """The method name and validated parameters of "name?key=value&..." plus keyword options."""
+    name, _, query = spec.partition("?")
     if name not in METHODS:
         raise ConfigError(f"unknown method {name!r}; methods: {', '.join(METHODS)}")
-    accepted = [p for p in inspect.signature(METHODS[name]).parameters if p != "tracer"]
-    unknown = sorted(set(options) - set(accepted))
-    if unknown:
-        raise ConfigError(f"method {name!r} has no option {unknown[0]!r}; options: {', '.join(accepted) or 'none'}")
-    return METHODS[name](tracer, **options)
+    try:
+        merged = dict(parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)))
+    except ValueError:
+        raise ConfigError(f"method options must look like ?key=value&key=value, got {query!r}") from None
+    merged.update(options)
+    params_type = METHODS[name].Params
+    try:
+        return name, msgspec.convert(merged, params_type, strict=False)
+    except msgspec.ValidationError as exc:
+        fields = ", ".join(params_type.__struct_fields__) or "none"
+        raise ConfigError(f"method {name!r}: {exc} (options: {fields})") from None
+
+
+def make_method(spec: str, tracer: Whitted, **options) -> Method:
+    """The method of `spec` ("weier16", "weier16?frc=small", ...) over `tracer`; options override the spec."""
+    name, params = method_params(spec, **options)
+    return METHODS[name](tracer, params)

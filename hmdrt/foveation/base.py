@@ -1,34 +1,89 @@
-"""What every rendering method receives and returns; methods are found by name in foveation.METHODS."""
+"""What every rendering method receives and returns, and how a method plans which stages to run.
+
+Methods are found by name in foveation.METHODS. Each declares its stages and what each needs; the
+plan of a frame keeps only the stages whose needs the scene, the configuration and the method's own
+state (a previous frame to reproject) meet, so stages that cannot change the image never run.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import ClassVar, Protocol
 
+import msgspec
 import numpy as np
 
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.telemetry.stats import FrameStats
+from hmdrt.trace.integrator import Whitted
+
+EYES = ("left", "right")
 
 
 @dataclass(frozen=True)
 class FrameRequest:
-    """One eye's frame: its camera, the gaze (unit, head frame), the frame number and the run's seed."""
+    """One eye's frame: its camera, that eye's unit gaze (head frame), frame number, seed and eye.
+
+    gaze_depth_m is the vergence depth of the two eyes' gaze when the source knows it.
+    """
 
     camera: EyeCamera
     gaze: np.ndarray
     frame: int = 0
     seed: int = 0
+    eye: str = "left"
+    gaze_depth_m: float | None = None
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A named step of a method and the features it needs to be able to change the image."""
+
+    name: str
+    needs: frozenset[str] = frozenset()
+
+
+# features a stage may need
+HISTORY = "history"  # a previous frame of this eye to reproject or blend
+SECONDARY = "secondary"  # the scene has reflective or refractive materials (and depth > 0)
+STOCHASTIC = "stochastic"  # the scene has area lights or ambient occlusion
+DOF = "dof"  # a depth-of-field preset other than none
+
+
+def scene_features(tracer: Whitted) -> frozenset[str]:
+    """What the scene offers the stages: secondary rays, stochastic lighting."""
+    features = set()
+    if tracer.max_depth > 0 and tracer.secondary:
+        features.add(SECONDARY)
+    if tracer.plan.area_total or tracer.plan.ao_samples:
+        features.add(STOCHASTIC)
+    return frozenset(features)
+
+
+def plan(stages: tuple[Stage, ...], features: frozenset[str]) -> tuple[str, ...]:
+    """The names of the stages whose needs `features` meet, in order."""
+    return tuple(s.name for s in stages if s.needs <= features)
 
 
 class Method(Protocol):
-    name: str
+    name: ClassVar[str]
+    Params: ClassVar[type[msgspec.Struct]]
+    stages: ClassVar[tuple[Stage, ...]]
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
-        """Linear RGB image (height, width, 3) float32."""
+        """Linear RGB image (height, width, 3) float32 of this eye's frame."""
         ...
+
+
+class NoParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A method without options."""
 
 
 def sample_keys(first_sample: int, count: int, seed: int) -> np.ndarray:
     """Random-stream keys of consecutive samples, distinct per seed."""
     return np.arange(first_sample, first_sample + count, dtype=np.int64) + (np.int64(seed) << np.int64(32))
+
+
+def pixel_keys(pixels: np.ndarray, seed: int, frame: int = 0, stream: int = 0) -> np.ndarray:
+    """Keys of samples at pixel indices, distinct per frame and stream; frame 0, stream 0 equals sample_keys."""
+    return pixels.astype(np.int64) + (np.int64(seed) << 32) + np.int64(frame) * (1 << 22) + np.int64(stream) * (1 << 40)

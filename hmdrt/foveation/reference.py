@@ -6,10 +6,12 @@ box-filtered; N = 36 is the ground truth of kim2021 section 5 ("36 stratified sa
 
 from __future__ import annotations
 
+from typing import Annotated
+
+import msgspec
 import numpy as np
 
-from hmdrt.errors import ConfigError
-from hmdrt.foveation.base import FrameRequest, sample_keys
+from hmdrt.foveation.base import FrameRequest, NoParams, Stage, sample_keys
 from hmdrt.optics.camera import pixel_centres
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
@@ -22,8 +24,10 @@ class Full:
     """One primary ray through every pixel centre."""
 
     name = "full"
+    Params = NoParams
+    stages = (Stage("trace"),)
 
-    def __init__(self, tracer: Whitted):
+    def __init__(self, tracer: Whitted, params: NoParams):
         self.tracer = tracer
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
@@ -34,16 +38,20 @@ class Full:
         return rgb.reshape(cam.height, cam.width, 3)
 
 
+class RegularParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    spp: Annotated[int, msgspec.Meta(ge=1, le=MAX_SPP)] = 36
+
+
 class Regular:
     """spp stratified jittered samples per pixel, averaged (a box filter over the pixel)."""
 
     name = "regular"
+    Params = RegularParams
+    stages = (Stage("trace"), Stage("resolve"))
 
-    def __init__(self, tracer: Whitted, spp: int = 36):
-        if not 1 <= spp <= MAX_SPP:
-            raise ConfigError(f"spp must be between 1 and {MAX_SPP}, got {spp}")
+    def __init__(self, tracer: Whitted, params: RegularParams):
         self.tracer = tracer
-        self.spp = spp
+        self.spp = params.spp
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
         cam = request.camera

@@ -1,0 +1,183 @@
+"""Where to trace: the papers' foveal sampling functions.
+
+weier2016 section 3.1: the foveal function p(e), 1 inside r0, falling linearly to p_min at r1, p_min
+beyond; a pixel is traced when xi_q < p(q). weier2018 section 3.1, equation (1): the transition region
+sampled in polar coordinates from a low-discrepancy sequence, stored as the table S_in that moves
+with the point of regard, and the static uniform table S_out of density p_min.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, NamedTuple
+
+import msgspec
+import numba as nb
+import numpy as np
+
+from hmdrt.errors import ConfigError
+from hmdrt.optics.camera import EyeCamera
+from hmdrt.rng import uniform
+
+Degrees = Annotated[float, msgspec.Meta(ge=0.0, le=180.0)]
+Probability = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
+
+# weier2016 section 4.2, RQ2: the foveal region configurations (r0, r1, p_min); full traces every pixel
+FRC_PRESETS: dict[str, tuple[float, float, float]] = {
+    "small": (5.0, 10.0, 0.01),
+    "medium": (10.0, 20.0, 0.05),
+    "large": (15.0, 30.0, 0.1),
+    "full": (math.inf, math.inf, 1.0),
+}
+
+
+class Foveal(NamedTuple):
+    """A foveal region configuration: r0 and r1 in degrees of eccentricity, p_min in [0, 1]."""
+
+    r0: float
+    r1: float
+    p_min: float
+
+
+def foveal_config(frc: str, r0: float | None, r1: float | None, p_min: float | None) -> Foveal:
+    """A preset, with any of r0, r1, p_min overriding it; r0 must not exceed r1."""
+    if frc not in FRC_PRESETS:
+        raise ConfigError(f"unknown foveal region configuration {frc!r}; presets: {', '.join(FRC_PRESETS)}")
+    base = FRC_PRESETS[frc]
+    cfg = Foveal(base[0] if r0 is None else r0, base[1] if r1 is None else r1, base[2] if p_min is None else p_min)
+    if cfg.r0 > cfg.r1:
+        raise ConfigError(f"r0 ({cfg.r0}) must not exceed r1 ({cfg.r1})")
+    return cfg
+
+
+@nb.njit(cache=True, inline="always")
+def foveal_probability(e, r0, r1, p_min):
+    """weier2016's p(q) at eccentricity e (degrees): 1 below r0, linear to p_min at r1, p_min beyond."""
+    if e < r0:
+        return 1.0
+    if e >= r1:
+        return p_min
+    return 1.0 - (1.0 - p_min) * (e - r0) / (r1 - r0)
+
+
+@nb.njit(parallel=True, cache=True)
+def _bernoulli_mask(ecc, r0, r1, p_min, seed, frame, out):
+    h, w = ecc.shape
+    for y in nb.prange(h):
+        for x in range(w):
+            p = foveal_probability(ecc[y, x], r0, r1, p_min)
+            out[y, x] = p >= 1.0 or uniform(y * w + x + (seed << 32), 0x5A3, frame) < p
+
+
+def bernoulli_mask(ecc: np.ndarray, cfg: Foveal, seed: int, frame: int) -> np.ndarray:
+    """weier2016's ray generation: pixel q is traced when xi_q < p(q); a fresh xi per pixel and frame."""
+    out = np.empty(ecc.shape, dtype=bool)
+    _bernoulli_mask(ecc, cfg.r0, cfg.r1, cfg.p_min, seed, frame, out)
+    return out
+
+
+def expected_fraction(ecc: np.ndarray, cfg: Foveal) -> float:
+    """The mean of p(q) over the pixels: the fraction bernoulli_mask traces on average."""
+    e = ecc.astype(np.float64)
+    if cfg.r1 > cfg.r0:
+        ramp = 1.0 - (1.0 - cfg.p_min) * (e - cfg.r0) / (cfg.r1 - cfg.r0)
+    else:
+        ramp = np.full_like(e, cfg.p_min)
+    return float(np.where(e < cfg.r0, 1.0, np.where(e >= cfg.r1, cfg.p_min, ramp)).mean())
+
+
+def transition_radius(u: np.ndarray | float, r0: float, r1: float, p_min: float) -> np.ndarray:
+    """weier2018 equation (1): r = r0 + (r1 - r0) (sqrt((p_min^2 - 1) u + 1) - 1) / (p_min - 1).
+
+    Written as (1 + p_min) u / (sqrt((p_min^2 - 1) u + 1) + 1), the same value without the 0/0 at
+    p_min = 1 (where it is u) or the cancellation near it.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    x = (1.0 + p_min) * u / (np.sqrt((p_min * p_min - 1.0) * u + 1.0) + 1.0)
+    return r0 + (r1 - r0) * x
+
+
+def halton(index: np.ndarray, base: int) -> np.ndarray:
+    """The radical inverse of integers in a prime base: a low-discrepancy sequence in [0, 1)."""
+    index = np.asarray(index, dtype=np.int64).copy()
+    out = np.zeros(index.shape, dtype=np.float64)
+    f = 1.0 / base
+    while np.any(index > 0):
+        out += f * (index % base)
+        index //= base
+        f /= base
+    return out
+
+
+def pixels_per_degree(camera: EyeCamera) -> tuple[float, float]:
+    """Pixel density along x and y at the centre of the projection (where d tan(theta) = d theta)."""
+    per_rad_x = camera.width / (camera.tan_right - camera.tan_left)
+    per_rad_y = camera.height / (camera.tan_up - camera.tan_down)
+    return per_rad_x * math.pi / 180.0, per_rad_y * math.pi / 180.0
+
+
+class SamplingTables(NamedTuple):
+    """weier2018's S_in (pixel offsets around the point of regard) and S_out (static, density p_min)."""
+
+    s_in: np.ndarray  # (2 ry + 1, 2 rx + 1) bool, centre = the point of regard
+    s_out: np.ndarray  # (height, width) bool
+    samples: int  # points drawn by equation (1) for the transition region
+    ppd: tuple[float, float]
+
+
+def sampling_tables(camera: EyeCamera, cfg: Foveal, seed: int = 0) -> SamplingTables:
+    """Precompute S_in and S_out for a camera (weier2018 section 3.1).
+
+    S_in holds every offset inside r0 and, in [r0, r1), the pixels hit by M points (r, phi) with r from
+    equation (1) and phi = 2 pi v, (u, v) from the Halton (2, 3) sequence. M is the expected number of
+    transition pixels under the linear falloff, so the density matches weier2016's foveal function.
+    """
+    ppd_x, ppd_y = pixels_per_degree(camera)
+    r1 = min(cfg.r1, 180.0)
+    rx, ry = math.ceil(r1 * ppd_x) + 1, math.ceil(r1 * ppd_y) + 1
+    oy, ox = np.mgrid[-ry : ry + 1, -rx : rx + 1]
+    r_deg = np.hypot(ox / ppd_x, oy / ppd_y)
+    s_in = r_deg < cfg.r0
+    band = (r_deg >= cfg.r0) & (r_deg < r1)
+    samples = 0
+    if band.any() and r1 > cfg.r0:
+        p = 1.0 - (1.0 - cfg.p_min) * (r_deg[band] - cfg.r0) / (r1 - cfg.r0)
+        samples = int(round(p.sum()))
+        k = np.arange(1, samples + 1)
+        r = transition_radius(halton(k, 2), cfg.r0, r1, cfg.p_min)
+        phi = 2.0 * np.pi * halton(k, 3)
+        px = np.rint(r * np.cos(phi) * ppd_x).astype(np.int64) + rx
+        py = np.rint(r * np.sin(phi) * ppd_y).astype(np.int64) + ry
+        s_in[py, px] = True
+    rng = np.random.default_rng(seed)
+    s_out = rng.random((camera.height, camera.width)) < cfg.p_min
+    return SamplingTables(s_in, s_out, samples, (ppd_x, ppd_y))
+
+
+@nb.njit(parallel=True, cache=True)
+def _table_mask(ecc, r0, r1, s_in, s_out, gx, gy, out):
+    h, w = ecc.shape
+    ry, rx = s_in.shape[0] // 2, s_in.shape[1] // 2
+    for y in nb.prange(h):
+        for x in range(w):
+            e = ecc[y, x]
+            if e < r0:
+                out[y, x] = True
+            elif e < r1:
+                ty, tx = y - gy + ry, x - gx + rx
+                out[y, x] = 0 <= ty < s_in.shape[0] and 0 <= tx < s_in.shape[1] and s_in[ty, tx]
+            else:
+                out[y, x] = s_out[y, x]
+
+
+def table_mask(ecc: np.ndarray, cfg: Foveal, tables: SamplingTables, gaze_pixel: np.ndarray) -> np.ndarray:
+    """weier2018's ray generation: S_in addressed relative to the point of regard inside r1, S_out outside."""
+    out = np.empty(ecc.shape, dtype=bool)
+    gx, gy = (int(math.floor(c)) for c in gaze_pixel)
+    _table_mask(ecc, cfg.r0, min(cfg.r1, 180.0), tables.s_in, tables.s_out, gx, gy, out)
+    return out
+
+
+def region_index(ecc: np.ndarray, bounds: tuple[float, ...]) -> np.ndarray:
+    """Which eccentricity band each pixel falls in: 0 below bounds[0], k in [bounds[k-1], bounds[k])."""
+    return np.searchsorted(np.asarray(bounds, dtype=np.float64), ecc, side="right").astype(np.int8)

@@ -1,0 +1,144 @@
+"""Frame sequences: what each frame sees (head pose, per-eye gaze) from a trace or a built-in path,
+and the loop that renders them through a method at the profile's refresh period.
+
+A frame at time t uses the latest usable gaze and pose sample at or before t (invalid samples and
+blinks keep the last valid gaze and are counted). Trace poses are relative to the scene's start pose.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from hmdrt.errors import ConfigError
+from hmdrt.foveation.base import EYES, FrameRequest, Method
+from hmdrt.foveation.stages.gaze import vergence_depth
+from hmdrt.optics import EyeCamera, HmdProfile
+from hmdrt.spatial import Pose, gaze_direction, quat_multiply, quat_to_matrix
+from hmdrt.telemetry.stats import FrameStats
+from replay.trace import Gaze, TraceReading, usable
+from replay.trace import Pose as PoseSample
+
+FORWARD = np.array([0.0, 0.0, -1.0])
+
+
+@dataclass(frozen=True)
+class FrameInput:
+    """What one frame sees: the head pose in the world and each eye's unit gaze in the head frame."""
+
+    frame: int
+    t_ns: int
+    pose: Pose
+    gaze: dict[str, np.ndarray]
+    gaze_depth_m: float | None = None
+
+
+@dataclass
+class SequenceCounts:
+    """What a trace-driven sequence did with the trace's samples."""
+
+    gaze_invalid: int = 0
+    pose_invalid: int = 0
+    held_frames: int = 0  # frames whose gaze was the last valid one because the newest was invalid
+    malformed_lines: int = 0
+
+
+def _compose(start: Pose, relative: PoseSample) -> Pose:
+    rot = quat_to_matrix(start.orientation)
+    q = np.asarray(relative.orientation, dtype=np.float64)
+    orientation = quat_multiply(start.orientation, q / np.linalg.norm(q))
+    return Pose(start.position + rot @ np.asarray(relative.position), orientation)
+
+
+def _eye_gaze(sample: Gaze) -> dict[str, np.ndarray]:
+    combined = None if sample.C is None else np.asarray(sample.C, dtype=np.float64)
+    out = {}
+    for eye, v in (("left", sample.L), ("right", sample.R)):
+        g = combined if v is None else np.asarray(v, dtype=np.float64)
+        if g is None:
+            g = np.asarray(sample.R if eye == "left" else sample.L, dtype=np.float64)
+        out[eye] = g / np.linalg.norm(g)
+    return out
+
+
+def from_trace(
+    reading: TraceReading, frames: int, period_ns: int, start: Pose
+) -> tuple[list[FrameInput], SequenceCounts]:
+    """frames inputs at the refresh period from the trace's first sample time."""
+    gazes = sorted((s for s in reading.samples if isinstance(s, Gaze)), key=lambda s: s.t_ns)
+    poses = sorted((s for s in reading.samples if isinstance(s, PoseSample)), key=lambda s: s.t_ns)
+    counts = SequenceCounts(malformed_lines=reading.malformed)
+    counts.gaze_invalid = sum(not usable(s) for s in gazes)
+    counts.pose_invalid = sum(not usable(s) for s in poses)
+    valid_gaze = [s for s in gazes if usable(s)]
+    if not valid_gaze:
+        raise ConfigError("the trace has no valid gaze sample")
+    valid_pose = [s for s in poses if usable(s)]
+    t0 = min(s.t_ns for s in (gazes[0], *poses[:1]))
+    inputs, gi, pi, all_i = [], -1, -1, -1
+    for f in range(frames):
+        t = t0 + f * period_ns
+        while gi + 1 < len(valid_gaze) and valid_gaze[gi + 1].t_ns <= t:
+            gi += 1
+        while all_i + 1 < len(gazes) and gazes[all_i + 1].t_ns <= t:
+            all_i += 1
+        while pi + 1 < len(valid_pose) and valid_pose[pi + 1].t_ns <= t:
+            pi += 1
+        sample = valid_gaze[max(gi, 0)]
+        counts.held_frames += all_i >= 0 and not usable(gazes[all_i])
+        pose = start if pi < 0 else _compose(start, valid_pose[pi])
+        inputs.append(FrameInput(f, t, pose, _eye_gaze(sample), sample.depth_m))
+    return inputs, counts
+
+
+def builtin_path(frames: int, period_ns: int, start: Pose, seed: int = 0) -> list[FrameInput]:
+    """A deterministic head path with fixations: the head sways +-6 deg in yaw and +-2 deg in pitch;
+    the gaze fixates seeded points within +-15 deg for 250-450 ms each and saccades between them."""
+    rng = np.random.default_rng(seed)
+    fixations: list[tuple[float, float, float]] = []  # (start time s, yaw, pitch)
+    t = 0.0
+    end = frames * period_ns * 1e-9
+    while t <= end:
+        fixations.append((t, *rng.uniform(-15.0, 15.0, size=2)))
+        t += rng.uniform(0.25, 0.45)
+    inputs = []
+    k = 0
+    for f in range(frames):
+        ts = f * period_ns * 1e-9
+        while k + 1 < len(fixations) and fixations[k + 1][0] <= ts:
+            k += 1
+        _, yaw, pitch = fixations[k]
+        sway = Pose.looking((0.0, 0.0, 0.0), 6.0 * math.sin(math.pi * 0.5 * ts), 2.0 * math.sin(math.pi * 0.34 * ts))
+        pose = Pose(start.position, quat_multiply(start.orientation, sway.orientation))
+        g = gaze_direction(yaw, pitch)
+        inputs.append(FrameInput(f, f * period_ns, pose, {"left": g, "right": g}))
+    return inputs
+
+
+def eye_cameras(profile: HmdProfile, pose: Pose, eyes: tuple[str, ...]) -> dict[str, EyeCamera]:
+    return {eye: EyeCamera.for_eye(profile, pose, eye) for eye in eyes}
+
+
+def frame_requests(inp: FrameInput, cameras: dict[str, EyeCamera], seed: int) -> list[FrameRequest]:
+    """One request per eye; the gaze depth is the trace's, or the vergence of the two eyes' gaze."""
+    depth = inp.gaze_depth_m
+    if depth is None and set(EYES) <= set(cameras):
+        rot = cameras["left"].rotation
+        head_l = rot.T @ (cameras["left"].position - inp.pose.position)
+        head_r = rot.T @ (cameras["right"].position - inp.pose.position)
+        depth = vergence_depth(head_l, inp.gaze["left"], head_r, inp.gaze["right"])
+    return [FrameRequest(cam, inp.gaze[eye], inp.frame, seed, eye, depth) for eye, cam in cameras.items()]
+
+
+def render_frames(
+    method: Method, profile: HmdProfile, inputs: list[FrameInput], eyes: tuple[str, ...], seed: int = 0
+) -> Iterator[tuple[FrameInput, list[np.ndarray], FrameStats]]:
+    """Render each input through `method` for the given eyes; yields the per-eye images and stats."""
+    for inp in inputs:
+        stats = FrameStats()
+        cameras = eye_cameras(profile, inp.pose, eyes)
+        images = [method.render(req, stats) for req in frame_requests(inp, cameras, seed)]
+        yield inp, images, stats

@@ -1,0 +1,1 @@
+"""Recorded and synthetic gaze and head-pose traces."""
