@@ -9,10 +9,14 @@ import msgspec
 
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import FrameRequest, Method
+from hmdrt.foveation.kim21 import Kim21
 from hmdrt.foveation.reference import Full, Regular
+from hmdrt.foveation.rrm import Rrm
+from hmdrt.foveation.weier16 import Weier16
+from hmdrt.foveation.weier18 import Weier18
 from hmdrt.trace.integrator import Whitted
 
-METHODS: dict[str, type] = {m.name: m for m in (Full, Regular)}
+METHODS: dict[str, type] = {m.name: m for m in (Full, Regular, Rrm, Kim21, Weier16, Weier18)}
 
 __all__ = ["METHODS", "FrameRequest", "Method", "make_method", "method_params"]
 

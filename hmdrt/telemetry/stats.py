@@ -1,6 +1,8 @@
 """Per-frame stage timings and ray counts (the render stats keys of DESIGN.md).
 
-A stage appears in stages_ms only once it has run, so stages_run lists exactly what ran.
+A stage appears in stages_ms only once it has run, so stages_run lists exactly what ran. A stage
+entered inside another is recorded as "outer/inner" (inclusive times), so a method's own stages sum
+to its frame time and the tracer's breakdown stays visible under them.
 """
 
 from __future__ import annotations
@@ -17,15 +19,24 @@ RAY_KINDS = ("primary", "shadow", "secondary", "ao", "area")
 class FrameStats:
     stages_ms: dict[str, float] = field(default_factory=dict)
     rays: dict[str, int] = field(default_factory=lambda: dict.fromkeys(RAY_KINDS, 0))
+    metrics: dict[str, float] = field(default_factory=dict)  # method-specific figures, e.g. sample_fraction
+    _open: list[str] = field(default_factory=list, repr=False)
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
-        """Time the enclosed work into stages_ms[name] (accumulating over repeated entries)."""
+        """Time the enclosed work into stages_ms[name], prefixed by any enclosing stages."""
+        key = "/".join([*self._open, name])
+        self._open.append(name)
         start = time.perf_counter_ns()
         try:
             yield
         finally:
-            self.stages_ms[name] = self.stages_ms.get(name, 0.0) + (time.perf_counter_ns() - start) / 1e6
+            self._open.pop()
+            self.stages_ms[key] = self.stages_ms.get(key, 0.0) + (time.perf_counter_ns() - start) / 1e6
+
+    def top_level_ms(self) -> float:
+        """The sum of the outermost stages: each millisecond counted once."""
+        return sum(v for k, v in self.stages_ms.items() if "/" not in k)
 
     def count(self, kind: str, n: int) -> None:
         self.rays[kind] += int(n)
@@ -35,4 +46,5 @@ class FrameStats:
             "stages_ms": {k: round(v, 3) for k, v in self.stages_ms.items()},
             "rays": {**self.rays, "total": sum(self.rays.values())},
             "stages_run": list(self.stages_ms),
+            "metrics": dict(self.metrics),
         }

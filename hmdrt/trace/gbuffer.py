@@ -38,6 +38,20 @@ class HitAttributes(NamedTuple):
             np.zeros(n, np.float32),
         )
 
+    def clear(self) -> None:
+        """Set every sample to a miss (for reused buffers)."""
+        self.depth.fill(np.inf)
+        self.object_id.fill(-1)
+        for a in (
+            self.normal_geometric,
+            self.normal_shading,
+            self.shadow_count,
+            self.textured,
+            self.reflect,
+            self.refract,
+        ):
+            a.fill(0)
+
 
 class GBuffer(NamedTuple):
     primary: HitAttributes
@@ -46,6 +60,40 @@ class GBuffer(NamedTuple):
     @classmethod
     def empty(cls, n: int) -> GBuffer:
         return cls(HitAttributes.empty(n), HitAttributes.empty(n))
+
+    def rows(self, n: int) -> GBuffer:
+        """A view of the first n samples."""
+        return GBuffer(HitAttributes(*(a[:n] for a in self.primary)), HitAttributes(*(a[:n] for a in self.secondary)))
+
+
+class GBufferPool:
+    """One G-buffer kept across frames and grown when a frame needs more samples, so that frames with
+    varying sample counts do not allocate (and first-touch) fresh memory every time."""
+
+    def __init__(self):
+        self._buffer = GBuffer.empty(0)
+
+    def rows(self, n: int) -> GBuffer:
+        """A G-buffer of n samples backed by the pooled arrays; the tracer writes every primary row and
+        the secondary rows start as misses."""
+        if len(self._buffer.primary.depth) < n:
+            self._buffer = GBuffer.empty(max(n, int(1.25 * len(self._buffer.primary.depth))))
+        view = self._buffer.rows(n)
+        view.secondary.clear()
+        return view
+
+
+class LightBuffer(NamedTuple):
+    """weier2016 section 3.1's light buffer: per sample, the irradiance of the stochastic sources (area
+    lights, ambient occlusion) at the primary hit and the albedo it lands on; their product is the
+    part of the sample's colour that those sources contribute (zero on a miss)."""
+
+    irradiance: np.ndarray  # (n, 3) float32
+    albedo: np.ndarray  # (n, 3) float32
+
+    @classmethod
+    def empty(cls, n: int) -> LightBuffer:
+        return cls(np.zeros((n, 3), np.float32), np.zeros((n, 3), np.float32))
 
 
 @nb.njit(cache=True)
@@ -58,15 +106,14 @@ def _store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, st
             continue
         depth[r] = t[i]
         a_obj[r] = obj[i]
-        if not hits[i]:
-            continue
+        hit = hits[i]
         for c in range(3):
-            a_ng[r, c] = ng[i, c]
-            a_ns[r, c] = ns[i, c]
-        a_shadow[r] = shadow_count[i]
-        a_tex[r] = textured[material[i]]
-        a_kr[r] = kr[i]
-        a_kt[r] = kt[i]
+            a_ng[r, c] = ng[i, c] if hit else 0.0
+            a_ns[r, c] = ns[i, c] if hit else 0.0
+        a_shadow[r] = shadow_count[i] if hit else 0
+        a_tex[r] = textured[material[i]] if hit else False
+        a_kr[r] = kr[i] if hit else 0.0
+        a_kt[r] = kt[i] if hit else 0.0
 
 
 @nb.njit(parallel=True, cache=True)

@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from hmdrt.memory import retain_freed_memory
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.scene.model import Scene
 from hmdrt.scene.pack import pack
 from hmdrt.telemetry.stats import FrameStats
-from hmdrt.trace.gbuffer import GBuffer, store_kernel
+from hmdrt.trace.gbuffer import GBuffer, LightBuffer, store_kernel
 from hmdrt.trace.lighting import RayBatch, light_plan, light_rays_kernel, shade_kernel
 from hmdrt.trace.secondary import Rays, accumulate_kernel, interaction_kernel, spawn_kernel
 from hmdrt.trace.surface import Surface, surface_kernel
@@ -27,6 +28,7 @@ class Whitted:
     """Shades camera samples of one scene; build once, call trace_samples per frame."""
 
     def __init__(self, scene: Scene, threads: int | None = None):
+        retain_freed_memory()
         self.packed = pack(scene)
         self.tracer = Tracer(self.packed.geometry, threads)
         self.plan = light_plan(self.packed.lights, scene)
@@ -46,11 +48,17 @@ class Whitted:
         self.close()
 
     def trace_samples(
-        self, camera: EyeCamera, xy: np.ndarray, keys: np.ndarray, stats: FrameStats, gbuffer: GBuffer | None = None
+        self,
+        camera: EyeCamera,
+        xy: np.ndarray,
+        keys: np.ndarray,
+        stats: FrameStats,
+        gbuffer: GBuffer | None = None,
+        light: LightBuffer | None = None,
     ) -> np.ndarray:
         """Radiance (n, 3) float32 of the camera rays through pixel coordinates xy (n, 2).
 
-        keys (n,) int64 seed each sample's random decisions; gbuffer, if given, is filled for all n.
+        keys (n,) int64 seed each sample's random decisions; gbuffer and light, if given, are filled for all n.
         """
         out = np.empty((len(xy), 3), dtype=np.float32)
         for s in range(0, len(xy), self.chunk):
@@ -67,12 +75,18 @@ class Whitted:
                 )
                 rays.origins[:] = camera.position
             radiance = np.zeros((n, 3), dtype=np.float64)
-            self._trace_wavefront(rays, radiance, stats, gbuffer, s)
+            self._trace_wavefront(rays, radiance, stats, gbuffer, light, s)
             out[s:e] = radiance
         return out
 
     def _trace_wavefront(
-        self, rays: Rays, radiance: np.ndarray, stats: FrameStats, gbuffer: GBuffer | None, row0: int
+        self,
+        rays: Rays,
+        radiance: np.ndarray,
+        stats: FrameStats,
+        gbuffer: GBuffer | None,
+        light: LightBuffer | None,
+        row0: int,
     ) -> None:
         for depth in range(self.max_depth + 1):
             n = len(rays.owner)
@@ -87,10 +101,13 @@ class Whitted:
                 surface_kernel(
                     self.packed.geometry, self.packed.materials, rays.directions, hits.prim, hits.u, hits.v, surf
                 )
-            local, shadow_count = self._shade(surf, rays, stats)
+            local, shadow_count, stochastic = self._shade(surf, rays, stats)
             with stats.stage("shade"):
                 if depth == 0:
                     radiance += local
+                    if light is not None:
+                        light.irradiance[row0 : row0 + n] = stochastic
+                        light.albedo[row0 : row0 + n] = np.where(surf.hit[:, None], surf.albedo, 0.0)
                 else:
                     accumulate_kernel(radiance, rays, local)
             spawn = depth < self.max_depth and self.secondary
@@ -111,8 +128,9 @@ class Whitted:
                 spawn_kernel(self.packed.materials, surf, rays, kr, kt, first, depth + 1, children)
             rays = children
 
-    def _shade(self, surf, rays: Rays, stats: FrameStats) -> tuple[np.ndarray, np.ndarray]:
-        """Local radiance of every hit (background on misses) and its count of shadowed light samples."""
+    def _shade(self, surf, rays: Rays, stats: FrameStats) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Local radiance of every hit (background on misses), its count of shadowed light samples, and
+        the irradiance of its stochastic sources (area lights, ambient occlusion)."""
         n = len(surf.hit)
         per_hit = (self.n_point, self.plan.area_total, self.plan.ao_samples)
         point, area, ao = (RayBatch.empty(n * k) for k in per_hit)
@@ -126,7 +144,8 @@ class Whitted:
                 stats.count(kind, batch.active())
         local = np.empty((n, 3), np.float64)
         shadow_count = np.empty(n, np.int16)
+        stochastic = np.empty((n, 3), np.float32)
         with stats.stage("shade"):
             args = (self.packed.lights, self.plan, self.packed.materials, surf, rays.directions, point, area, ao)
-            shade_kernel(*args, local, shadow_count)
-        return local, shadow_count
+            shade_kernel(*args, local, shadow_count, stochastic)
+        return local, shadow_count, stochastic

@@ -180,7 +180,7 @@ def _lit(ns, albedo, i, wlocal, ks, shininess, view, light, e):
 
 
 @nb.njit(cache=True)
-def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count, start, stop):
+def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count, stochastic, start, stop):
     l_int, a_normal, a_size, a_rad, a_samples = (
         lights.point_intensity,
         lights.area_normal,
@@ -205,6 +205,7 @@ def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shad
         if not hits[i]:
             for c in range(3):
                 local[i, c] = background[c]
+                stochastic[i, c] = 0.0
             shadow_count[i] = 0
             continue
         k = material[i]
@@ -212,6 +213,7 @@ def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shad
         ks, sh = spec_k[k], shin[k]
         view = (dirs_in[i, 0], dirs_in[i, 1], dirs_in[i, 2])
         ar = ag = ab = 0.0
+        er = eg = eb = 0.0  # irradiance from the stochastic sources, for the light buffer
         shadowed = 0
         for l in range(n_point):
             j = i * n_point + l
@@ -240,6 +242,8 @@ def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shad
                 e = (a_rad[a, 0] * scale, a_rad[a, 1] * scale, a_rad[a, 2] * scale)
                 cr, cg, cb = _lit(ns, albedo, i, wlocal, ks, sh, view, (lx, ly, lz), e)
                 ar, ag, ab = ar + cr, ag + cg, ab + cb
+                cos_s = max(ns[i, 0] * lx + ns[i, 1] * ly + ns[i, 2] * lz, 0.0) * wlocal
+                er, eg, eb = er + e[0] * cos_s, eg + e[1] * cos_s, eb + e[2] * cos_s
         open_sky = 1.0
         if ao_n > 0:
             blocked = 0
@@ -250,13 +254,19 @@ def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shad
         local[i, 0] = emission[k, 0] + ar + wlocal * ambient[0] * albedo[i, 0] * open_sky
         local[i, 1] = emission[k, 1] + ag + wlocal * ambient[1] * albedo[i, 1] * open_sky
         local[i, 2] = emission[k, 2] + ab + wlocal * ambient[2] * albedo[i, 2] * open_sky
+        stochastic[i, 0] = er + wlocal * ambient[0] * open_sky
+        stochastic[i, 1] = eg + wlocal * ambient[1] * open_sky
+        stochastic[i, 2] = eb + wlocal * ambient[2] * open_sky
         shadow_count[i] = shadowed
 
 
 @nb.njit(parallel=True, cache=True)
-def shade_kernel(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count):
-    """Local radiance (n, 3) at each hit, background on misses, and each hit's count of shadowed light samples."""
+def shade_kernel(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count, stochastic):
+    """Local radiance (n, 3) at each hit (background on misses), each hit's count of shadowed light
+    samples, and the irradiance its area lights and ambient occlusion contribute (stochastic (n, 3)):
+    the diffuse part of local from those sources is albedo x stochastic."""
     n = surf.hit.shape[0]
     for b in nb.prange((n + BLOCK - 1) // BLOCK):
         stop = min(n, (b + 1) * BLOCK)
-        _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count, b * BLOCK, stop)
+        out = (local, shadow_count, stochastic)
+        _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, *out, b * BLOCK, stop)

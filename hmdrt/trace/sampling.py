@@ -15,12 +15,18 @@ from hmdrt.rng import uniform
 DIM_PIXEL, DIM_AREA, DIM_AO = 1, 16, 4096
 
 
-def grid_shape(n: int) -> tuple[int, int]:
+@nb.njit(cache=True, inline="always")
+def grid_dims(n):
     """(nx, ny) with nx * ny == n and nx <= ny as close to square as n allows (36 -> 6 x 6, 8 -> 2 x 4)."""
-    nx = max(1, math.isqrt(n))
+    nx = max(1, int(math.sqrt(n)))
     while n % nx:
         nx -= 1
     return nx, n // nx
+
+
+def grid_shape(n: int) -> tuple[int, int]:
+    """grid_dims for Python callers."""
+    return tuple(int(v) for v in grid_dims(n))
 
 
 @nb.njit(cache=True, inline="always")
