@@ -145,10 +145,16 @@ def read_trace(path: str | Path) -> TraceReading:
     return reading
 
 
+def _numpy_scalar(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise NotImplementedError(f"cannot write {type(obj).__name__} to a trace")
+
+
 def write_trace(path: str | Path, samples: Iterable[Sample], device: str = "") -> None:
     """Write samples as a native trace (gzip when the name ends in .gz)."""
     path = Path(path)
-    encoder = msgspec.json.Encoder()
+    encoder = msgspec.json.Encoder(enc_hook=_numpy_scalar)
     opener = gzip.open if path.suffix == ".gz" else open
     with opener(path, "wb") as f:
         f.write(encoder.encode(Header(FORMAT, VERSION, device)) + b"\n")

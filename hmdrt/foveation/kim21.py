@@ -14,6 +14,8 @@ Section 4.7: temporal smoothing over up to 4 back-projected earlier frames with 
 linear through 0.9, 0.8, 0.7, 0.5, 0.2, 0.1 at 0, e_f, e_p, e_m, e_np, e_max.
 
 The paper leaves open when two normals disagree; here, when their dot product is below normal_cos.
+The supersampling jitter is fixed per subpixel across frames: with a still view the frames agree,
+and temporal smoothing works on what the paper targets, the noise of the received poses (Table 3).
 """
 
 from __future__ import annotations
@@ -502,7 +504,7 @@ class Kim21:
                 first,
                 per_subpixel,
                 cam.width,
-                int(pixel_keys(np.zeros(1), request.seed, request.frame, stream=1)[0]),
+                int(pixel_keys(np.zeros(1), request.seed, stream=1)[0]),
                 extra_xy,
                 extra_keys,
             )

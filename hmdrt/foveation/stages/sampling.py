@@ -125,33 +125,42 @@ class SamplingTables(NamedTuple):
     ppd: tuple[float, float]
 
 
+def transition_points(cfg: Foveal, count: int, ppd: tuple[float, float]) -> np.ndarray:
+    """weier2018 equation (1)'s points as pixel offsets (count, 2) from the point of regard: r from the
+    equation and phi = 2 pi v, (u, v) from the Halton (2, 3) sequence (indices from 1).
+
+    As printed, the equation gives r the density f(x) without the polar Jacobian r, so the points are
+    denser per pixel near r0 than the linear falloff, and some there share a pixel.
+    """
+    k = np.arange(1, count + 1)
+    r = transition_radius(halton(k, 2), cfg.r0, min(cfg.r1, 180.0), cfg.p_min)
+    phi = 2.0 * np.pi * halton(k, 3)
+    return np.stack([r * np.cos(phi) * ppd[0], r * np.sin(phi) * ppd[1]], axis=1)
+
+
 def sampling_tables(camera: EyeCamera, cfg: Foveal, seed: int = 0) -> SamplingTables:
     """Precompute S_in and S_out for a camera (weier2018 section 3.1).
 
-    S_in holds every offset inside r0 and, in [r0, r1), the pixels hit by M points (r, phi) with r from
-    equation (1) and phi = 2 pi v, (u, v) from the Halton (2, 3) sequence. M is the expected number of
-    transition pixels under the linear falloff, so the density matches weier2016's foveal function.
+    S_in holds every offset inside r0 and, in [r0, r1), the pixels hit by transition_points; their
+    number M is the expected number of transition pixels under weier2016's linear falloff. S_out is a
+    seeded uniform pattern of density p_min.
     """
-    ppd_x, ppd_y = pixels_per_degree(camera)
+    ppd = pixels_per_degree(camera)
     r1 = min(cfg.r1, 180.0)
-    rx, ry = math.ceil(r1 * ppd_x) + 1, math.ceil(r1 * ppd_y) + 1
+    rx, ry = math.ceil(r1 * ppd[0]) + 1, math.ceil(r1 * ppd[1]) + 1
     oy, ox = np.mgrid[-ry : ry + 1, -rx : rx + 1]
-    r_deg = np.hypot(ox / ppd_x, oy / ppd_y)
+    r_deg = np.hypot(ox / ppd[0], oy / ppd[1])
     s_in = r_deg < cfg.r0
     band = (r_deg >= cfg.r0) & (r_deg < r1)
     samples = 0
     if band.any() and r1 > cfg.r0:
         p = 1.0 - (1.0 - cfg.p_min) * (r_deg[band] - cfg.r0) / (r1 - cfg.r0)
         samples = int(round(p.sum()))
-        k = np.arange(1, samples + 1)
-        r = transition_radius(halton(k, 2), cfg.r0, r1, cfg.p_min)
-        phi = 2.0 * np.pi * halton(k, 3)
-        px = np.rint(r * np.cos(phi) * ppd_x).astype(np.int64) + rx
-        py = np.rint(r * np.sin(phi) * ppd_y).astype(np.int64) + ry
-        s_in[py, px] = True
+        offsets = np.rint(transition_points(cfg, samples, ppd)).astype(np.int64)
+        s_in[offsets[:, 1] + ry, offsets[:, 0] + rx] = True
     rng = np.random.default_rng(seed)
     s_out = rng.random((camera.height, camera.width)) < cfg.p_min
-    return SamplingTables(s_in, s_out, samples, (ppd_x, ppd_y))
+    return SamplingTables(s_in, s_out, samples, ppd)
 
 
 @nb.njit(parallel=True, cache=True)

@@ -1,0 +1,329 @@
+"""The shared foveation stages against the papers' formulas and hand-computed values."""
+
+import math
+
+import numpy as np
+import pytest
+
+from hmdrt.errors import ConfigError
+from hmdrt.foveation.kim21 import Kim21Params, alpha_of_eccentricity, bezier_controls, tau_fov_array
+from hmdrt.foveation.rrm import RrmParams, refresh_phase, visit_order
+from hmdrt.foveation.stages.dof import DOF_PRESETS, circle_of_confusion, coc_map, focal_lengths
+from hmdrt.foveation.stages.gaze import FixationFilter, vergence_depth
+from hmdrt.foveation.stages.pyramid import Pyramid, pull_push
+from hmdrt.foveation.stages.reproject import backproject, reproject_mesh
+from hmdrt.foveation.stages.sampling import (
+    FRC_PRESETS,
+    bernoulli_mask,
+    expected_fraction,
+    foveal_config,
+    sampling_tables,
+    table_mask,
+    transition_points,
+    transition_radius,
+)
+from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
+from hmdrt.optics import EyeCamera, get_profile
+from hmdrt.optics.camera import pixel_centres
+from hmdrt.scene import Scene
+from hmdrt.scene.model import AreaLight, Material
+from hmdrt.scene.shapes import quad, sphere
+from hmdrt.spatial import Pose, gaze_direction
+from hmdrt.telemetry.stats import FrameStats
+from hmdrt.trace.gbuffer import LightBuffer
+from hmdrt.trace.integrator import Whitted
+
+
+def camera(profile="rift_s", pose=None, width=None, height=None):
+    p = get_profile(profile)
+    if width:
+        p = p.with_resolution(width, height)
+    return EyeCamera.for_eye(p, pose or Pose.looking((0.0, 1.6, 0.0)))
+
+
+# -- weier2016 section 3.4: running estimate and k(dt) --
+
+
+def test_running_estimate_matches_hand_computed_values():
+    # rho_{t-1} = 1: alpha' = 1/2; k = 0.1 < 1/2, so alpha = 1/2; rho = (1/4 + 1/4 / 1)^-1 = 2
+    assert running_estimate(1.0, 0.1) == pytest.approx((0.5, 2.0))
+    # rho_{t-1} = 3: alpha' = 1/4; rho = (1/16 + (9/16) / 3)^-1 = 1 / (1/16 + 3/16) = 4
+    assert running_estimate(3.0, 0.1) == pytest.approx((0.25, 4.0))
+    # k above alpha' bounds the new sample's weight from below: alpha = 0.6, rho = 1/(0.36 + 0.16/9)
+    alpha, rho = running_estimate(9.0, 0.6)
+    assert alpha == pytest.approx(0.6) and rho == pytest.approx(1.0 / (0.36 + 0.16 / 9.0))
+
+
+def test_running_estimate_counts_samples_until_k_bounds_it():
+    rho = 1.0
+    for n in range(2, 8):
+        alpha, rho = running_estimate(rho, 1e-6)
+        assert alpha == pytest.approx(1.0 / n) and rho == pytest.approx(n)  # an exact average of n samples
+
+
+def test_k_of_age_matches_the_formula():
+    k_min, k_max, t_max = 0.05, 0.8, 11.0
+    x0, x1 = math.log(k_min), math.log(k_max)
+    for dt in (1, 2, 6, 11, 30):
+        expected = min(math.exp(x0 + (dt - 1) / (t_max - 1) * (x1 - x0)), k_max)
+        assert k_of_age(float(dt), k_min, k_max, t_max) == pytest.approx(expected)
+    assert k_of_age(1.0, k_min, k_max, t_max) == pytest.approx(k_min)
+    assert k_of_age(11.0, k_min, k_max, t_max) == pytest.approx(k_max)
+    assert k_of_age(6.0, k_min, k_max, t_max) == pytest.approx(math.sqrt(k_min * k_max))  # geometric midpoint
+    assert k_of_age(5.0, k_min, k_max, 1.0) == k_max  # t_max = 1 would divide by zero
+
+
+# -- weier2016 section 3.1 and weier2018 section 3.1: sampling --
+
+
+def test_frc_presets_are_the_papers():
+    assert FRC_PRESETS["small"] == (5.0, 10.0, 0.01)
+    assert FRC_PRESETS["medium"] == (10.0, 20.0, 0.05)
+    assert FRC_PRESETS["large"] == (15.0, 30.0, 0.1)
+    with pytest.raises(ConfigError, match="must not exceed"):
+        foveal_config("medium", 30.0, 20.0, None)
+
+
+@pytest.mark.parametrize("frc", ["small", "medium", "large"])
+def test_sample_fraction_matches_the_foveal_function(frc):
+    cam = camera()
+    ecc = cam.eccentricity(gaze_direction(8.0, -4.0))
+    cfg = foveal_config(frc, None, None, None)
+    expected = expected_fraction(ecc, cfg)
+    fractions = [bernoulli_mask(ecc, cfg, seed=3, frame=f).mean() for f in range(3)]
+    for f in fractions:
+        assert abs(f - expected) <= 0.02 * expected
+    masks = [bernoulli_mask(ecc, cfg, 3, f) for f in range(2)]
+    assert np.all(masks[0][ecc < cfg.r0]) and not np.array_equal(masks[0], masks[1])  # fresh xi every frame
+
+
+def test_equation_1_limits_and_distribution():
+    u = np.linspace(0.0, 1.0, 11)
+    np.testing.assert_allclose(transition_radius(u, 10, 20, 1.0), 10 + 10 * u)  # p_min = 1: uniform
+    near_one = transition_radius(u, 10, 20, 1.0 - 1e-12)
+    np.testing.assert_allclose(near_one, 10 + 10 * u, atol=1e-9)  # no 0/0 near the limit
+    assert transition_radius(0.0, 10, 20, 0.05) == 10 and transition_radius(1.0, 10, 20, 0.05) == pytest.approx(20)
+    # the inverse of the CDF of f(x) = 1 - x (1 - p): F(x) = (2x - (1 - p) x^2) / (1 + p)
+    p = 0.2
+    x = transition_radius(u, 0.0, 1.0, p)
+    np.testing.assert_allclose((2 * x - (1 - p) * x * x) / (1 + p), u, atol=1e-12)
+
+
+def test_s_in_reproduces_the_density_of_equation_1():
+    cam = camera()
+    cfg = foveal_config("medium", None, None, 0.05)
+    tables = sampling_tables(cam, cfg)
+    ppd_x, ppd_y = tables.ppd
+    points = transition_points(cfg, tables.samples, tables.ppd)
+    r = np.hypot(points[:, 0] / ppd_x, points[:, 1] / ppd_y)
+    # the points' radii follow equation (1): F(x) = (2x - (1 - p) x^2) / (1 + p), x = (r - r0) / (r1 - r0)
+    x = np.sort((r - cfg.r0) / (cfg.r1 - cfg.r0))
+    cdf = (2 * x - (1 - cfg.p_min) * x * x) / (1 + cfg.p_min)
+    assert np.max(np.abs(np.arange(1, len(x) + 1) / len(x) - cdf)) < 5.0 / len(x) ** 0.5  # KS, low discrepancy
+    assert np.all((r >= cfg.r0) & (r < cfg.r1 + 1e-9))
+    # S_in is every pixel inside r0 plus exactly the pixels the points land on
+    ry, rx = tables.s_in.shape[0] // 2, tables.s_in.shape[1] // 2
+    oy, ox = np.mgrid[-ry : ry + 1, -rx : rx + 1]
+    r_pix = np.hypot(ox / ppd_x, oy / ppd_y)
+    expected = r_pix < cfg.r0
+    hit = np.rint(points).astype(int)
+    expected[hit[:, 1] + ry, hit[:, 0] + rx] = True
+    np.testing.assert_array_equal(tables.s_in, expected)
+    # M is the transition band's expected count under the linear falloff of weier2016
+    band = (r_pix >= cfg.r0) & (r_pix < cfg.r1)
+    falloff = 1 - (1 - cfg.p_min) * (r_pix[band] - cfg.r0) / (cfg.r1 - cfg.r0)
+    assert tables.samples == round(falloff.sum())
+
+
+def test_table_mask_uses_s_out_outside_r1_and_moves_s_in_with_the_gaze():
+    cam = camera()
+    cfg = foveal_config("medium", None, None, 0.2)
+    tables = sampling_tables(cam, cfg, seed=5)
+    for yaw in (0.0, 12.0):
+        g = gaze_direction(yaw, 0.0)
+        ecc = cam.eccentricity(g)
+        mask = table_mask(ecc, cfg, tables, cam.gaze_pixel(g))
+        outside = ecc >= cfg.r1
+        np.testing.assert_array_equal(mask[outside], tables.s_out[outside])
+        assert np.all(mask[ecc < cfg.r0])
+        assert abs(mask[outside].mean() - 0.2) < 0.01
+
+
+# -- kim2021 section 4.6.1: tau_fov --
+
+
+def test_tau_fov_is_c1_at_e_f_and_monotone():
+    for shape in ((1.0, 2.0, 0.5, 12.0), (9.0, 10.0, 1.5, 20.0)):  # Figure 7's two functions
+        p = Kim21Params(tau_0=shape[0], tau_f=shape[1], tau_f_slope=shape[2], tau_np=shape[3])
+        ctrl = bezier_controls(p)
+        e = np.linspace(0.0, p.e_np, 3001)
+        tau = tau_fov_array(e, ctrl)
+        assert tau[0] == pytest.approx(shape[0]) and tau[-1] == pytest.approx(shape[3])
+        assert tau_fov_array(np.array([p.e_f]), ctrl)[0] == pytest.approx(shape[1])
+        assert np.all(np.diff(tau) >= -1e-12)  # monotone
+        h = 1e-4
+        left = (tau_fov_array(np.array([p.e_f]), ctrl)[0] - tau_fov_array(np.array([p.e_f - h]), ctrl)[0]) / h
+        right = (tau_fov_array(np.array([p.e_f + h]), ctrl)[0] - tau_fov_array(np.array([p.e_f]), ctrl)[0]) / h
+        assert left == pytest.approx(shape[2], rel=1e-2) and right == pytest.approx(shape[2], rel=1e-2)  # C1
+        slope0 = (tau_fov_array(np.array([h]), ctrl)[0] - shape[0]) / h
+        assert abs(slope0) < 1e-2  # flat at the fixation
+
+
+def test_tau_fov_rejects_shapes_that_are_not_functions_and_takes_flat_ones():
+    with pytest.raises(ConfigError, match="function of eccentricity"):
+        bezier_controls(Kim21Params(tau_0=1.0, tau_f=10.0, tau_f_slope=0.5, tau_np=12.0))
+    with pytest.raises(ConfigError, match="tau_f_slope must be positive"):
+        bezier_controls(Kim21Params(tau_0=1.0, tau_f=2.0, tau_f_slope=0.0, tau_np=12.0))
+    flat = bezier_controls(Kim21Params(tau_0=3.0, tau_f=3.0, tau_f_slope=0.0, tau_np=3.0))
+    np.testing.assert_allclose(tau_fov_array(np.linspace(0, 30, 50), flat), 3.0)
+
+
+def test_alpha_of_eccentricity_is_the_papers_piecewise_linear_function():
+    p = Kim21Params()
+    e = np.array([0.0, p.e_f, p.e_p, p.e_m, p.e_np, p.e_max, 60.0, (p.e_f + p.e_p) / 2])
+    np.testing.assert_allclose(alpha_of_eccentricity(e, p), [0.9, 0.8, 0.7, 0.5, 0.2, 0.1, 0.1, 0.75], rtol=1e-6)
+
+
+# -- smith2013 section 3.2.1: refresh cycle groups --
+
+
+@pytest.mark.parametrize("order", ["horizontal", "serpentine", "scattered"])
+def test_each_peripheral_block_is_refreshed_exactly_once_per_cycle(order):
+    params = RrmParams(order=order)
+    phase = refresh_phase(61, 23, params)  # sizes that are not multiples of the group
+    n = params.cycle
+    assert n == 12
+    counts = sum((phase == f % n).astype(int) for f in range(5, 5 + n))
+    assert np.all(counts == 1)
+    # a block is refreshed as a whole: its pixels share a phase
+    for x0 in range(0, 60, params.block):
+        assert np.all(phase[:, x0 : x0 + params.block] == phase[:, x0 : x0 + 1])
+
+
+def test_refresh_orders_differ_in_sequence():
+    h, s, sc = (visit_order(3, 4, o) for o in ("horizontal", "serpentine", "scattered"))
+    assert list(h) == list(range(12))
+    assert list(s[:6]) == [0, 1, 2, 5, 4, 3]
+    assert sorted(sc) == list(range(12)) and list(sc[:3]) != [0, 1, 2]
+    # scattered: consecutive refreshes are never neighbours in the group
+    rows, cols = sc // 3, sc % 3
+    assert np.all(np.abs(np.diff(rows)) + np.abs(np.diff(cols)) > 1)
+
+
+def test_fixation_filter_smooths_jitter_and_follows_saccades():
+    f = FixationFilter(alpha=0.3, saccade_deg=3.0)
+    rng = np.random.default_rng(0)
+    raw = [gaze_direction(*rng.normal(0.0, 0.4, 2)) for _ in range(200)]
+    out = np.array([f(g) for g in raw])
+    spread = lambda v: np.degrees(np.arccos(np.clip(v @ [0, 0, -1], -1, 1))).std()  # noqa: E731
+    assert spread(out[20:]) < 0.6 * spread(np.array(raw[20:]))
+    jump = gaze_direction(10.0, 0.0)
+    np.testing.assert_allclose(f(jump), jump)  # a saccade is followed at once
+
+
+def test_vergence_depth():
+    left, right = np.array([-0.032, 0.0, 0.0]), np.array([0.032, 0.0, 0.0])
+    target = np.array([0.1, 0.05, -1.5])
+    dl, dr = (target - left) / np.linalg.norm(target - left), (target - right) / np.linalg.norm(target - right)
+    assert vergence_depth(left, dl, right, dr) == pytest.approx(np.linalg.norm(target), rel=1e-9)
+    forward = np.array([0.0, 0.0, -1.0])
+    assert vergence_depth(left, forward, right, forward) is None  # parallel: at infinity
+
+
+# -- weier2018 section 3.2: circles of confusion --
+
+
+def test_coc_is_zero_inside_the_focus_range_and_grows_outside():
+    focus = 1.5
+    d_n, d_f, f_n, f_f = focal_lengths(focus, 0.2)
+    assert (d_n, d_f) == pytest.approx((1300.0, 1700.0))
+    k, e = DOF_PRESETS["medium"]
+    for g in np.linspace(d_n, d_f, 9):
+        assert circle_of_confusion(g, d_n, d_f, f_n, f_f, k, e) == 0.0
+    near = [circle_of_confusion(g, d_n, d_f, f_n, f_f, k, e) for g in (1299.0, 1000.0, 600.0, 300.0)]
+    far = [circle_of_confusion(g, d_n, d_f, f_n, f_f, k, e) for g in (1701.0, 3000.0, 8000.0, math.inf)]
+    assert all(c > 0 for c in near) and np.all(np.diff(near) > 0)  # near field: positive, growing
+    assert all(c < 0 for c in far) and np.all(np.diff(far) < 0)  # far field: negative, growing in size
+    assert abs(near[0]) < 0.05 and abs(far[0]) < 0.05  # continuous at the range's ends
+
+
+def test_coc_presets_scale_the_blur():
+    depth = np.array([[0.75, 6.0]])
+    sizes = [abs(coc_map(depth, 0.75, DOF_PRESETS[p], 14.2)[0, 1]) for p in ("weak", "medium", "strong")]
+    assert sizes == sorted(sizes) and 1.0 < sizes[0] < 3.5 and 3.0 < sizes[1] < 7.0 and 7.0 < sizes[2] < 14.0
+    assert coc_map(depth, 0.75, DOF_PRESETS["medium"], 14.2)[0, 0] == 0.0
+
+
+# -- reprojection and reconstruction --
+
+
+def test_mesh_reprojection_is_exact_for_an_unmoved_camera():
+    cam = camera("sim-cpu", width=96, height=108)
+    sw, sh = 24, 27
+    gx, gy = (np.arange(sw) + 0.5) * 96 / sw, (np.arange(sh) + 0.5) * 108 / sh
+    depth = 2.0 + np.random.default_rng(0).random((sh, sw))
+    mesh, zinv = reproject_mesh(cam, gx, gy, depth, cam, 96, 108)
+    inner = np.zeros((108, 96), bool)
+    inner[4:-4, 2:-2] = True
+    covered = (zinv > 0) & inner
+    assert covered.sum() > 0.95 * inner.sum()
+    ys, xs = np.nonzero(covered)
+    np.testing.assert_allclose(mesh[ys, xs, 0], xs + 0.5, atol=1e-3)
+    np.testing.assert_allclose(mesh[ys, xs, 1], ys + 0.5, atol=1e-3)
+
+
+def test_mesh_and_back_projection_agree_after_a_head_turn():
+    before = camera("sim-cpu", Pose.looking((0.0, 1.6, 0.0), 0.0, 0.0), 96, 108)
+    after = camera("sim-cpu", Pose.looking((0.05, 1.6, 0.0), 4.0, 1.0), 96, 108)
+    sw, sh = 48, 54
+    gx, gy = (np.arange(sw) + 0.5) * 2, (np.arange(sh) + 0.5) * 2
+    depth = np.full((sh, sw), 3.0)  # a sphere of radius 3 around the first eye
+    mesh, zinv = reproject_mesh(before, gx, gy, depth, after, 96, 108)
+    # back-project the reprojected surface from the new camera into the old one: it lands where it came from
+    dist_after = np.linalg.norm(mesh[..., 2:5] - after.position, axis=2).astype(np.float32)
+    xy, _ = backproject(after, np.where(zinv > 0, dist_after, np.inf).astype(np.float32), before)
+    ok = (zinv > 0) & np.isfinite(xy[..., 0])
+    assert ok.sum() > 5000
+    np.testing.assert_allclose(xy[ok], mesh[ok][:, :2], atol=2e-2)
+
+
+def test_pull_push_keeps_samples_and_fills_holes():
+    rng = np.random.default_rng(1)
+    h, w = 37, 50
+    truth = np.stack(np.meshgrid(np.linspace(0, 1, w), np.linspace(0, 1, h)), -1).mean(-1)
+    pyr = Pyramid.empty(w, h)
+    level0 = pyr.data[: w * h]
+    chosen = np.flatnonzero(rng.random(w * h) < 0.15)
+    level0[chosen, :3] = truth.reshape(-1)[chosen, None]
+    level0[chosen, 3] = 1.0
+    level0[chosen, 4] = 2.0
+    pull_push(pyr)
+    dense = pyr.level(0)
+    np.testing.assert_allclose(dense[..., 0].reshape(-1)[chosen], truth.reshape(-1)[chosen], atol=1e-6)
+    assert np.all(dense[..., 3] == 1.0)
+    assert np.abs(dense[..., 0] - truth).max() < 0.15  # a smooth ramp is reconstructed closely
+    np.testing.assert_allclose(dense[..., 4], 2.0, atol=1e-6)
+
+
+# -- the light buffer behind weier2016's post-process --
+
+
+def test_light_buffer_is_the_stochastic_part_of_the_colour():
+    mats = {"m": Material(diffuse=(0.6, 0.5, 0.4))}
+    scene = Scene(
+        "box",
+        [quad("floor", (-3, 0, 3), (6, 0, 0), (0, 0, -6), "m"), sphere("s", (0, 0.5, -2), 0.5, "m")],
+        mats,
+        [AreaLight(corner=(-0.5, 2.5, -2.5), edge_u=(0, 0, 1), edge_v=(1, 0, 0), radiance=(4, 4, 4))],
+        ambient=(0.3, 0.3, 0.3),
+        ao_samples=4,
+        max_depth=0,
+        start=Pose.looking((0, 1.5, 1.0), 0, -30),
+    )
+    cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(32, 32), scene.start)
+    with Whitted(scene) as tracer:
+        xy = pixel_centres(32, 32)
+        light = LightBuffer.empty(len(xy))
+        rgb = tracer.trace_samples(cam, xy, np.arange(len(xy)), FrameStats(), light=light)
+    np.testing.assert_allclose(rgb, light.albedo * light.irradiance, atol=1e-5)  # no emission, no specular
+    assert light.irradiance.max() > 0
