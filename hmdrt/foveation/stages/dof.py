@@ -113,50 +113,28 @@ def gaze_depth(
 
 
 @nb.njit(parallel=True, cache=True)
-def _far_gauss_h(color, coc, central, out):
-    """Horizontal pass of the far-field Gaussian (sigma = |CoC| / 2) over pixels no nearer than the
-    centre's field: the focused and near fields do not bleed into the blurred background."""
+def _far_gauss(src, coc, central, horizontal, out):
+    """One pass of the separable far-field Gaussian (sigma = |CoC| / 2) in central vision, taking only
+    far-field neighbours: the focused and near fields do not bleed into the blurred background."""
     h, w = coc.shape
-    for y in nb.prange(h):
+    for row in nb.prange(h):
+        y = np.int64(row)  # prange's index is unsigned; y + d must stay a signed integer
         for x in range(w):
             c0 = coc[y, x]
             if not central[y, x] or c0 >= 0.0:
                 for ch in range(3):
-                    out[y, x, ch] = color[y, x, ch]
+                    out[y, x, ch] = src[y, x, ch]
                 continue
             sigma = max(-0.5 * c0, 0.5)
             radius = min(int(math.ceil(2.0 * sigma)), MAX_BLUR_PX)
             wsum = r = g = b = 0.0
-            for dx in range(-radius, radius + 1):
-                xx = x + dx
-                if xx < 0 or xx >= w or coc[y, xx] >= 0.0:
+            for d in range(-radius, radius + 1):
+                yy, xx = (y, x + d) if horizontal else (y + d, x)
+                if xx < 0 or xx >= w or yy < 0 or yy >= h or coc[yy, xx] >= 0.0:
                     continue
-                wt = math.exp(-0.5 * dx * dx / (sigma * sigma))
+                wt = math.exp(-0.5 * d * d / (sigma * sigma))
                 wsum += wt
-                r, g, b = r + wt * color[y, xx, 0], g + wt * color[y, xx, 1], b + wt * color[y, xx, 2]
-            out[y, x, 0], out[y, x, 1], out[y, x, 2] = r / wsum, g / wsum, b / wsum
-
-
-@nb.njit(parallel=True, cache=True)
-def _far_gauss_v(hpass, coc, central, out):
-    h, w = coc.shape
-    for y in nb.prange(h):
-        for x in range(w):
-            c0 = coc[y, x]
-            if not central[y, x] or c0 >= 0.0:
-                for ch in range(3):
-                    out[y, x, ch] = hpass[y, x, ch]
-                continue
-            sigma = max(-0.5 * c0, 0.5)
-            radius = min(int(math.ceil(2.0 * sigma)), MAX_BLUR_PX)
-            wsum = r = g = b = 0.0
-            for dy in range(-radius, radius + 1):
-                yy = y + dy
-                if yy < 0 or yy >= h or coc[yy, x] >= 0.0:
-                    continue
-                wt = math.exp(-0.5 * dy * dy / (sigma * sigma))
-                wsum += wt
-                r, g, b = r + wt * hpass[yy, x, 0], g + wt * hpass[yy, x, 1], b + wt * hpass[yy, x, 2]
+                r, g, b = r + wt * src[yy, xx, 0], g + wt * src[yy, xx, 1], b + wt * src[yy, xx, 2]
             out[y, x, 0], out[y, x, 1], out[y, x, 2] = r / wsum, g / wsum, b / wsum
 
 
@@ -234,8 +212,8 @@ def layered_blur(
     central = ecc < r1
     hpass = np.empty_like(color)
     far = np.empty_like(color)
-    _far_gauss_h(color, coc, central, hpass)
-    _far_gauss_v(hpass, coc, central, far)
+    _far_gauss(color, coc, central, True, hpass)
+    _far_gauss(hpass, coc, central, False, far)
     near_h = np.zeros((h, w, 4), np.float32)
     near = np.empty((h, w, 4), np.float32)
     radius = min(MAX_BLUR_PX, int(math.ceil(max(float(coc.max()), 0.0))))
