@@ -5,13 +5,17 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
+from drivers.emulators import EMULATORS
 from hmdrt import __version__
+from hmdrt.bus import INGEST
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.foveation import METHODS, make_method
 from hmdrt.optics import get_profile
@@ -21,7 +25,9 @@ from hmdrt.sequence import FrameInput, SequenceCounts, builtin_path, from_trace,
 from hmdrt.spatial import gaze_direction, parse_gaze
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
-from replay.trace import read_trace
+from replay import load_trace
+
+UNTIL = "stop after SEC seconds (default: until SIGINT/SIGTERM)"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -50,10 +56,10 @@ def _write_json(path: str | Path, record: dict) -> None:
 def _inputs(args: argparse.Namespace, start, period_ns: int) -> tuple[list[FrameInput], SequenceCounts | None]:
     """The frames to render: one still frame, a still sequence, the built-in path, or a trace."""
     if args.trace and args.trace != "builtin":
-        reading = read_trace(args.trace)
+        reading = load_trace(args.trace)
         frames = args.frames
         if frames is None:
-            times = [s.t_ns for s in reading.samples]
+            times = [s.t_host for s in reading.samples]
             frames = (max(times) - min(times)) // period_ns + 1 if times else 1
         return from_trace(reading, frames, period_ns, start)
     frames = args.frames or 1
@@ -164,6 +170,72 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM, so long-running commands stop cleanly."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _duration(args: argparse.Namespace) -> float | None:
+    if args.duration is not None and not args.duration > 0:
+        raise ConfigError(f"--duration must be positive, got {args.duration}")
+    return args.duration
+
+
+def cmd_driver(args: argparse.Namespace) -> int:
+    """Run a driver and publish its samples on the bus until stopped."""
+    from drivers.host import DriverHost
+
+    duration = _duration(args)
+    host = DriverHost(args.url, args.bus)
+    c = host.run(_stop_on_signals(), duration)
+    print(
+        f"{args.url}: {c.samples} samples ({c.invalid} invalid), {c.dropped} dropped, {c.malformed} malformed, "
+        f"{c.reconnects} reconnects"
+    )
+    return 0
+
+
+def cmd_emulate(args: argparse.Namespace) -> int:
+    """Serve an emulated tracker until stopped."""
+    from drivers.emulators import make_emulator
+
+    duration = _duration(args)
+    emulator = make_emulator(
+        args.device,
+        host=args.host,
+        port=args.port,
+        trace=args.trace,
+        seed=args.synthetic,
+        rate_hz=args.rate,
+        offset_deg=args.offset,
+        noise_deg=args.noise,
+        latency_ms=args.latency,
+    )
+    stop = _stop_on_signals()
+    with emulator:
+        print(f"{args.device} emulator: connect with: hmdrt driver '{emulator.url}'", flush=True)
+        stop.wait(duration)
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    """Record a device's samples from the bus into a native trace."""
+    from replay.recorder import Recorder
+
+    duration = _duration(args)
+    recorder = Recorder(args.bus, args.out, bind=not args.connect, device=args.device)
+    print(f"recording {recorder.endpoint} to {args.out}", flush=True)
+    c = recorder.run(_stop_on_signals(), duration)
+    print(
+        f"{args.out}: {c.gaze} gaze, {c.pose} pose ({recorder.device or 'no device'}); {c.malformed} malformed, "
+        f"{c.ignored} of other devices ignored"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="hmdrt", description="A simulated HMD runtime with foveated ray tracing.")
     parser.add_argument("--version", action="version", version=f"hmdrt {__version__}")
@@ -194,6 +266,33 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--seed", type=int, default=0, help="seed of every stochastic step (default 0)")
     render.add_argument("--threads", type=int, help=f"tracing threads (default {os.cpu_count()})")
     render.set_defaults(run=cmd_render)
+    driver = sub.add_parser("driver", help="run a device driver and publish its samples on the bus")
+    driver.add_argument(
+        "url", help="driver URL, e.g. synthetic://?seed=1&rate=250, replay://trace.jsonl, smi://host:4444"
+    )
+    driver.add_argument("--bus", default=INGEST, help=f"the compositor's ingest endpoint (default {INGEST})")
+    driver.add_argument("--duration", type=float, help=UNTIL)
+    driver.set_defaults(run=cmd_driver)
+    emulate = sub.add_parser("emulate", help="serve an emulated eye or head tracker for drivers to connect to")
+    emulate.add_argument("device", choices=EMULATORS, help="tracker protocol (razor, hatire: serial head trackers)")
+    emulate.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
+    emulate.add_argument("--port", type=int, help="port (default: the device's usual one; 0 = any free port)")
+    source = emulate.add_mutually_exclusive_group()
+    source.add_argument("--trace", help="gaze from a recorded trace (any format `hmdrt render --trace` reads)")
+    source.add_argument("--synthetic", type=int, default=0, metavar="SEED", help="synthetic gaze of SEED (default 0)")
+    emulate.add_argument("--rate", type=float, help="sample rate in Hz (default: the device's)")
+    emulate.add_argument("--offset", type=float, help="tracker accuracy error in degrees (default 0)")
+    emulate.add_argument("--noise", type=float, help="tracker precision noise in degrees (default 0)")
+    emulate.add_argument("--latency", type=float, help="capture-to-send latency in ms (default: the device's)")
+    emulate.add_argument("--duration", type=float, help=UNTIL)
+    emulate.set_defaults(run=cmd_emulate)
+    record = sub.add_parser("record", help="record a device's gaze and pose from the bus into a native trace")
+    record.add_argument("--out", required=True, help="output trace (.jsonl)")
+    record.add_argument("--bus", default=INGEST, help=f"endpoint to bind as the ingest (default {INGEST})")
+    record.add_argument("--connect", action="store_true", help="connect to a publisher at --bus instead of binding")
+    record.add_argument("--device", help="the device to record (default: the first one heard)")
+    record.add_argument("--duration", type=float, help=UNTIL)
+    record.set_defaults(run=cmd_record)
     return parser
 
 

@@ -68,8 +68,8 @@ def from_trace(
     reading: TraceReading, frames: int, period_ns: int, start: Pose
 ) -> tuple[list[FrameInput], SequenceCounts]:
     """frames inputs at the refresh period from the trace's first sample time."""
-    gazes = sorted((s for s in reading.samples if isinstance(s, Gaze)), key=lambda s: s.t_ns)
-    poses = sorted((s for s in reading.samples if isinstance(s, PoseSample)), key=lambda s: s.t_ns)
+    gazes = sorted((s for s in reading.samples if isinstance(s, Gaze)), key=lambda s: s.t_host)
+    poses = sorted((s for s in reading.samples if isinstance(s, PoseSample)), key=lambda s: s.t_host)
     counts = SequenceCounts(malformed_lines=reading.malformed)
     counts.gaze_invalid = sum(not usable(s) for s in gazes)
     counts.pose_invalid = sum(not usable(s) for s in poses)
@@ -77,15 +77,15 @@ def from_trace(
     if not valid_gaze:
         raise ConfigError("the trace has no valid gaze sample")
     valid_pose = [s for s in poses if usable(s)]
-    t0 = min(s.t_ns for s in (gazes[0], *poses[:1]))
+    t0 = min(s.t_host for s in (gazes[0], *poses[:1]))
     inputs, gi, pi, all_i = [], -1, -1, -1
     for f in range(frames):
         t = t0 + f * period_ns
-        while gi + 1 < len(valid_gaze) and valid_gaze[gi + 1].t_ns <= t:
+        while gi + 1 < len(valid_gaze) and valid_gaze[gi + 1].t_host <= t:
             gi += 1
-        while all_i + 1 < len(gazes) and gazes[all_i + 1].t_ns <= t:
+        while all_i + 1 < len(gazes) and gazes[all_i + 1].t_host <= t:
             all_i += 1
-        while pi + 1 < len(valid_pose) and valid_pose[pi + 1].t_ns <= t:
+        while pi + 1 < len(valid_pose) and valid_pose[pi + 1].t_host <= t:
             pi += 1
         sample = valid_gaze[max(gi, 0)]
         counts.held_frames += all_i >= 0 and not usable(gazes[all_i])

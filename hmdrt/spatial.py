@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from hmdrt.errors import ConfigError
 
@@ -51,6 +52,13 @@ def gaze_direction(yaw_deg: float, pitch_deg: float) -> np.ndarray:
     """Unit gaze direction (3,) in the head frame for yaw (right +) and pitch (up +) in degrees."""
     yaw, pitch = np.radians(yaw_deg), np.radians(pitch_deg)
     return np.array([np.sin(yaw) * np.cos(pitch), np.sin(pitch), -np.cos(yaw) * np.cos(pitch)])
+
+
+def mean_direction(a: ArrayLike, b: ArrayLike) -> np.ndarray | None:
+    """Unit mean (3,) float64 of two unit directions, e.g. a binocular gaze's centre; None if they cancel out."""
+    mean = np.asarray(a, dtype=np.float64) + np.asarray(b, dtype=np.float64)
+    norm = float(np.linalg.norm(mean))
+    return mean / norm if norm > 1e-9 else None
 
 
 def parse_gaze(text: str) -> tuple[float, float]:

@@ -1,15 +1,14 @@
 """The native trace format: JSON Lines, one header then one sample per line (gzip allowed).
 
     {"format": "hmdrt-trace", "v": 1, "device": "synthetic"}
-    {"kind": "gaze", "seq": 0, "t_ns": 0, "valid": true, "C": [0.0, 0.0, -1.0], "depth_m": 1.5}
-    {"kind": "gaze", "seq": 1, "t_ns": 4000000, "valid": true, "L": [...], "R": [...]}
-    {"kind": "pose", "seq": 0, "t_ns": 0, "position": [0, 0, 0], "orientation": [1, 0, 0, 0]}
+    {"kind": "gaze", "seq": 0, "t_host": 0, "valid": true, "C": [0.0, 0.0, -1.0], "depth_m": 1.5}
+    {"kind": "gaze", "seq": 1, "t_host": 4000000, "valid": true, "L": [...], "R": [...]}
+    {"kind": "pose", "seq": 0, "t_host": 0, "position": [0, 0, 0], "orientation": [1, 0, 0, 0]}
 
-Times are integer nanoseconds on the host clock (t_dev keeps the device's own stamp when known).
-Gaze directions are unit vectors in the head frame (right-handed, +Y up, -Z forward) per eye (L, R)
-or combined (C); depth_m is the vergence depth. Pose is the head position (m) and orientation
-quaternion (w, x, y, z) relative to where the trace started. Lines that do not parse or validate are
-counted and skipped, never fatal; a file without a valid header is an error.
+The samples are the bus's gaze and pose messages (hmdrt.bus.messages, which documents the fields):
+t_host in integer nanoseconds, unit gaze vectors in the head frame per eye or combined, poses
+relative to where the trace started. Lines that do not parse or validate are counted and skipped,
+never fatal; a file without a valid header is an error.
 """
 
 from __future__ import annotations
@@ -19,22 +18,30 @@ import io
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import IO
 
 import msgspec
-import numpy as np
 
+from hmdrt.bus.messages import Gaze, Pose, numpy_scalar, usable
 from hmdrt.errors import ConfigError
+
+__all__ = [
+    "Gaze",
+    "Pose",
+    "Sample",
+    "TraceReading",
+    "TraceWriter",
+    "capped_lines",
+    "open_capped",
+    "read_trace",
+    "usable",
+    "write_trace",
+]
 
 FORMAT = "hmdrt-trace"
 VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
 MAX_FILE_BYTES = 2 * 1024**3
-
-Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
-Vec3 = tuple[Finite, Finite, Finite]
-Quat = tuple[Finite, Finite, Finite, Finite]
-TimeNs = Annotated[int, msgspec.Meta(ge=-(2**62), le=2**62)]
 
 
 class Header(msgspec.Struct, frozen=True):
@@ -43,43 +50,9 @@ class Header(msgspec.Struct, frozen=True):
     device: str = ""
 
 
-class Gaze(msgspec.Struct, frozen=True, tag="gaze", tag_field="kind", forbid_unknown_fields=True, omit_defaults=True):
-    seq: Annotated[int, msgspec.Meta(ge=0)]
-    t_ns: TimeNs
-    t_dev: TimeNs | None = None
-    valid: bool = True
-    C: Vec3 | None = None
-    L: Vec3 | None = None
-    R: Vec3 | None = None
-    depth_m: Annotated[float, msgspec.Meta(gt=0, le=1e6)] | None = None
-
-
-class Pose(msgspec.Struct, frozen=True, tag="pose", tag_field="kind", forbid_unknown_fields=True, omit_defaults=True):
-    seq: Annotated[int, msgspec.Meta(ge=0)]
-    t_ns: TimeNs
-    position: Vec3
-    orientation: Quat
-    t_dev: TimeNs | None = None
-    valid: bool = True
-
-
 Sample = Gaze | Pose
 _decoder = msgspec.json.Decoder(Sample)
 _header_decoder = msgspec.json.Decoder(Header)
-
-
-def _unit(v: Vec3 | None, tol: float = 1e-3) -> bool:
-    return v is not None and abs(float(np.linalg.norm(v)) - 1.0) <= tol
-
-
-def usable(sample: Sample) -> bool:
-    """Whether a sample can drive a frame: valid, with unit gaze directions or a unit quaternion."""
-    if not sample.valid:
-        return False
-    if isinstance(sample, Pose):
-        return _unit(sample.orientation)
-    eyes = [v for v in (sample.C, sample.L, sample.R) if v is not None]
-    return bool(eyes) and all(_unit(v) for v in eyes)
 
 
 @dataclass
@@ -91,7 +64,8 @@ class TraceReading:
     malformed: int = 0
 
 
-def _open(path: Path) -> io.BufferedIOBase:
+def open_capped(path: Path) -> io.BufferedIOBase:
+    """A trace file opened for reading (gunzipped when it ends in .gz), refused over MAX_FILE_BYTES."""
     try:
         size = path.stat().st_size
     except FileNotFoundError:
@@ -102,7 +76,7 @@ def _open(path: Path) -> io.BufferedIOBase:
     return gzip.GzipFile(fileobj=raw) if path.suffix == ".gz" else raw
 
 
-def _lines(stream: io.BufferedIOBase) -> Iterator[bytes | None]:
+def capped_lines(stream: io.BufferedIOBase) -> Iterator[bytes | None]:
     """Lines of at most MAX_LINE_BYTES; None stands for an over-long line (skipped to its end)."""
     while True:
         line = stream.readline(MAX_LINE_BYTES + 1)
@@ -120,8 +94,8 @@ def read_trace(path: str | Path) -> TraceReading:
     """Read a native trace; malformed lines are counted in TraceReading.malformed."""
     path = Path(path)
     try:
-        with _open(path) as stream:
-            lines = _lines(stream)
+        with open_capped(path) as stream:
+            lines = capped_lines(stream)
             first = next(lines, None)
             try:
                 header = _header_decoder.decode(first or b"")
@@ -145,18 +119,28 @@ def read_trace(path: str | Path) -> TraceReading:
     return reading
 
 
-def _numpy_scalar(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    raise NotImplementedError(f"cannot write {type(obj).__name__} to a trace")
+class TraceWriter:
+    """Writes a native trace to a binary stream: the header (once the device is known), then samples."""
+
+    def __init__(self, stream: IO[bytes]):
+        self._stream = stream
+        self._encoder = msgspec.json.Encoder(enc_hook=numpy_scalar)
+        self.started = False
+
+    def header(self, device: str) -> None:
+        self._stream.write(self._encoder.encode(Header(FORMAT, VERSION, device)) + b"\n")
+        self.started = True
+
+    def sample(self, sample: Sample) -> None:
+        self._stream.write(self._encoder.encode(sample) + b"\n")
 
 
 def write_trace(path: str | Path, samples: Iterable[Sample], device: str = "") -> None:
     """Write samples as a native trace (gzip when the name ends in .gz)."""
     path = Path(path)
-    encoder = msgspec.json.Encoder(enc_hook=_numpy_scalar)
     opener = gzip.open if path.suffix == ".gz" else open
     with opener(path, "wb") as f:
-        f.write(encoder.encode(Header(FORMAT, VERSION, device)) + b"\n")
+        writer = TraceWriter(f)
+        writer.header(device)
         for sample in samples:
-            f.write(encoder.encode(sample) + b"\n")
+            writer.sample(sample)

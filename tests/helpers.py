@@ -1,12 +1,20 @@
-"""Test helpers: small renders of real scenes through the real tracer."""
+"""Test helpers: small renders of real scenes through the real tracer, virtual clocks, and reading drivers
+until something holds."""
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import msgspec
 import numpy as np
+import pytest
+from numpy.typing import ArrayLike
 
+from drivers.base import DeviceLost, Driver, Sample
+from drivers.emulators.base import Emulator
+from hmdrt.bus.messages import Gaze
 from hmdrt.foveation import FrameRequest, make_method
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.scene import Scene, load_scene
@@ -14,6 +22,7 @@ from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBuffer
 from hmdrt.trace.integrator import Whitted
+from replay.trace import write_trace
 
 DATA = Path(__file__).parent / "data"
 FORWARD = np.array([0.0, 0.0, -1.0])
@@ -48,3 +57,69 @@ def trace_gbuffer(scene: Scene, camera: EyeCamera, xy: np.ndarray) -> tuple[np.n
         gbuf = GBuffer.empty(len(xy))
         rgb = tracer.trace_samples(camera, xy, np.arange(len(xy)), stats, gbuf)
     return rgb, gbuf, stats
+
+
+class VirtualClock:
+    """Time that passes only when the test says so (set `t` or advance()); sleep_until returns at once."""
+
+    def __init__(self, t_ns: int = 0):
+        self.t = t_ns
+
+    def now_ns(self) -> int:
+        return self.t
+
+    def advance(self, dt_ns: int) -> None:
+        self.t += dt_ns
+
+    def sleep_until(self, t_ns: int) -> None:
+        """Returns at once; the time stands still."""
+
+
+class SteppingClock(VirtualClock):
+    """A virtual clock whose sleeps return at once with the time moved on: a stub runs faster than real time."""
+
+    def sleep_until(self, t_ns: int) -> None:
+        self.t = max(self.t, t_ns)
+
+
+def wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    """Poll condition() until it holds or timeout_s passes; whether it holds."""
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return condition()
+
+
+def at_least(n: int) -> Callable[[list], bool]:
+    """A `collect` condition: n samples or more."""
+    return lambda samples: len(samples) >= n
+
+
+def collect(driver: Driver, until: Callable[[list], bool] | None = None, timeout_s: float = 5.0) -> list[Sample]:
+    """Read from driver until `until(samples)` holds or timeout_s passes (None: read for all of timeout_s)."""
+    samples: list[Sample] = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not (until is not None and until(samples)):
+        samples += driver.read(0.05)
+    return samples
+
+
+def assert_lost_when_stopped(emulator: Emulator, driver: Driver, match: str | None = None) -> None:
+    """Open driver on the running emulator and see samples; once the emulator stops, reads raise DeviceLost."""
+    driver.open()
+    assert collect(driver, at_least(3))
+    emulator.stop()
+    with pytest.raises(DeviceLost, match=match):
+        collect(driver, timeout_s=10.0)
+
+
+def gaze_trace(
+    path: Path, eyes: Iterable[tuple[ArrayLike, ArrayLike, bool]], period_ns: int, depth_m: float | None = None
+) -> str:
+    """Write a binocular gaze trace, sample k at k * period_ns with eyes[k] = (left, right, valid); its path."""
+    samples = [
+        Gaze(seq=k, t_host=k * period_ns, valid=valid, L=tuple(left), R=tuple(right), depth_m=depth_m)
+        for k, (left, right, valid) in enumerate(eyes)
+    ]
+    write_trace(path, samples, device="test")
+    return str(path)

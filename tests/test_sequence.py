@@ -18,15 +18,15 @@ MS = 1_000_000
 
 
 def gaze(seq, t_ms, yaw=0.0, pitch=0.0, valid=True, **kw):
-    return Gaze(seq=seq, t_ns=int(t_ms * MS), valid=valid, C=tuple(gaze_direction(yaw, pitch)), **kw)
+    return Gaze(seq=seq, t_host=int(t_ms * MS), valid=valid, C=tuple(gaze_direction(yaw, pitch)), **kw)
 
 
 def test_trace_round_trip_including_gzip(tmp_path):
     samples = [
         gaze(0, 0.0, 3.0, -2.0, depth_m=1.5),
         gaze(1, 4.0, valid=False),
-        PoseSample(seq=0, t_ns=0, position=(0.0, 0.1, 0.0), orientation=(1.0, 0.0, 0.0, 0.0)),
-        Gaze(seq=2, t_ns=8 * MS, L=(0.0, 0.0, -1.0), R=(0.0, 0.0, -1.0)),
+        PoseSample(seq=0, t_host=0, position=(0.0, 0.1, 0.0), orientation=(1.0, 0.0, 0.0, 0.0)),
+        Gaze(seq=2, t_host=8 * MS, L=(0.0, 0.0, -1.0), R=(0.0, 0.0, -1.0)),
     ]
     for name in ("t.jsonl", "t.jsonl.gz"):
         write_trace(tmp_path / name, samples, device="unit")
@@ -39,10 +39,10 @@ def test_malformed_lines_are_counted_not_fatal(tmp_path):
     write_trace(path, [gaze(0, 0.0), gaze(1, 10.0)])
     with path.open("a") as f:
         f.write("not json\n")
-        f.write('{"kind": "gaze", "seq": -1, "t_ns": 0, "C": [0, 0, -1]}\n')  # negative seq
-        f.write('{"kind": "teleport", "seq": 3, "t_ns": 0}\n')
+        f.write('{"kind": "gaze", "seq": -1, "t_host": 0, "C": [0, 0, -1]}\n')  # negative seq
+        f.write('{"kind": "teleport", "seq": 3, "t_host": 0}\n')
         f.write("x" * 70_000 + "\n")  # longer than the line cap
-        f.write(json.dumps({"kind": "gaze", "seq": 4, "t_ns": 20 * MS, "C": [0.0, 0.0, -1.0]}) + "\n")
+        f.write(json.dumps({"kind": "gaze", "seq": 4, "t_host": 20 * MS, "C": [0.0, 0.0, -1.0]}) + "\n")
     reading = read_trace(path)
     assert reading.malformed == 4 and len(reading.samples) == 3
 
@@ -70,7 +70,7 @@ def test_frames_take_the_latest_valid_gaze_and_hold_it_through_blinks(tmp_path):
         gaze(2, 20.0, valid=False),
         gaze(3, 30.0, valid=False),
         gaze(4, 40.0, -7.0),
-        Gaze(seq=5, t_ns=50 * MS, C=(0.0, 0.6, -0.6)),
+        Gaze(seq=5, t_host=50 * MS, C=(0.0, 0.6, -0.6)),
     ]  # not a unit vector
     write_trace(path, samples)
     period = 10 * MS
@@ -83,7 +83,7 @@ def test_frames_take_the_latest_valid_gaze_and_hold_it_through_blinks(tmp_path):
 def test_trace_poses_are_relative_to_the_scene_start(tmp_path):
     path = tmp_path / "t.jsonl"
     turn = quat_from_yaw_pitch(10.0, 0.0)
-    write_trace(path, [gaze(0, 0.0), PoseSample(seq=0, t_ns=0, position=(0.0, 0.0, -1.0), orientation=tuple(turn))])
+    write_trace(path, [gaze(0, 0.0), PoseSample(seq=0, t_host=0, position=(0.0, 0.0, -1.0), orientation=tuple(turn))])
     start = Pose.looking((1.0, 1.6, 2.0), 90.0, 0.0)
     inp = from_trace(read_trace(path), 1, 10 * MS, start)[0][0]
     np.testing.assert_allclose(inp.pose.position, start.position + quat_to_matrix(start.orientation) @ [0, 0, -1])

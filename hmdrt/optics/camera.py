@@ -17,7 +17,6 @@ from hmdrt.optics.profiles import HmdProfile
 from hmdrt.spatial import Pose
 
 
-@nb.njit(parallel=True, cache=True, fastmath=False)
 def _eye_directions(xy, tan_l, tan_r, tan_u, tan_d, width, height, rot, out):
     sx = (tan_r - tan_l) / width
     sy = (tan_u - tan_d) / height
@@ -29,6 +28,12 @@ def _eye_directions(xy, tan_l, tan_r, tan_u, tan_d, width, height, rot, out):
         out[i, 0] = rot[0, 0] * ex + rot[0, 1] * ey + rot[0, 2] * ez
         out[i, 1] = rot[1, 0] * ex + rot[1, 1] * ey + rot[1, 2] * ez
         out[i, 2] = rot[2, 0] * ex + rot[2, 1] * ey + rot[2, 2] * ez
+
+
+# starting the thread pool costs tens of microseconds, more than a few gaze samples take to convert
+_eye_directions_parallel = nb.njit(parallel=True, cache=True)(_eye_directions)
+_eye_directions_serial = nb.njit(cache=True)(_eye_directions)
+PARALLEL_MIN = 4096
 
 
 @nb.njit(parallel=True, cache=True)
@@ -101,7 +106,8 @@ class EyeCamera:
     def directions(self, xy: np.ndarray) -> np.ndarray:
         """World-space unit view-ray directions (n, 3) float32 through pixel coordinates xy (n, 2)."""
         out = np.empty((len(xy), 3), dtype=np.float32)
-        _eye_directions(np.ascontiguousarray(xy, dtype=np.float32), *self._frustum(), self.rotation, out)
+        kernel = _eye_directions_parallel if len(xy) >= PARALLEL_MIN else _eye_directions_serial
+        kernel(np.ascontiguousarray(xy, dtype=np.float32), *self._frustum(), self.rotation, out)
         return out
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,177 @@
+"""A Razor AHRS or HATIRE head tracker on a real pseudo-terminal (protocols.md sections 5.1, 5.2).
+
+    with SerialTrackerEmulator("razor", seed=1) as emu:
+        open_driver(f"serial://{emu.device_path}?protocol=razor")
+
+The emulator opens a pty pair (os.openpty, raw mode), writes frames of replay.synthetic's head motion to
+the master side at the device rate, and answers the commands a host writes to the slave side, whose
+name is `device_path`: a serial device any program can open. A background daemon thread does both and
+stops when stop() sets its event; the pty is closed on stop, so a reader sees the device vanish.
+
+Razor (text output only): streams `#YPR=` lines from the start like the firmware; `#o0`/`#o1` stream
+off/on, `#f` sends one frame on the next tick, `#s<xy>` answers `#SYNCH<xy>`; other commands are
+accepted and ignored. HATIRE, after HATino: boots with info frames 2000 (version) and 5000 (begin) and
+streams; `S` answers 5001, restarts the counter and streams; `s` answers 5002 and stops; `R` answers
+5003 and boots again; `C` zeroes the next five frames (calibration); `V` answers 2000; `I` prints
+plain text lines. When the host does not read, the pty fills up and frames are dropped (`overflows`).
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import tty
+from collections.abc import Iterator
+
+from drivers.base import MONOTONIC, Clock
+from drivers.emulators.base import Emulator
+from drivers.protocols import hatire, razor
+from hmdrt.bus.messages import Pose
+from hmdrt.errors import ConfigError
+from replay.synthetic import SyntheticConfig, SyntheticSource
+
+MAX_COMMAND_CHUNK = 256
+
+
+class _Razor:
+    def __init__(self) -> None:
+        self.streaming = True
+        self._one_frame = False
+        self._pending = b""
+
+    def boot(self) -> bytes:
+        return b""
+
+    def command(self, data: bytes) -> bytes:
+        commands, self._pending = razor.parse_commands(self._pending + data)
+        reply = b""
+        for c in commands:
+            if c in ("o0", "o1"):
+                self.streaming = c == "o1"
+            elif c == "f":
+                self._one_frame = True
+            elif c.startswith("s"):
+                reply += razor.encode_synch(c[1:])
+        return reply
+
+    def frame(self, yaw: float, pitch: float, roll: float) -> bytes:
+        if not (self.streaming or self._one_frame):
+            return b""
+        self._one_frame = False
+        return razor.encode_ypr(yaw, pitch, roll)
+
+
+class _Hatire:
+    VERSION = "HAT V 1.10"
+    CALIBRATION_FRAMES = 5
+
+    def __init__(self) -> None:
+        self.streaming = True
+        self.cpt = 0
+        self._calibrating = 0
+
+    def boot(self) -> bytes:
+        self.streaming, self.cpt = True, 0
+        return hatire.encode_info(hatire.CODE_VERSION, self.VERSION) + hatire.encode_info(
+            hatire.CODE_BEGIN, "HAT BEGIN"
+        )
+
+    def command(self, data: bytes) -> bytes:
+        reply = b""
+        for c in (data[i : i + 1] for i in range(len(data))):
+            if c == hatire.START:
+                self.streaming, self.cpt = True, 0
+                reply += hatire.encode_info(hatire.CODE_START, "HAT START")
+            elif c == hatire.STOP:
+                self.streaming = False
+                reply += hatire.encode_info(hatire.CODE_STOP, "HAT STOP")
+            elif c == hatire.RESET:
+                reply += hatire.encode_info(hatire.CODE_RESET, "HAT RESET") + self.boot()
+            elif c == hatire.CALIBRATE:
+                self._calibrating = self.CALIBRATION_FRAMES
+            elif c == hatire.VERSION:
+                reply += hatire.encode_info(hatire.CODE_VERSION, self.VERSION)
+            elif c == hatire.INFO:
+                reply += f"\r\nVersion : \t{self.VERSION}\r\n".encode("ascii")
+        return reply
+
+    def frame(self, yaw: float, pitch: float, roll: float) -> bytes:
+        if not self.streaming:
+            return b""
+        if self._calibrating:
+            self._calibrating -= 1
+            yaw = pitch = roll = 0.0
+        frame = hatire.encode_frame(hatire.HatireFrame(self.cpt, yaw, pitch, roll))
+        self.cpt = (self.cpt + 1) % hatire.COUNTER_WRAP
+        return frame
+
+
+class SerialTrackerEmulator(Emulator):
+    """A Razor AHRS ("razor") or HATIRE ("hatire") tracker behind the pty named by device_path."""
+
+    DEVICES = {"razor": (_Razor, razor.RATE_HZ), "hatire": (_Hatire, hatire.RATE_HZ)}
+
+    def __init__(self, protocol: str = "razor", rate_hz: float | None = None, seed: int = 0, clock: Clock = MONOTONIC):
+        if protocol not in self.DEVICES:
+            raise ConfigError(f"serial emulator protocol must be razor or hatire, got {protocol!r}")
+        device, default_rate = self.DEVICES[protocol]
+        self.rate_hz = default_rate if rate_hz is None else float(rate_hz)
+        if not 1.0 <= self.rate_hz <= 1000.0:
+            raise ConfigError(f"serial emulator rate must be within 1 and 1000 Hz, got {self.rate_hz}")
+        super().__init__(clock)
+        self.protocol = self.name = protocol
+        self._device = device()
+        source = SyntheticSource(SyntheticConfig(seed=seed, rate_hz=self.rate_hz, head=True, blink_rate_hz=0.0))
+        self._poses: Iterator[Pose] = (s for s in source.samples() if isinstance(s, Pose))
+        self._period_ns = int(1e9 / self.rate_hz)
+        self._master = self._slave = -1
+        self.device_path: str | None = None
+        self.frames_sent = 0
+        self.overflows = 0
+
+    @property
+    def url(self) -> str:
+        return f"serial://{self.device_path}?protocol={self.protocol}"
+
+    def _bind(self) -> None:
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.device_path = os.ttyname(self._slave)
+        self._write(self._device.boot())
+        self._due_ns = self.clock.now_ns()
+
+    def _release(self) -> None:
+        os.close(self._master)
+        os.close(self._slave)
+        self._master = self._slave = -1
+
+    def _write(self, data: bytes) -> None:
+        if not data:
+            return
+        try:
+            if os.write(self._master, data) < len(data):
+                self.overflows += 1
+        except BlockingIOError:
+            self.overflows += 1
+
+    def _tick(self, now_ns: int) -> int:
+        if now_ns >= self._due_ns:
+            yaw, pitch, roll = razor.quat_to_ypr(next(self._poses).orientation)
+            frame = self._device.frame(yaw, pitch, roll)
+            self._write(frame)
+            self.frames_sent += bool(frame)
+            self._due_ns += self._period_ns
+            if self._due_ns < now_ns:  # fell behind: keep the rate rather than sending a burst
+                self._due_ns = now_ns + self._period_ns
+        return self._due_ns
+
+    def _poll(self, timeout_s: float) -> None:
+        readable, _, _ = select.select([self._master], [], [], timeout_s)
+        if not readable:
+            return
+        try:
+            data = os.read(self._master, MAX_COMMAND_CHUNK)
+        except OSError:  # nothing to read after all
+            return
+        self._write(self._device.command(data))

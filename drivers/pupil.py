@@ -1,0 +1,227 @@
+"""pupil://HOST:PORT: Pupil Core gaze through Pupil Remote and the IPC backbone (protocols.md sections 3.1-3.2).
+
+open() asks Pupil Remote (ZeroMQ REQ/REP, default port 50020) for the backbone's SUB_PORT, measures
+the offset of Pupil time from the host clock with `t` (round-trip corrected, as Pupil's own time sync
+does: offset = t_pupil - (t_send + rtt / 2), runtime_anchors.md (b)) and subscribes to "gaze.3d."
+on the backbone. read() decodes the msgpack gaze datums of section 3.2 and converts them once, here:
+Pupil's 3D camera space is OpenCV's (x right, y down, z forward, mm), ours is right-handed with +Y up
+and -Z forward (DESIGN.md), so vectors map (x, y, z) -> (x, -y, -z), a half turn about X. Eye 0 is the
+right eye (section 3.2): binocular "gaze.3d.01." gives R from gaze_normals_3d["0"] and L from ["1"];
+monocular "gaze.3d.0." / "gaze.3d.1." give R / L from gaze_normal_3d. C is the mean of the eyes,
+depth_m the distance of gaze_point_3d (mm -> m), valid = confidence >= 0.6 (section 3.2's pairing
+threshold). t_dev is Pupil time in ns. When the stream stays silent for `timeout` seconds the driver
+asks Pupil Remote for the time again; no answer raises DeviceLost.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import msgspec
+import numpy as np
+import zmq
+
+from drivers.base import MONOTONIC, Clock, DeviceLost, Driver, DriverError, DriverUrl, Sample
+from hmdrt.bus.messages import Gaze
+from hmdrt.spatial import mean_direction
+
+DEFAULT_PORT = 50020
+GAZE_TOPIC = "gaze.3d."
+MIN_CONFIDENCE = 0.6
+MAX_DATUM_BYTES = 64 * 1024
+MAX_ZMQ_MESSAGE = 16 * MAX_DATUM_BYTES  # libzmq disconnects a peer that sends more: a hard memory cap
+MAX_BATCH = 10_000  # messages taken per read(), so a flood cannot hold read() forever
+TIME_PROBES = 3  # `t` round trips per offset measurement; the fastest is kept
+MAX_TIME_NS = 2**62  # the bus's time range
+
+Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
+Vec3 = tuple[Finite, Finite, Finite]
+
+
+class GazeDatum(msgspec.Struct, frozen=True):
+    """The keys of a Pupil gaze datum the driver reads (section 3.2); other keys are ignored."""
+
+    confidence: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
+    timestamp: Finite  # Pupil time, seconds
+    gaze_point_3d: Vec3 | None = None  # mm, camera space
+    gaze_normals_3d: dict[Literal["0", "1"], Vec3] | None = None  # binocular, keyed by eye id
+    gaze_normal_3d: Vec3 | None = None  # monocular
+
+
+class MalformedDatum(ValueError):
+    """A backbone message that is not a readable gaze datum."""
+
+
+_decoder = msgspec.msgpack.Decoder(GazeDatum)
+
+
+def opencv_head(v) -> np.ndarray:
+    """A vector between OpenCV camera space and our head frame: (x, y, z) -> (x, -y, -z); its own inverse."""
+    x, y, z = np.asarray(v, dtype=np.float64)
+    return np.array([x, -y, -z])
+
+
+def _unit(v: Vec3) -> np.ndarray:
+    norm = float(np.linalg.norm(v))
+    if norm < 1e-9:
+        raise MalformedDatum("zero gaze normal")
+    return opencv_head(v) / norm
+
+
+def _tuple(v: np.ndarray | None) -> tuple[float, float, float] | None:
+    return None if v is None else tuple(float(c) for c in v)
+
+
+def decode_gaze(topic: bytes, payload: bytes) -> Gaze:
+    """A gaze.3d.* backbone message (topic and msgpack payload) in our head frame, t_dev in Pupil time (ns)
+    and t_host left equal to it until a driver maps it; MalformedDatum if unreadable."""
+    if len(payload) > MAX_DATUM_BYTES:
+        raise MalformedDatum(f"payload of {len(payload)} bytes exceeds {MAX_DATUM_BYTES}")
+    try:
+        datum = _decoder.decode(payload)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise MalformedDatum(str(exc)) from None
+    eyes = {b"gaze.3d.01.": "01", b"gaze.3d.0.": "0", b"gaze.3d.1.": "1"}.get(bytes(topic))
+    if eyes == "01":
+        normals = datum.gaze_normals_3d or {}
+        if set(normals) != {"0", "1"}:
+            raise MalformedDatum("binocular gaze needs gaze_normals_3d for eyes 0 and 1")
+        right, left = _unit(normals["0"]), _unit(normals["1"])
+        centre = mean_direction(left, right)
+        if centre is None:
+            raise MalformedDatum("the eyes' gaze normals point in opposite directions")
+    elif eyes is not None:
+        if datum.gaze_normal_3d is None:
+            raise MalformedDatum("monocular gaze needs gaze_normal_3d")
+        normal = _unit(datum.gaze_normal_3d)
+        right, left = (normal, None) if eyes == "0" else (None, normal)
+        centre = normal
+    else:
+        raise MalformedDatum(f"not a 3D gaze topic: {bytes(topic)[:64]!r}")
+    depth_m = None
+    if datum.gaze_point_3d is not None:
+        depth_m = float(np.linalg.norm(datum.gaze_point_3d)) / 1000.0 or None
+    t_dev = round(datum.timestamp * 1e9)
+    return Gaze(
+        seq=0,
+        t_host=t_dev,
+        t_dev=t_dev,
+        valid=datum.confidence >= MIN_CONFIDENCE,
+        C=_tuple(centre),
+        L=_tuple(left),
+        R=_tuple(right),
+        depth_m=depth_m,
+    )
+
+
+class PupilDriver(Driver):
+    scheme = "pupil"
+    grammar = (
+        "pupil://HOST[:PORT]?timeout=S&name=DEVICE (defaults port 50020, timeout=1: how long Pupil Remote "
+        "may take to answer, and how long the gaze stream may stay silent before the driver checks on it)"
+    )
+    options = {"timeout": (float, 1.0, 0.05, 60.0)}
+
+    def __init__(self, url: DriverUrl | str, clock: Clock = MONOTONIC):
+        super().__init__(url, clock)
+        self.address = (self.url.host or "127.0.0.1", self.url.port or DEFAULT_PORT)
+        self.offset_ns: int | None = None  # Pupil time minus host time, from the fastest `t` round trip
+        self.rtt_ns: int | None = None
+        self._remote: zmq.Socket | None = None
+        self._sub: zmq.Socket | None = None
+        self._seq = 0
+
+    def _socket(self, kind: int) -> zmq.Socket:
+        sock = zmq.Context.instance().socket(kind)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.MAXMSGSIZE, MAX_ZMQ_MESSAGE)
+        return sock
+
+    def open(self) -> None:
+        host, port = self.address
+        timeout_ms = round(self.opt["timeout"] * 1000)
+        self._remote = self._socket(zmq.REQ)
+        self._remote.setsockopt(zmq.RCVTIMEO, timeout_ms)
+        self._remote.setsockopt(zmq.SNDTIMEO, timeout_ms)
+        self._remote.connect(f"tcp://{host}:{port}")
+        sub_port = self._ask("SUB_PORT")
+        if not (sub_port.isdigit() and 0 < int(sub_port) < 65536):
+            self.close()
+            raise DriverError(f"pupil://{host}:{port} answered SUB_PORT with {sub_port[:64]!r}, not a port")
+        self._measure_offset()
+        self._sub = self._socket(zmq.SUB)
+        self._sub.setsockopt(zmq.SUBSCRIBE, GAZE_TOPIC.encode())
+        self._sub.connect(f"tcp://{host}:{sub_port}")
+        self._heard_ns = self.clock.now_ns()
+        self.state = "connected"
+
+    def read(self, timeout_s: float) -> list[Sample]:
+        if self._sub is None:
+            raise DeviceLost(f"pupil://{self.address[0]}:{self.address[1]} is not connected")
+        out: list[Sample] = []
+        if self._sub.poll(max(round(timeout_s * 1000), 0)):
+            for _ in range(MAX_BATCH):
+                try:
+                    frames = self._sub.recv_multipart(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                sample = self._sample(frames, self.clock.now_ns())
+                if sample is not None:
+                    out.append(sample)
+            self._heard_ns = self.clock.now_ns()
+        elif self.clock.now_ns() - self._heard_ns > self.opt["timeout"] * 1e9:
+            self._measure_offset()  # DeviceLost when Pupil Remote is gone too
+            self._heard_ns = self.clock.now_ns()
+        return self.count(out)
+
+    def close(self) -> None:
+        for sock in (self._remote, self._sub):
+            if sock is not None:
+                sock.close(linger=0)
+        self._remote = self._sub = None
+        self.state = "closed"
+
+    def _ask(self, command: str) -> str:
+        """Pupil Remote's reply to one command; DeviceLost when it does not answer in time."""
+        try:
+            self._remote.send_string(command)
+            reply = self._remote.recv()
+        except zmq.Again:
+            self.close()
+            self.state = "lost"
+            raise DeviceLost(
+                f"Pupil Remote at {self.address[0]}:{self.address[1]} did not answer {command!r} "
+                f"within {self.opt['timeout']} s"
+            ) from None
+        return reply.decode("utf-8", errors="replace")
+
+    def _measure_offset(self) -> None:
+        """Probe Pupil time with `t`; the clock sync keeps the fastest round trip to take out the latency floor."""
+        best: tuple[int, int] | None = None  # (rtt, offset)
+        for _ in range(TIME_PROBES):
+            t_send = self.clock.now_ns()
+            reply = self._ask("t")
+            t_reply = self.clock.now_ns()
+            try:
+                t_pupil_ns = float(reply) * 1e9
+            except ValueError:
+                t_pupil_ns = float("nan")
+            if not np.isfinite(t_pupil_ns) or abs(t_pupil_ns) > MAX_TIME_NS:
+                self.close()
+                raise DriverError(f"Pupil Remote answered t with {reply[:64]!r}, not a time")
+            self.sync.probe(t_send, round(t_pupil_ns), t_reply)
+            rtt = t_reply - t_send
+            if best is None or rtt < best[0]:
+                best = (rtt, round(t_pupil_ns - (t_send + rtt / 2)))
+        self.rtt_ns, self.offset_ns = best
+
+    def _sample(self, frames: list[bytes], t_recv: int) -> Gaze | None:
+        try:
+            if len(frames) < 2:
+                raise MalformedDatum(f"{len(frames)} frame(s), expected topic and payload")
+            gaze = decode_gaze(frames[0], frames[1])
+        except MalformedDatum:
+            self.counters.malformed += 1
+            return None
+        self._seq += 1
+        return msgspec.structs.replace(gaze, seq=self._seq - 1, t_host=self.sync.add(gaze.t_dev, t_recv))

@@ -1,0 +1,74 @@
+"""replay://PATH?speed=1&loop=0&skip=0&use_source_ts=0: a recorded trace played back as a device.
+
+PATH is any file replay.load_trace reads (native, EyeLink ASC, GazeBaseVR, Pupil Player, hmdrt CSV),
+relative to the working directory (replay://traces/a.jsonl) or absolute (replay:///data/a.jsonl).
+Samples are released when the driver's clock reaches their scheduled time (replay.player), so the
+trace plays in real time on the host clock, at a speed factor, as fast as possible (speed=0), or in
+lock-step with a virtual clock the compositor injects. Gaze and pose samples both replay. At the end
+of a trace without loop, read() returns no samples (after waiting out its timeout) and the state is
+"ended".
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from urllib.parse import unquote, urlsplit
+
+from drivers.base import MONOTONIC, Clock, Driver, DriverUrl, Sample
+from hmdrt.errors import ConfigError
+from replay import load_trace
+from replay.player import Player
+
+
+class ReplayDriver(Driver):
+    scheme = "replay"
+    grammar = (
+        "replay://PATH?speed=FACTOR&loop=0|1&skip=SEC&use_source_ts=0|1&name=DEVICE "
+        "(PATH relative, replay://traces/a.jsonl, or absolute, replay:///data/a.jsonl; "
+        "defaults speed=1 (0: as fast as possible) loop=0 skip=0 use_source_ts=0 name=replay); "
+        "EyeLink files also take screen_width_mm, screen_height_mm, distance_mm, Pupil Player min_confidence"
+    )
+    options = {
+        "speed": (float, 1.0, 0.0, 1000.0),
+        "loop": (bool, False, None, None),
+        "skip": (float, 0.0, 0.0, 1e6),
+        "use_source_ts": (bool, False, None, None),
+        **{name: (float, None, 1.0, 100_000.0) for name in ("screen_width_mm", "screen_height_mm", "distance_mm")},
+        "min_confidence": (float, None, 0.0, 1.0),
+    }
+    FORMAT_OPTIONS = ("screen_width_mm", "screen_height_mm", "distance_mm", "min_confidence")
+
+    def __init__(self, url: DriverUrl | str, clock: Clock = MONOTONIC):
+        super().__init__(url, clock)
+        # urlsplit puts the first part of a relative path in the netloc (replay://a/b.jsonl: "a" + "/b.jsonl")
+        # and DriverUrl lower-cases it as a host name, so the path is rebuilt from the raw text.
+        parts = urlsplit(self.url.text)
+        if not parts.netloc + parts.path:
+            raise ConfigError(f"replay:// needs a trace file; expected {self.grammar}")
+        self.path = Path(unquote(parts.netloc + parts.path))
+        self._player: Player | None = None
+
+    def open(self) -> None:
+        reading = load_trace(self.path, **{k: self.opt[k] for k in self.FORMAT_OPTIONS if self.opt[k] is not None})
+        self.counters.malformed += reading.malformed
+        o = self.opt
+        self._player = Player(reading.samples, o["speed"], o["loop"], o["skip"], o["use_source_ts"])
+        self._player.start(self.clock.now_ns())
+        self.state = "connected"
+
+    def read(self, timeout_s: float) -> list[Sample]:
+        deadline = self.clock.now_ns() + int(timeout_s * 1e9)
+        while True:
+            now = self.clock.now_ns()
+            out = self._player.due(now)
+            release = self._player.next_release()
+            if release is None:
+                self.state = "ended"
+            if out or now >= deadline:
+                return self.count(out)
+            self.clock.sleep_until(deadline if release is None else min(release, deadline))
+            if self.clock.now_ns() == now:  # a virtual clock: nothing more is due until it advances
+                return self.count(out)
+
+    def close(self) -> None:
+        self.state = "closed"

@@ -1,0 +1,138 @@
+"""What the importers of foreign trace formats share: capped text reading, CSV rows, time columns,
+gaze angles and vectors, and the normalised sample they all produce.
+
+Every importer turns a file into a TraceReading of Gaze samples numbered in file order, with t_host =
+t_dev = the file's own time in integer nanoseconds (relative values kept, so replay can re-base
+them). A line that does not parse is counted in TraceReading.malformed and skipped; a file that
+yields no valid sample is a ConfigError. Files are read under the native format's size caps.
+"""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import math
+from collections.abc import Callable, Iterator
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+
+from hmdrt.bus.messages import Gaze
+from hmdrt.errors import ConfigError
+from hmdrt.spatial import gaze_direction
+from replay.trace import TraceReading, capped_lines, open_capped
+
+NS, MS, S = 1, 1_000_000, 1_000_000_000  # nanoseconds per unit of a time column
+MAX_TIME_NS = 2**62
+Vec3 = tuple[float, float, float]
+
+
+def text_lines(path: Path) -> Iterator[str | None]:
+    """Lines of a text file (gzip when it ends in .gz) under the trace size caps; None for an over-long line."""
+    try:
+        with open_capped(path) as stream:
+            for line in capped_lines(stream):
+                yield None if line is None else line.decode("utf-8", "replace").rstrip("\r\n")
+    except (OSError, EOFError, gzip.BadGzipFile) as exc:
+        raise ConfigError(f"cannot read trace {path}: {exc}") from None
+
+
+def _cells(line: str) -> list[str]:
+    """The cells of one CSV line (csv.Error for a line the csv module refuses, e.g. one with NUL)."""
+    return next(csv.reader([line]), [])
+
+
+def _names(line: str | None) -> list[str]:
+    try:
+        return [name.strip() for name in _cells((line or "").lstrip("\ufeff"))]
+    except csv.Error:
+        return []
+
+
+def csv_header(path: Path) -> list[str]:
+    """The column names of a CSV file's first row (empty when the file is empty)."""
+    lines = text_lines(path)
+    try:
+        return _names(next(lines, None))
+    finally:
+        lines.close()
+
+
+def number(text: str) -> float:
+    """A numeric cell; empty, '.', 'nan' are missing values (NaN). ValueError for anything else."""
+    text = text.strip()
+    return math.nan if text in ("", ".") else float(text)
+
+
+def time_ns(text: str, unit_ns: int) -> int:
+    """A time cell in units of unit_ns as integer nanoseconds, exact for decimal text (ValueError if not a time)."""
+    try:
+        value = Decimal(text.strip())
+    except InvalidOperation:
+        raise ValueError(f"not a time: {text!r}") from None
+    if not value.is_finite() or abs(value * unit_ns) > MAX_TIME_NS:
+        raise ValueError(f"time out of range: {text!r}")
+    return int((value * unit_ns).to_integral_value())
+
+
+def unit(x: float, y: float, z: float) -> Vec3 | None:
+    """The unit vector along (x, y, z); None when a component is missing or the vector is zero."""
+    norm = math.sqrt(x * x + y * y + z * z)
+    if not (math.isfinite(norm) and norm > 0.0):
+        return None
+    return (x / norm, y / norm, z / norm)
+
+
+def direction(yaw_deg: float, pitch_deg: float) -> Vec3 | None:
+    """Head-frame gaze direction for yaw (right +) and pitch (up +) in degrees; None when missing or beyond +-90."""
+    if not (abs(yaw_deg) <= 90.0 and abs(pitch_deg) <= 90.0):  # also false for NaN
+        return None
+    return tuple(float(v) for v in gaze_direction(yaw_deg, pitch_deg))
+
+
+def gaze_sample(
+    seq: int,
+    t_ns: int,
+    valid: bool,
+    C: Vec3 | None = None,
+    L: Vec3 | None = None,
+    R: Vec3 | None = None,
+    depth_m: float | None = None,
+) -> Gaze:
+    """An imported sample: the file's time as t_host and t_dev; valid only when it carries a direction."""
+    if depth_m is not None and not (0.0 < depth_m <= 1e6):
+        depth_m = None
+    has_gaze = any(v is not None for v in (C, L, R))
+    return Gaze(seq=seq, t_host=t_ns, t_dev=t_ns, valid=valid and has_gaze, C=C, L=L, R=R, depth_m=depth_m)
+
+
+def require_valid(path: Path, reading: TraceReading) -> TraceReading:
+    """The reading, or a ConfigError when the file held no valid sample of its format."""
+    if not any(s.valid for s in reading.samples):
+        raise ConfigError(
+            f"{path} holds no valid {reading.device} gaze samples "
+            f"({len(reading.samples)} samples read, {reading.malformed} malformed lines)"
+        )
+    return reading
+
+
+def read_csv(path: Path, device: str, convert: Callable[[dict[str, str], int], Gaze]) -> TraceReading:
+    """Samples of a CSV file whose first row names the columns; convert(row, seq) makes one sample.
+
+    Rows of the wrong width, over-long lines and rows that convert raises ValueError for are counted
+    as malformed; blank lines are skipped.
+    """
+    reading = TraceReading(device, [])
+    lines = text_lines(path)
+    names = _names(next(lines, None))
+    for line in lines:
+        if line is None:
+            reading.malformed += 1
+            continue
+        if not line.strip():
+            continue
+        try:
+            row = dict(zip(names, _cells(line), strict=True))  # ValueError for a row of the wrong width
+            reading.samples.append(convert(row, len(reading.samples)))
+        except (ValueError, csv.Error):
+            reading.malformed += 1
+    return require_valid(path, reading)

@@ -1,0 +1,296 @@
+"""Importers of real trace formats: EyeLink ASC, GazeBaseVR, Pupil Player and hmdrt's CSV, via load_trace."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hmdrt.bus.messages import Gaze, usable
+from hmdrt.errors import ConfigError
+from replay import load_trace
+from replay.trace import write_trace
+
+TRACES = Path(__file__).parent / "data" / "traces"
+MONOCULAR = TRACES / "raccoons.asc"
+BINOCULAR = TRACES / "eyelink_binocular_example.asc"
+GAZEBASE = TRACES / "gazebase_vr_example.csv"
+
+
+def asc_file(path: Path) -> tuple[list[list[str]], tuple[str, ...], list[tuple[str, int, int]]]:
+    """The file's own sample lines (split), recorded eyes (from START) and blinks (eye, first ms, last ms)."""
+    samples, eyes, blinks = [], (), []
+    for line in path.read_text(errors="replace").splitlines():
+        fields = line.split()
+        if line[:1].isdigit():
+            samples.append(fields)
+        elif fields[:1] == ["START"]:
+            eyes = tuple(f[0] for f in fields if f in ("LEFT", "RIGHT"))
+        elif fields[:1] == ["EBLINK"]:
+            blinks.append((fields[1], int(fields[2]), int(fields[3])))
+    return samples, eyes, blinks
+
+
+def angle_deg(a, b) -> float:
+    return math.degrees(math.acos(np.clip(np.dot(a, b), -1.0, 1.0)))
+
+
+@pytest.mark.parametrize("path", [MONOCULAR, BINOCULAR])
+def test_eyelink_recordings_import_every_sample_with_blinks_invalid(path):
+    lines, eyes, blinks = asc_file(path)
+    reading = load_trace(path)
+    assert reading.malformed == 0 and len(reading.samples) == len(lines) > 300
+    assert blinks, "the recording has blinks"
+    for sample, fields in zip(reading.samples, lines, strict=True):
+        t_ms = int(fields[0])
+        assert sample.t_host == sample.t_dev == t_ms * 1_000_000
+        assert sample.C is None and all(getattr(sample, e) is None for e in "LR" if e not in eyes)
+        complete = True
+        for k, eye in enumerate(eyes):
+            blinking = any(e == eye and first <= t_ms <= last for e, first, last in blinks)
+            missing = "." in fields[1 + 3 * k : 3 + 3 * k]
+            gaze = getattr(sample, eye)
+            assert (gaze is None) == (blinking or missing)
+            complete &= gaze is not None
+        assert sample.valid == complete and usable(sample) == complete
+    inside = [s for s in reading.samples if any(a <= s.t_host // 1_000_000 <= b for _, a, b in blinks)]
+    assert inside and not any(s.valid for s in inside)
+
+
+def test_monocular_file_gives_the_recorded_eye_and_binocular_both():
+    _, eyes, _ = asc_file(MONOCULAR)
+    assert eyes == ("L",)
+    assert any(s.L is not None for s in load_trace(MONOCULAR).samples)
+    both = [s for s in load_trace(BINOCULAR).samples if s.valid]
+    assert both and all(s.L is not None and s.R is not None for s in both)
+
+
+def small_asc(tmp_path: Path, body: str) -> Path:
+    path = tmp_path / "small.asc"
+    path.write_text(body.replace("|", "\t"))
+    return path
+
+
+def test_display_coords_put_the_screen_centre_straight_ahead(tmp_path):
+    w_px, h_px, w_mm, h_mm, d_mm = 1024, 768, 400.0, 300.0, 500.0
+    path = small_asc(
+        tmp_path,
+        f"** header\nMSG|1 DISPLAY_COORDS 0 0 {w_px - 1} {h_px - 1}\nMSG|1 GAZE_COORDS 0.00 0.00 1919.00 1079.00\n"
+        "START|10 |LEFT|SAMPLES|EVENTS\n"
+        f"10|{w_px / 2}|{h_px / 2}|500.0|...\n"  # the centre
+        f"11|{w_px}|{h_px / 2}|500.0|...\n"  # the right edge
+        f"12|{w_px / 2}|0.0|500.0|...\n"  # the top edge
+        "13|   .|   .|0.0|...\n",
+    )
+    samples = load_trace(path, screen_width_mm=w_mm, screen_height_mm=h_mm, distance_mm=d_mm).samples
+    centre, right, top, missing = (np.array(s.L) if s.L else None for s in samples)
+    assert np.allclose(centre, [0, 0, -1], rtol=0, atol=1e-12)
+    assert np.allclose(right, np.array([w_mm / 2, 0, -d_mm]) / math.hypot(w_mm / 2, d_mm), rtol=0, atol=1e-12)
+    assert np.allclose(top, np.array([0, h_mm / 2, -d_mm]) / math.hypot(h_mm / 2, d_mm), rtol=0, atol=1e-12)
+    assert missing is None and not samples[3].valid and all(s.valid for s in samples[:3])
+
+
+def test_real_recording_uses_its_display_coords_for_angles():
+    """raccoons.asc: the centre of its DISPLAY_COORDS is EyeLink's central validation target, and every
+    sample's angle from straight ahead is atan(distance from that centre on the screen / viewing distance)."""
+    text = MONOCULAR.read_text(errors="replace")
+    left, top, right, bottom = (float(v) for v in text.split("DISPLAY_COORDS")[1].split()[:4])
+    cx, cy = (left + right + 1) / 2, (top + bottom + 1) / 2
+    assert f"at {cx:.0f},{cy:.0f}" in text
+    mm_per_px, d_mm = 0.25, 600.0
+    width_mm, height_mm = (right - left + 1) * mm_per_px, (bottom - top + 1) * mm_per_px
+    reading = load_trace(MONOCULAR, screen_width_mm=width_mm, screen_height_mm=height_mm, distance_mm=d_mm)
+    lines, _, _ = asc_file(MONOCULAR)
+    checked = 0
+    for sample, fields in zip(reading.samples, lines, strict=True):
+        if sample.valid:
+            r_mm = math.hypot(float(fields[1]) - cx, float(fields[2]) - cy) * mm_per_px
+            assert math.isclose(angle_deg(sample.L, [0, 0, -1]), math.degrees(math.atan(r_mm / d_mm)), abs_tol=1e-6)
+            assert (sample.L[0] > 0) == (float(fields[1]) > cx) and (sample.L[1] > 0) == (float(fields[2]) < cy)
+            checked += 1
+    assert checked > 300
+
+
+def test_eyelink_blink_events_drop_gaze_even_when_columns_are_filled(tmp_path):
+    path = small_asc(
+        tmp_path,
+        "START|10 |LEFT|RIGHT|SAMPLES|EVENTS\n"
+        "10|100.0|100.0|1.0|200.0|200.0|1.0|.....\n"
+        "SBLINK L 11\n"
+        "11|100.0|100.0|1.0|200.0|200.0|1.0|.....\n"  # numbers inside the left eye's blink
+        "EBLINK L 11|12|2\n"
+        "12|100.0|100.0|1.0|200.0|200.0|1.0|.....\n"  # after the event line, still within the blink
+        "13|100.0|100.0|1.0|200.0|200.0|1.0|.....\n",
+    )
+    samples = load_trace(path).samples
+    assert [s.valid for s in samples] == [True, False, False, True]
+    assert [s.L is None for s in samples] == [False, True, True, False]
+    assert all(s.R is not None for s in samples)
+
+
+def test_eyelink_malformed_lines_are_counted(tmp_path):
+    path = small_asc(
+        tmp_path,
+        "5|100.0|100.0|1.0\n"  # before START: layout unknown
+        "START|10 |LEFT|RIGHT|SAMPLES|EVENTS\n"
+        "10|100.0|100.0|1.0|200.0|200.0|1.0|.....\n"
+        "11|abc|100.0|1.0|200.0|200.0|1.0|.....\n"
+        "12|100.0|100.0\n"
+        "SBLINK Q 12\n"
+        "MSG|13 DISPLAY_COORDS 0 0 -5 -5\n"
+        f"{'9' * 70_000}\n"
+        "14|100.0|100.0|1.0|200.0|200.0|1.0|.....\n",
+    )
+    reading = load_trace(path)
+    assert [s.t_host // 1_000_000 for s in reading.samples] == [10, 14]
+    assert reading.malformed == 6
+
+
+def test_gazebase_vr_rows_convert_with_yaw_right_and_pitch_up():
+    rows = list(csv.DictReader(GAZEBASE.open()))
+    reading = load_trace(GAZEBASE)
+    assert reading.malformed == 0 and len(reading.samples) == len(rows)
+    for sample, row in zip(reading.samples, rows, strict=True):
+        assert sample.t_host == round(float(row["n"]) * 1e6) and sample.valid
+        for eye, (yaw, pitch) in {"C": ("x", "y"), "L": ("lx", "ly"), "R": ("rx", "ry")}.items():
+            yaw, pitch = math.radians(float(row[yaw])), math.radians(float(row[pitch]))
+            v = np.array(getattr(sample, eye))
+            assert np.sign(v[0]) == np.sign(yaw) and np.sign(v[1]) == np.sign(pitch) and v[2] < 0
+            assert math.isclose(math.atan2(v[0], -v[2]), yaw, abs_tol=1e-12)
+            assert math.isclose(math.asin(v[1]), pitch, abs_tol=1e-12)
+    # converging on a central target, the left eye turns right of the right eye
+    assert all(s.L[0] > s.R[0] for s in reading.samples)
+
+
+def test_gazebase_vr_nan_makes_a_sample_invalid(tmp_path):
+    lines = GAZEBASE.read_text().splitlines()
+    cells = lines[2].split(",")
+    cells[3] = "NaN"  # lx
+    path = tmp_path / "gazebase_nan.csv"
+    path.write_text("\n".join([*lines[:2], ",".join(cells), *lines[3:], "1,2,3"]) + "\n")
+    reading = load_trace(path)
+    assert reading.malformed == 1 and len(reading.samples) == len(lines) - 1
+    bad = reading.samples[1]
+    assert not bad.valid and bad.L is None and bad.R is not None and bad.C is not None
+    assert all(s.valid for s in reading.samples if s is not bad)
+
+
+PUPIL_HEADER = (
+    "gaze_timestamp,world_index,confidence,norm_pos_x,norm_pos_y,base_data,gaze_point_3d_x,gaze_point_3d_y,"
+    "gaze_point_3d_z,eye_center0_3d_x,eye_center0_3d_y,eye_center0_3d_z,gaze_normal0_x,gaze_normal0_y,"
+    "gaze_normal0_z,eye_center1_3d_x,eye_center1_3d_y,eye_center1_3d_z,gaze_normal1_x,gaze_normal1_y,gaze_normal1_z"
+)
+
+
+def pupil_row(t: float, confidence: float, point=("", "", ""), normal0=("", "", ""), normal1=("", "", "")) -> str:
+    cells = [t, 0, confidence, 0.5, 0.5, f"{t}-0", *point, 20, 0, 0, *normal0, -40, 0, 0, *normal1]
+    return ",".join(str(c) for c in cells)
+
+
+def opencv_to_head(v) -> np.ndarray:
+    v = np.array([v[0], -v[1], -v[2]], dtype=float)
+    return v / np.linalg.norm(v)
+
+
+def test_pupil_player_normals_become_head_frame_directions(tmp_path):
+    s = math.sqrt(0.5)
+    rows = [  # (timestamp s, confidence, gaze_point_3d mm, normal0 = right eye, normal1 = left eye), OpenCV y down
+        (-12.5, 0.95, (100.0, -50.0, 800.0), (0.1, -0.05, 0.99), (s, 0.0, s)),
+        (-12.49, 0.99, (0.0, 0.0, 500.0), (0.0, 0.6, 0.8), ("", "", "")),  # monocular: eye 0 only
+        (-12.48, 0.5, (0.0, 0.0, 500.0), (0.0, 0.0, 1.0), (0.0, 0.0, 1.0)),  # below Pupil's 0.6 confidence
+    ]
+    path = tmp_path / "gaze_positions.csv"
+    path.write_text("\n".join([PUPIL_HEADER, *(pupil_row(*r) for r in rows), "x,y,z", "-12.47,1,oops"]) + "\n")
+    reading = load_trace(path)
+    assert reading.malformed == 2 and len(reading.samples) == len(rows)
+    for sample, (t, confidence, point, normal0, normal1) in zip(reading.samples, rows, strict=True):
+        assert sample.t_host == sample.t_dev == round(t * 1e9)
+        assert sample.valid == (confidence >= 0.6)
+        assert np.allclose(sample.R, opencv_to_head(normal0), rtol=0, atol=1e-12)
+        assert np.allclose(sample.C, opencv_to_head(point), rtol=0, atol=1e-12)
+        assert math.isclose(sample.depth_m, np.linalg.norm(point) / 1000)
+        assert (sample.L is None) if normal1[0] == "" else np.allclose(sample.L, opencv_to_head(normal1), atol=1e-12)
+    first = reading.samples[0]
+    assert first.C[1] > 0 and first.L[0] > 0.7 and first.L[2] < 0  # the point is up (y down in OpenCV), L right
+    assert reading.samples[1].R[1] < 0  # +y in OpenCV looks down
+    assert load_trace(path, min_confidence=0.4).samples[2].valid
+
+
+@pytest.mark.parametrize(
+    "header, row, expect",
+    [
+        ("t_ms,yaw_deg,pitch_deg", "4.5,10,-5", {"t": 4_500_000, "C": (10.0, -5.0)}),
+        ("t_ns,cx,cy,cz,valid", "123456789012345678,0,0,-2,true", {"t": 123456789012345678, "C": (0.0, 0.0)}),
+        ("t_s,lx,ly,lz,rx,ry,rz,depth_m,note", "1.25,0,0,-1,0.1,0,-1,2.5,hi", {"t": 1_250_000_000, "L": (0.0, 0.0)}),
+    ],
+)
+def test_generic_csv_variants(tmp_path, header, row, expect):
+    path = tmp_path / "ours.csv"
+    path.write_text(f"{header}\n{row}\n\n{row.replace(',', ';')}\n")
+    reading = load_trace(path)
+    assert reading.malformed == 1 and len(reading.samples) == 1
+    sample = reading.samples[0]
+    assert sample.t_host == sample.t_dev == expect["t"] and sample.valid and usable(sample)
+    eye = "C" if "C" in expect else "L"
+    v = getattr(sample, eye)
+    assert math.isclose(math.degrees(math.atan2(v[0], -v[2])), expect[eye][0], abs_tol=1e-9)
+    assert math.isclose(math.degrees(math.asin(v[1])), expect[eye][1], abs_tol=1e-9)
+    if "depth_m" in header:
+        assert sample.depth_m == 2.5 and sample.R[0] > 0
+
+
+def test_generic_csv_valid_column_missing_gaze_and_overlong_lines(tmp_path):
+    path = tmp_path / "ours.csv"
+    long_row = "5," + "0" * 70_000 + ",0,1"
+    path.write_text(f"t_ms,yaw_deg,pitch_deg,valid\n0,0,0,1\n1,0,0,0\n2,,0,1\n3,nan,0,1\n4,0,0,maybe\n{long_row}\n")
+    reading = load_trace(path)
+    assert [s.valid for s in reading.samples] == [True, False, False, False]
+    assert reading.samples[1].C is not None and reading.samples[2].C is None and reading.malformed == 2
+
+
+@pytest.mark.parametrize(
+    "header, message",
+    [
+        ("t_ms,t_s,yaw_deg,pitch_deg", "exactly one time column"),
+        ("t_ms,yaw_deg,pitch_deg,cx,cy,cz", "combined gaze twice"),
+        ("t_ms,lx,ly", "but not lz"),
+        ("t_ms,pupil_size", "no gaze columns"),
+        ("time,yaw,pitch", "not a trace format hmdrt reads"),
+    ],
+)
+def test_csv_schema_errors_are_one_clear_sentence(tmp_path, header, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(f"{header}\n0,0,0\n")
+    with pytest.raises(ConfigError, match=message):
+        load_trace(path)
+
+
+def test_native_traces_still_load_plain_and_gzipped(tmp_path):
+    samples = [Gaze(seq=k, t_host=k * 4_000_000, C=(0.0, 0.0, -1.0)) for k in range(5)]
+    for name in ("t.jsonl", "t.jsonl.gz"):
+        write_trace(tmp_path / name, samples, device="eye")
+        reading = load_trace(tmp_path / name)
+        assert reading.samples == samples and reading.device == "eye"
+
+
+@pytest.mark.parametrize(
+    "name, content, options, message",
+    [
+        ("trace.txt", "t_ms,yaw_deg,pitch_deg\n0,0,0\n", {}, "EyeLink ASC"),
+        ("missing.asc", None, {}, "not found"),
+        ("blank.asc", "** nothing here\nMSG\t1 hello\n", {}, "no valid eyelink gaze samples"),
+        ("empty.csv", "", {}, "not a trace format"),
+        ("g.csv", "n,x,y,lx,ly,rx,ry\n0,nan,nan,nan,nan,nan,nan\n", {}, "no valid gazebase_vr"),
+        ("o.csv", "t_ms,yaw_deg,pitch_deg\n0,0,0\n", {"distance_mm": 600}, "takes no option 'distance_mm'"),
+        ("e.asc", "START\t1\tLEFT\n1\t0\t0\t1\n", {"distance_mm": -1}, "positive number of millimetres"),
+    ],
+)
+def test_unsupported_or_empty_files_are_refused(tmp_path, name, content, options, message):
+    path = tmp_path / name
+    if content is not None:
+        path.write_text(content)
+    with pytest.raises(ConfigError, match=message):
+        load_trace(path, **options)
