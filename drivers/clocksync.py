@@ -18,11 +18,44 @@ the host) starts the estimate afresh.
 
 from __future__ import annotations
 
-import math
-import statistics
+import functools
 from collections import deque
 
+import numba as nb
+import numpy as np
+
 from hmdrt.bus.messages import ClockEstimate
+
+
+@nb.njit(cache=True)
+def _line(x: np.ndarray, y: np.ndarray, min_span: float) -> tuple[float, float]:
+    """Offset and drift through the minima (least squares); a flat lower bound until they span min_span."""
+    if x.size >= 3 and x[-1] - x[0] >= min_span:
+        dx = x - x.mean()
+        drift = (dx * (y - y.mean())).sum() / (dx * dx).sum()
+        return y.mean() - drift * x.mean(), drift
+    return y.min(), 0.0
+
+
+@nb.njit(cache=True)
+def _fit_envelope(x: np.ndarray, y: np.ndarray, min_span: float) -> tuple[float, float, float]:
+    """Offset, drift and RMS residual of the line through the windows' minima, leaving out windows far
+    above it (the host stalled through them). Compiled: it runs on the sample path, a few times a second."""
+    keep = np.ones(x.size, dtype=np.bool_)
+    for _ in range(2):
+        offset, drift = _line(x[keep], y[keep], min_span)
+        excess = y - (offset + drift * x)
+        limit = 3.0 * np.median(np.abs(excess[keep])) + 50_000.0
+        keep = excess <= limit
+    offset, drift = _line(x[keep], y[keep], min_span)
+    misfit = y[keep] - (offset + drift * x[keep])
+    return offset, drift, np.sqrt((misfit * misfit).mean())
+
+
+@functools.cache
+def _warm() -> None:
+    """Load the compiled fit now, not on the sample path (loading it takes a large part of a second)."""
+    _fit_envelope(np.arange(3.0), np.zeros(3), 1.0)
 
 
 class ClockSync:
@@ -49,6 +82,7 @@ class ClockSync:
         self._probe: tuple[int, int, int] | None = None  # (rtt, t_dev, host time at t_dev) of the best probe
         self.pairs = 0
         self.resets = 0
+        _warm()
 
     def unwrap(self, t_dev_raw: int) -> int:
         """Device time continued across counter wrap-arounds (when wrap_ns is set)."""
@@ -101,26 +135,10 @@ class ClockSync:
         return min(self.to_host(t_dev, unwrapped=True), t_recv)
 
     def _refit(self) -> None:
-        ref = self._minima[0][0]
-        xs = [float(t - ref) for t, _ in self._minima]  # at most `windows` of them: plain Python is quickest
-        ys = [float(d) for _, d in self._minima]
-        kept = range(len(xs))
-        for _ in range(2):  # leave out windows far above the envelope: the host stalled through them
-            offset, drift = self._line([xs[i] for i in kept], [ys[i] for i in kept])
-            excess = [y - offset - drift * x for x, y in zip(xs, ys, strict=True)]
-            limit = 3.0 * statistics.median(abs(excess[i]) for i in kept) + 50_000.0
-            kept = [i for i, e in enumerate(excess) if e <= limit]
-        offset, drift = self._line([xs[i] for i in kept], [ys[i] for i in kept])
-        misfit = sum((ys[i] - offset - drift * xs[i]) ** 2 for i in kept) / len(kept)
-        self._fit = (offset, drift, ref, math.sqrt(misfit))
-
-    def _line(self, xs: list[float], ys: list[float]) -> tuple[float, float]:
-        """Offset and drift through the minima (least squares); a flat lower bound until they span min_span_ns."""
-        if len(xs) >= 3 and xs[-1] - xs[0] >= self.min_span_ns:
-            mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
-            drift = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sum((x - mx) ** 2 for x in xs)
-            return my - drift * mx, drift
-        return min(ys), 0.0
+        minima = np.array(self._minima, dtype=np.int64)
+        x = (minima[:, 0] - minima[0, 0]).astype(np.float64)
+        offset, drift, residual = _fit_envelope(x, minima[:, 1].astype(np.float64), float(self.min_span_ns))
+        self._fit = (offset, drift, int(minima[0, 0]), residual)
 
     def _envelope(self, t_dev: int) -> float:
         """t_recv - t_dev of the lower envelope at device time t_dev."""
