@@ -9,13 +9,14 @@ import signal
 import sys
 import threading
 import time
+from itertools import chain
 from pathlib import Path
 
 import numpy as np
 
 from drivers.emulators import EMULATORS
 from hmdrt import __version__
-from hmdrt.bus import INGEST
+from hmdrt.bus import CONTROL, INGEST
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.foveation import METHODS, make_method
 from hmdrt.optics import get_profile
@@ -236,6 +237,73 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    """Run the compositor daemon until stopped, the frame count or the duration; write the run report."""
+    from hmdrt.compositor.config import load_config
+    from hmdrt.compositor.daemon import Compositor
+
+    if args.frames is not None and args.frames < 1:
+        raise ConfigError(f"--frames must be at least 1, got {args.frames}")
+    config = load_config(
+        args.config,
+        frames=args.frames,
+        duration_s=_duration(args),
+        virtual_time=True if args.virtual_time else None,
+    )
+    stop = _stop_on_signals()  # before the start-up, so a SIGTERM during it still ends with a report
+    reloads = threading.Event()
+    signal.signal(signal.SIGHUP, lambda *_: reloads.set())
+    compositor = Compositor(config)
+    if reloads.is_set():
+        compositor.reload()
+    stop_relay = threading.Thread(target=lambda: (stop.wait(), compositor.stop.set()), daemon=True)
+    stop_relay.start()
+    signal.signal(signal.SIGHUP, lambda *_: compositor.reload())
+    endpoints = compositor.status()["endpoints"]
+    print(
+        f"hmdrt run {args.config}: {compositor.session.spec} on {config.scene} at {compositor.session.profile.name} "
+        f"({compositor.session.profile.refresh_hz:g} Hz{', virtual time' if config.run.virtual_time else ''}); "
+        f"control {endpoints['control']}",
+        flush=True,
+    )
+    try:
+        report = compositor.run()
+    finally:
+        compositor.close()
+    path = args.report or config.output.report
+    if path:
+        _write_json(path, report)
+    gaze = report["latency_ms"]["gaze_to_photon"]
+    print(
+        f"{report['vsyncs']} VSyncs: {report['presented']} frames shown ({report['late']} late), "
+        f"{report['re_presented']} repeated, {report['dropped']} dropped; miss rate {report['miss_rate']:.1%}; "
+        f"frame p99 {report['frame_ms']['p99']} ms; gaze-to-photon p99 {gaze['p99']} ms"
+        + (f"; report {path}" if path else "")
+    )
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """Ask a running compositor for its status."""
+    from hmdrt.compositor.endpoints import request
+
+    reply = request(args.control, {"cmd": "stats" if args.report else "status"}, args.timeout)
+    if not reply.get("ok"):
+        raise HmdrtError(f"the compositor refused: {reply.get('error')}")
+    reply.pop("ok")
+    if args.json or args.report:
+        print(json.dumps(reply.get("report", reply), indent=2))
+        return 0
+    shown = reply["shown"]
+    pacing = reply["pacing"]
+    print(
+        f"{reply['method']} on {reply['scene']} at {reply['profile']} ({reply['vsync_hz']:g} Hz): "
+        f"{shown['new']} on time, {shown['late']} late, {shown['repeat']} repeated; "
+        f"devices {', '.join(sorted(set(chain(*reply['devices'].values())))) or 'none'}; pacing {json.dumps(pacing)}"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="hmdrt", description="A simulated HMD runtime with foveated ray tracing.")
     parser.add_argument("--version", action="version", version=f"hmdrt {__version__}")
@@ -286,6 +354,20 @@ def build_parser() -> argparse.ArgumentParser:
     emulate.add_argument("--latency", type=float, help="capture-to-send latency in ms (default: the device's)")
     emulate.add_argument("--duration", type=float, help=UNTIL)
     emulate.set_defaults(run=cmd_emulate)
+    run = sub.add_parser("run", help="run the compositor daemon on a config")
+    run.add_argument("config", help="run config (.toml), e.g. configs/default.toml")
+    limit = run.add_mutually_exclusive_group()
+    limit.add_argument("--frames", type=int, help="stop after N VSyncs")
+    limit.add_argument("--duration", type=float, help=UNTIL)
+    run.add_argument("--virtual-time", action="store_true", help="a simulated clock, one period per frame")
+    run.add_argument("--report", help="write the run report JSON here (overrides the config's)")
+    run.set_defaults(run=cmd_run)
+    status = sub.add_parser("status", help="ask a running compositor daemon")
+    status.add_argument("--control", default=CONTROL, help=f"its control endpoint (default {CONTROL})")
+    status.add_argument("--json", action="store_true", help="print the status as JSON")
+    status.add_argument("--report", action="store_true", help="print the run report so far (JSON)")
+    status.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for an answer (default 2)")
+    status.set_defaults(run=cmd_status)
     record = sub.add_parser("record", help="record a device's gaze and pose from the bus into a native trace")
     record.add_argument("--out", required=True, help="output trace (.jsonl)")
     record.add_argument("--bus", default=INGEST, help=f"endpoint to bind as the ingest (default {INGEST})")

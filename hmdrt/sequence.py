@@ -46,7 +46,8 @@ class SequenceCounts:
     malformed_lines: int = 0
 
 
-def _compose(start: Pose, relative: PoseSample) -> Pose:
+def compose_pose(start: Pose, relative: PoseSample) -> Pose:
+    """A head pose relative to where a trace started, placed at the scene's start pose."""
     rot = quat_to_matrix(start.orientation)
     q = np.asarray(relative.orientation, dtype=np.float64)
     orientation = quat_multiply(start.orientation, q / np.linalg.norm(q))
@@ -89,7 +90,7 @@ def from_trace(
             pi += 1
         sample = valid_gaze[max(gi, 0)]
         counts.held_frames += all_i >= 0 and not usable(gazes[all_i])
-        pose = start if pi < 0 else _compose(start, valid_pose[pi])
+        pose = start if pi < 0 else compose_pose(start, valid_pose[pi])
         inputs.append(FrameInput(f, t, pose, _eye_gaze(sample), sample.depth_m))
     return inputs, counts
 

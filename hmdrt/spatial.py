@@ -5,6 +5,7 @@ Quaternions are (w, x, y, z) and unit length. Gaze angles: yaw positive to the r
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,6 +47,45 @@ def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             aw * bz + ax * by - ay * bx + az * bw,
         ]
     )
+
+
+def quat_conjugate(q: ArrayLike) -> np.ndarray:
+    """Conjugate (w, -x, -y, -z): the inverse rotation of a unit quaternion."""
+    w, x, y, z = q
+    return np.array([w, -x, -y, -z], dtype=np.float64)
+
+
+def quat_slerp(a: ArrayLike, b: ArrayLike, u: float) -> np.ndarray:
+    """Unit quaternion a fraction u of the way from a to b along the shorter arc (u may lie outside 0..1)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    dot = float(a @ b)
+    if dot < 0.0:  # q and -q are the same rotation; take the shorter way round
+        b, dot = -b, -dot
+    if dot > 0.9995:
+        q = a + u * (b - a)
+    else:
+        theta = math.acos(dot)
+        q = (math.sin((1.0 - u) * theta) * a + math.sin(u * theta) * b) / math.sin(theta)
+    return q / np.linalg.norm(q)
+
+
+def quat_to_rotvec(q: ArrayLike) -> np.ndarray:
+    """Rotation vector (unit axis times angle in radians, angle <= pi) of a unit quaternion."""
+    w, x, y, z = (float(c) for c in q)
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    s = math.sqrt(x * x + y * y + z * z)
+    scale = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0 / w
+    return np.array([x * scale, y * scale, z * scale])
+
+
+def quat_from_rotvec(v: ArrayLike) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation vector (axis times angle in radians)."""
+    x, y, z = (float(c) for c in v)
+    angle = math.sqrt(x * x + y * y + z * z)
+    scale = math.sin(angle / 2.0) / angle if angle > 1e-12 else 0.5
+    return np.array([math.cos(angle / 2.0), x * scale, y * scale, z * scale])
 
 
 def gaze_direction(yaw_deg: float, pitch_deg: float) -> np.ndarray:

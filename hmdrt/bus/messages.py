@@ -106,11 +106,14 @@ def topic(message: Message, device: str) -> bytes:
     return f"{'status' if isinstance(message, Status) else message.__struct_config__.tag}.{device}".encode()
 
 
+def pack(topic: bytes, fields: dict) -> list[bytes]:
+    """The two frames of a bus message: topic and msgpack payload of fields plus the schema version."""
+    return [topic, msgspec.msgpack.encode({**fields, "v": SCHEMA_VERSION}, enc_hook=numpy_scalar)]
+
+
 def encode(message: Message, device: str) -> list[bytes]:
-    """The two frames of a bus message: topic and msgpack payload (with the schema version)."""
-    fields = msgspec.to_builtins(message, enc_hook=numpy_scalar)
-    fields["v"] = SCHEMA_VERSION
-    return [topic(message, device), msgspec.msgpack.encode(fields)]
+    """A gaze, pose or status message of a device as bus frames."""
+    return pack(topic(message, device), msgspec.to_builtins(message, enc_hook=numpy_scalar))
 
 
 def decode(frames: list[bytes]) -> tuple[str, str, Message]:

@@ -18,7 +18,13 @@ from hmdrt.trace.integrator import Whitted
 
 METHODS: dict[str, type] = {m.name: m for m in (Full, Regular, Rrm, Kim21, Weier16, Weier18)}
 
-__all__ = ["METHODS", "FrameRequest", "Method", "make_method", "method_params"]
+__all__ = ["METHODS", "FrameRequest", "Method", "make_method", "method_params", "method_spec"]
+
+
+def method_spec(spec: str, options: dict) -> str:
+    """`spec` ("name" or "name?key=value") with `options` appended as key=value; None values are left out."""
+    items = "&".join(f"{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in options.items() if v is not None)
+    return f"{spec}{'&' if '?' in spec else '?'}{items}" if items else spec
 
 
 def method_params(spec: str, **options) -> tuple[str, msgspec.Struct]:

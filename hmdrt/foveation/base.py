@@ -3,10 +3,15 @@
 Methods are found by name in foveation.METHODS. Each declares its stages and what each needs; the
 plan of a frame keeps only the stages whose needs the scene, the configuration and the method's own
 state (a previous frame to reproject) meet, so stages that cannot change the image never run.
+
+Parameters can change between frames (Method.set_params): a method derives everything that depends on
+its parameters in one _configure(params), which its constructor calls too, and keeps its temporal state
+(caches, history, persistent buffers, fixation filters) wherever the new parameters leave it meaningful.
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
 
@@ -69,10 +74,34 @@ class Method(Protocol):
     name: ClassVar[str]
     Params: ClassVar[type[msgspec.Struct]]
     stages: ClassVar[tuple[Stage, ...]]
+    params: msgspec.Struct  # the parameters the next frame is rendered with
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
         """Linear RGB image (height, width, 3) float32 of this eye's frame."""
         ...
+
+    def set_params(self, params: msgspec.Struct) -> None:
+        """Render with `params` (a validated Params) from the next frame on, keeping the temporal state
+        they leave meaningful; each method's _configure says what a change resets. Raises TypeError for
+        another method's Params and ConfigError for values only the method can refuse, unchanged then."""
+        ...
+
+
+class Configurable(ABC):
+    """Method.set_params for a method whose parameter-derived state all comes from _configure."""
+
+    name: ClassVar[str]
+    Params: ClassVar[type[msgspec.Struct]]
+    params: msgspec.Struct
+
+    def set_params(self, params: msgspec.Struct) -> None:
+        if not isinstance(params, self.Params):
+            raise TypeError(f"{self.name} takes {self.Params.__name__}, not {type(params).__name__}")
+        self._configure(params)
+
+    @abstractmethod
+    def _configure(self, params: msgspec.Struct) -> None:
+        """Derive everything that depends on `params` and adopt them; raise before changing anything."""
 
 
 class NoParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):

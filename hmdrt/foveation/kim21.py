@@ -28,7 +28,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.errors import ConfigError
-from hmdrt.foveation.base import HISTORY, FrameRequest, Stage, pixel_keys, plan
+from hmdrt.foveation.base import HISTORY, Configurable, FrameRequest, Stage, pixel_keys, plan
 from hmdrt.foveation.stages.reproject import bilinear3, camera_arrays, nearest_index, project, world_point
 from hmdrt.foveation.stages.temporal import History, exponential_smoothing
 from hmdrt.optics.camera import pixel_centres
@@ -384,7 +384,7 @@ class _EyeState:
         self.previous: tuple | None = None  # camera, depth, colour ref, gbuffer, reuse flags, rendered colour
 
 
-class Kim21:
+class Kim21(Configurable):
     """Selective foveated supersampling, reuse and smoothing on top of Whitted presampling."""
 
     name = "kim21"
@@ -400,15 +400,21 @@ class Kim21:
 
     def __init__(self, tracer: Whitted, params: Kim21Params):
         self.tracer = tracer
-        self.params = params
-        self.ctrl = bezier_controls(params)
+        self._eyes: dict[str, _EyeState] = {}
+        self._configure(params)
+
+    def _configure(self, params: Kim21Params) -> None:
+        """Keeps each eye's previous frame (pixel reuse goes on, its reuse counts included) and its
+        smoothing history; new bands, sample counts and thresholds act on the next frame. Only a larger
+        smooth_frames than an eye's history holds starts that history afresh (see render)."""
         p = params
+        self.ctrl = bezier_controls(p)
         self.thresholds = np.array(
             [p.tau_col, p.tau_poid, p.tau_psn, p.tau_psc, p.tau_pte, p.tau_soid, p.tau_ssn, p.tau_ssc, p.tau_ste]
         )
         self.bounds = np.array([p.e_f, p.e_p, p.e_m])
         self.counts = np.array([p.n_f, p.n_p, p.n_m, p.n_np], np.int64)
-        self._eyes: dict[str, _EyeState] = {}
+        self.params = params
 
     def _gbuffer(self, state: _EyeState, n: int) -> GBuffer:
         """A G-buffer for this frame that is not the previous frame's (two are kept and alternated)."""
@@ -420,7 +426,10 @@ class Kim21:
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
         cam, p = request.camera, self.params
-        state = self._eyes.setdefault(request.eye, _EyeState(max(p.smooth_frames, 1)))
+        frames = max(p.smooth_frames, 1)
+        state = self._eyes.setdefault(request.eye, _EyeState(frames))
+        if state.history.size < frames:
+            state.history = History(frames)
         history = (
             state.previous is not None
             and state.previous[0].width == cam.width

@@ -11,7 +11,7 @@ from typing import Annotated
 import msgspec
 import numpy as np
 
-from hmdrt.foveation.base import FrameRequest, NoParams, Stage, sample_keys
+from hmdrt.foveation.base import Configurable, FrameRequest, NoParams, Stage, sample_keys
 from hmdrt.optics.camera import pixel_centres
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
@@ -20,7 +20,7 @@ from hmdrt.trace.sampling import jittered_pixels
 MAX_SPP = 1024
 
 
-class Full:
+class Full(Configurable):
     """One primary ray through every pixel centre."""
 
     name = "full"
@@ -29,6 +29,11 @@ class Full:
 
     def __init__(self, tracer: Whitted, params: NoParams):
         self.tracer = tracer
+        self._configure(params)
+
+    def _configure(self, params: NoParams) -> None:
+        """Stateless: nothing to keep or reset."""
+        self.params = params
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
         cam = request.camera
@@ -42,7 +47,7 @@ class RegularParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     spp: Annotated[int, msgspec.Meta(ge=1, le=MAX_SPP)] = 36
 
 
-class Regular:
+class Regular(Configurable):
     """spp stratified jittered samples per pixel, averaged (a box filter over the pixel)."""
 
     name = "regular"
@@ -51,6 +56,11 @@ class Regular:
 
     def __init__(self, tracer: Whitted, params: RegularParams):
         self.tracer = tracer
+        self._configure(params)
+
+    def _configure(self, params: RegularParams) -> None:
+        """Stateless: nothing to keep or reset."""
+        self.params = params
         self.spp = params.spp
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:

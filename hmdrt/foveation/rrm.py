@@ -18,7 +18,7 @@ from typing import Annotated, Literal
 import msgspec
 import numpy as np
 
-from hmdrt.foveation.base import FrameRequest, Stage, pixel_keys
+from hmdrt.foveation.base import Configurable, FrameRequest, Stage, pixel_keys
 from hmdrt.foveation.stages.gaze import FixationFilter
 from hmdrt.foveation.stages.sampling import pixels_per_degree
 from hmdrt.optics.camera import EyeCamera
@@ -79,7 +79,14 @@ def foveal_rectangle(camera: EyeCamera, gaze: np.ndarray, params: RrmParams) -> 
     return x0, max(x0, x1), y0, max(y0, y1)
 
 
-class Rrm:
+def _refilter(previous: FixationFilter, params: RrmParams) -> FixationFilter:
+    """A fixation filter with params' smoothing that goes on from where `previous` left off."""
+    filt = FixationFilter(params.smoothing, params.saccade_deg)
+    filt.state = previous.state
+    return filt
+
+
+class Rrm(Configurable):
     """Refresh Rate Modulation over a persistent pixel buffer per eye."""
 
     name = "rrm"
@@ -88,10 +95,23 @@ class Rrm:
 
     def __init__(self, tracer: Whitted, params: RrmParams):
         self.tracer = tracer
-        self.params = params
         self._buffers: dict[str, np.ndarray] = {}
         self._filters: dict[str, FixationFilter] = {}
-        self._phase: dict[tuple[int, int], np.ndarray] = {}
+        self._phase: dict[tuple[int, int], np.ndarray] = {}  # by image shape, for _schedule
+        self._schedule: tuple | None = None
+        self._configure(params)
+
+    def _configure(self, params: RrmParams) -> None:
+        """Keeps the persistent buffers and each eye's smoothed fixation (a new smoothing or saccade_deg
+        applies from the next sample). A new cycle (group_w, group_h, block or order) rebuilds the refresh
+        phase maps: every peripheral pixel is then refreshed within the new N frames, and the buffer shows
+        the older pixels until then. fovea_deg needs nothing: the rectangle is placed every frame."""
+        schedule = (params.group_w, params.group_h, params.block, params.order)
+        if schedule != self._schedule:
+            self._phase.clear()
+        self._schedule = schedule
+        self._filters = {eye: _refilter(f, params) for eye, f in self._filters.items()}
+        self.params = params
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
         cam, p = request.camera, self.params

@@ -30,7 +30,16 @@ import msgspec
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.base import HISTORY, STOCHASTIC, FrameRequest, Stage, pixel_keys, plan, scene_features
+from hmdrt.foveation.base import (
+    HISTORY,
+    STOCHASTIC,
+    Configurable,
+    FrameRequest,
+    Stage,
+    pixel_keys,
+    plan,
+    scene_features,
+)
 from hmdrt.foveation.stages.reproject import FAR, bilinear3, gather_previous, reproject_mesh
 from hmdrt.foveation.stages.sampling import Foveal, bernoulli_mask, foveal_config
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
@@ -249,7 +258,7 @@ class _EyeState:
     support_color: np.ndarray  # (sh, sw, 3)
 
 
-class Weier16:
+class Weier16(Configurable):
     """Foveated ray tracing with coarse-mesh reprojection, resampling info, cache and merge."""
 
     name = "weier16"
@@ -266,11 +275,18 @@ class Weier16:
 
     def __init__(self, tracer: Whitted, params: Weier16Params):
         self.tracer = tracer
-        self.params = params
-        self.foveal = params.foveal()
         self.features = scene_features(tracer)
         self._eyes: dict[str, _EyeState] = {}
         self._gbuffers = GBufferPool()
+        self._configure(params)
+
+    def _configure(self, params: Weier16Params) -> None:
+        """Keeps each eye's final colour, cache info and support G-buffer: a new foveal region (frc, r0,
+        r1, p_min) or new thresholds act on the next frame's samples and cache update, which reprojects
+        the cache as usual. A new support size (support_w, support_h) cannot use the previous support
+        G-buffer as its coarse mesh, so the next frame starts without history."""
+        foveal = params.foveal()
+        self.params, self.foveal = params, foveal
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
         cam, p, t = request.camera, self.params, request.frame

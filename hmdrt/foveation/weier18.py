@@ -23,7 +23,7 @@ import msgspec
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.base import HISTORY, FrameRequest, Stage, pixel_keys, plan
+from hmdrt.foveation.base import HISTORY, Configurable, FrameRequest, Stage, pixel_keys, plan
 from hmdrt.foveation.stages.dof import DEPTH_INACCURACY_M, DOF_PRESETS, DofPreset, coc_map, gaze_depth, layered_blur
 from hmdrt.foveation.stages.filters import contrast_enhance
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push, quincunx_rgbd
@@ -102,11 +102,12 @@ def _taa(pixels, width, cur, prev, depth, rgb, ecc, r0, r1, p_min, pyramid, alph
 @dataclass
 class _EyeState:
     camera: EyeCamera
-    tables: SamplingTables
     pyramids: list[Pyramid]  # [current, previous]; swapped every frame
+    tables: SamplingTables | None = None
+    tables_for: tuple | None = None  # the (foveal region, table_seed) the tables were drawn for
 
 
-class Weier18:
+class Weier18(Configurable):
     """Table-driven foveated sampling, TAA, pull-push reconstruction and gaze-contingent depth of field."""
 
     name = "weier18"
@@ -124,23 +125,33 @@ class Weier18:
 
     def __init__(self, tracer: Whitted, params: Weier18Params):
         self.tracer = tracer
+        self._eyes: dict[str, _EyeState] = {}
+        self._gbuffers = GBufferPool()
+        self._configure(params)
+
+    def _configure(self, params: Weier18Params) -> None:
+        """Keeps each eye's reconstruction pyramids, which TAA reprojects. A new foveal region (r0, r1,
+        p_min) or table_seed redraws each eye's sampling tables S_in and S_out before its next frame;
+        dof, contrast and the TAA settings act on the next frame as they are."""
         self.params = params
         self.foveal = Foveal(params.r0, params.r1, params.p_min)
+        self._tables_for = (self.foveal, params.table_seed)
         self.features = frozenset({DOF} if params.preset() else set()) | frozenset(
             {CONTRAST} if params.contrast else set()
         )
-        self._eyes: dict[str, _EyeState] = {}
-        self._gbuffers = GBufferPool()
 
     def _state(self, request: FrameRequest) -> tuple[_EyeState, bool]:
+        """This eye's state and whether it holds a previous frame of the same size."""
         cam = request.camera
         state = self._eyes.get(request.eye)
-        if state is None or (state.camera.width, state.camera.height) != (cam.width, cam.height):
-            tables = sampling_tables(cam, self.foveal, self.params.table_seed)
-            state = _EyeState(cam, tables, [Pyramid.empty(cam.width, cam.height), Pyramid.empty(cam.width, cam.height)])
-            self._eyes[request.eye] = state
-            return state, False
-        return state, True
+        history = state is not None and (state.camera.width, state.camera.height) == (cam.width, cam.height)
+        if not history:
+            pyramids = [Pyramid.empty(cam.width, cam.height), Pyramid.empty(cam.width, cam.height)]
+            state = self._eyes[request.eye] = _EyeState(cam, pyramids)
+        if state.tables_for != self._tables_for:
+            state.tables = sampling_tables(cam, self.foveal, self.params.table_seed)
+            state.tables_for = self._tables_for
+        return state, history
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
         cam, p = request.camera, self.params

@@ -1,0 +1,91 @@
+"""The compositor's numbers in real time (issue 5): deadline misses, gaze-to-photon latency and compositor
+overhead for configs/default.toml; misses with the budget controller off and on where the method alone
+cannot hold the rate; and graceful degradation at rift_s, where nothing can.
+
+    python bench/runtime.py [--duration 60] [--controller-duration 30] [--only default,controller,rift_s]
+
+Each scenario runs the daemon in-process on its config with the bus on free loopback ports, for the given
+wall time, and prints the run report's figures. These machines are shared: a busy neighbour shows up as
+misses, so run it on a quiet machine and read the figures together, as measured in one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import msgspec
+
+from hmdrt.compositor.config import Bus, RunConfig, load_config
+from hmdrt.compositor.daemon import Compositor
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+ANY_PORT = "tcp://127.0.0.1:*"
+
+
+def run(config: RunConfig) -> dict:
+    config = msgspec.structs.replace(config, bus=Bus(ANY_PORT, ANY_PORT, ANY_PORT))
+    compositor = Compositor(config)
+    try:
+        return compositor.run()
+    finally:
+        compositor.close()
+
+
+def with_controller(config: RunConfig, kind: str) -> RunConfig:
+    return msgspec.structs.replace(config, controller=msgspec.structs.replace(config.controller, kind=kind))
+
+
+def describe(name: str, report: dict) -> None:
+    period_ms = 1e3 / report["vsync_hz"]
+    gaze, overhead = report["latency_ms"]["gaze_to_photon"], report["compositor_overhead_ms"]
+    print(
+        f"  {name}: {report['method_spec']} at {report['profile']} {report['vsync_hz']:g} Hz, "
+        f"{report['vsyncs']} VSyncs, achieved {report['achieved_hz']:g} Hz, out of order {report['out_of_order']}"
+    )
+    print(
+        f"    misses {report['deadline_misses']} = {report['miss_rate']:.2%} "
+        f"(after {report['warmup_s']:g} s warm-up {report['miss_rate_after_warmup']:.2%}); "
+        f"shown {report['presented']} ({report['late']} late), repeated {report['re_presented']}, "
+        f"dropped {report['dropped']}"
+    )
+    print(
+        f"    frame ms p50 {report['frame_ms']['p50']} p99 {report['frame_ms']['p99']}; "
+        f"gaze-to-photon ms p50 {gaze['p50']} p99 {gaze['p99']} = {(gaze['p99'] or 0) / period_ms:.2f} periods; "
+        f"compositor overhead ms p50 {overhead['p50']} p99 {overhead['p99']}"
+    )
+    controller = report.get("controller")
+    if controller:
+        levels = [step["level"] for step in controller["trajectory"]]
+        print(
+            f"    controller: {len(levels)} steps, level {levels[0] if levels else 1.0} -> {controller['level']}, "
+            f"at floor {controller['at_floor']}; last knobs {controller['trajectory'][-1] if levels else {}}"
+        )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=60.0, help="seconds for configs/default.toml")
+    ap.add_argument("--controller-duration", type=float, default=30.0, help="seconds per controller run")
+    ap.add_argument("--only", default="default,controller,rift_s")
+    args = ap.parse_args()
+    only = set(args.only.split(","))
+
+    if "default" in only:
+        print(f"configs/default.toml, {args.duration:g} s real time")
+        describe("default", run(load_config(CONFIGS / "default.toml", duration_s=args.duration)))
+    if "controller" in only:
+        config = load_config(CONFIGS / "bench" / "controller.toml", duration_s=args.controller_duration)
+        print(f"configs/bench/controller.toml, {args.controller_duration:g} s real time each")
+        off, on = (run(with_controller(config, kind)) for kind in ("none", "hold-budget"))
+        describe("controller off", off)
+        describe("controller on", on)
+        print(f"  misses after warm-up: off {off['miss_rate_after_warmup']:.2%}, on {on['miss_rate_after_warmup']:.2%}")
+    if "rift_s" in only:
+        config = load_config(CONFIGS / "bench" / "rift_s.toml", duration_s=args.controller_duration)
+        print(f"configs/bench/rift_s.toml, {args.controller_duration:g} s real time")
+        describe("rift_s", run(config))
+
+
+if __name__ == "__main__":
+    main()

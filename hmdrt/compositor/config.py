@@ -1,0 +1,147 @@
+"""The run configuration of `hmdrt run CONFIG.toml`: display, scene, method, drivers, bus, pacing,
+prediction, controller and output, validated on load with every mistake reported in one line.
+
+Paths in the file (a replay:// trace, hid://stub's trace=, the report, the frames folder) are relative
+to the config file, so a config runs the same from any working directory.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+import msgspec
+
+from hmdrt.bus import CONTROL, INGEST, TELEMETRY
+from hmdrt.errors import ConfigError
+from hmdrt.foveation import method_spec
+
+Ms = Annotated[float, msgspec.Meta(ge=0.0, le=10_000.0)]
+Eyes = Literal["left", "right", "both"]
+
+
+class _Section(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    pass
+
+
+class Display(_Section):
+    profile: str = "sim-cpu"  # a built-in profile name or a .toml profile (its refresh rate sets the VSync)
+    eyes: Eyes = "both"
+    resolution: str = ""  # per-eye WIDTHxHEIGHT overriding the profile's, same field of view
+    refresh_hz: Annotated[float, msgspec.Meta(ge=0.0, le=1000.0)] = 0.0  # 0: the profile's
+
+
+class Method(_Section):
+    name: str = "rrm"  # a method, with options as in "weier16?frc=small"
+    options: dict[str, str | int | float | bool] = {}
+
+
+class Driver(_Section):
+    url: str
+
+
+class Bus(_Section):
+    ingest: str = INGEST
+    telemetry: str = TELEMETRY
+    control: str = CONTROL
+
+
+class Pacing(_Section):
+    margin_ms: Ms = 2.0  # fixed margin before the VSync (runtime_anchors.md: 1-2 ms)
+    present_to_display_ms: Annotated[float, msgspec.Meta(ge=-1.0, le=1000.0)] = -1.0  # -1: half the period
+    render_delay_ms: Ms = 0.0  # extra time added to every render, to see how misses are handled
+    # the wake-up plans for this quantile of the last tail_window render times (0: the filtered mean, as Monado)
+    tail_quantile: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 1.0
+    tail_window: Annotated[int, msgspec.Meta(ge=1, le=10_000)] = 90
+
+
+class Prediction(_Section):
+    horizon_ms: Ms = 50.0  # gaze and pose are extrapolated at most this far past the newest sample
+    gaze_device: str = ""  # "": the device with the newest gaze
+    pose_device: str = ""
+
+
+class Controller(_Section):
+    kind: Literal["none", "hold-budget"] = "none"
+    target_miss_rate: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 0.05
+    headroom: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 0.85
+    widen_latency_ms: Ms = 0.0  # widen the fovea by gaze speed times this tracker latency
+    accuracy_deg: Annotated[float, msgspec.Meta(ge=0.0, le=30.0)] = 0.0  # and by this tracker accuracy
+
+
+class Output(_Section):
+    report: str = ""  # run report JSON ("" : none unless --report)
+    frames_dir: str = ""  # presented frames as PNG ("" : none)
+    every: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 1  # every Nth presented frame
+
+
+class Run(_Section):
+    seed: int = 0
+    threads: Annotated[int, msgspec.Meta(ge=0, le=256)] = 0  # tracing threads (0: all cores)
+    virtual_time: bool = False
+    frames: Annotated[int, msgspec.Meta(ge=0)] = 0  # stop after this many VSyncs (0: until stopped)
+    duration_s: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0  # or after this long
+    warmup_s: Annotated[float, msgspec.Meta(ge=0.0)] = 2.0  # the report also gives the miss rate after this
+
+
+class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    scene: str = "whitted"
+    display: Display = Display()
+    method: Method = Method()
+    drivers: list[Driver] = []
+    bus: Bus = Bus()
+    pacing: Pacing = Pacing()
+    prediction: Prediction = Prediction()
+    controller: Controller = Controller()
+    output: Output = Output()
+    run: Run = Run()
+    source: str = ""  # the file it was read from (set on load)
+
+    @property
+    def method_spec(self) -> str:
+        """The method as one "name?key=value&..." string."""
+        return method_spec(self.method.name, self.method.options)
+
+
+def _relative(url: str, base: Path) -> str:
+    """A driver URL with its file paths (replay://PATH, trace=PATH) made absolute against base."""
+    scheme, sep, rest = url.partition("://")
+    location, mark, query = rest.partition("?")
+    if scheme == "replay" and location and not location.startswith("/"):
+        location = str(base / location)
+    items = [item.partition("=") for item in query.split("&")] if query else []
+    query = "&".join(
+        f"{k}={base / v}" if k == "trace" and v and not v.startswith("/") else f"{k}{eq}{v}" for k, eq, v in items
+    )
+    return f"{scheme}{sep}{location}{mark}{query}"
+
+
+def load_config(path: str | Path | None = None, **overrides) -> RunConfig:
+    """A validated RunConfig from a TOML file (None: the defaults), with paths resolved against the file."""
+    data: dict = {}
+    base = Path.cwd()
+    if path is not None:
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"config not found: {path}") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"cannot read config {path}: {exc}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path} is not valid TOML: {exc}") from None
+        base = path.resolve().parent
+    data.setdefault("run", {}).update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        config = msgspec.convert(data, RunConfig)
+    except msgspec.ValidationError as exc:
+        raise ConfigError(f"{path or 'config'}: {exc}") from None
+    drivers = [Driver(_relative(d.url, base)) for d in config.drivers]
+    output = config.output
+    output = msgspec.structs.replace(
+        output,
+        report=str(base / output.report) if output.report else "",
+        frames_dir=str(base / output.frames_dir) if output.frames_dir else "",
+    )
+    return msgspec.structs.replace(config, drivers=drivers, output=output, source=str(path or ""))

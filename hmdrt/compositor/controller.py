@@ -1,0 +1,298 @@
+"""The "hold-budget" controller: trades a method's quality for time so that deadline misses stay under a
+configured rate, and widens the fovea for gaze speed and tracker error.
+
+The compositor calls update() once per presented frame. One quality level in [0, 1] drives the method's
+cost knobs (KNOBS): 1 is the parameters the method was configured with, 0 a floor from the papers, and
+each knob moves linearly between the two (integer knobs rounded), so every knob is monotonic in the
+level and one number tells the story in the run report. A floor never asks for more than the configured
+value: a knob configured below its floor stays where it is.
+
+- weier16, weier18: r0, r1, p_min down to weier2016's small foveal region configuration (section 4.2,
+  RQ2: r0 5, r1 10, p_min 0.01), the fovea's own size with a steep falloff.
+- rrm: fovea_deg down to the same 5 deg, and group_w up until N = group_w x group_h reaches 20, the
+  largest N whose fragmentation smith2013's user study (section 4, Figure 10) did not find noticeable.
+- kim21: the samples per problematic subpixel n_f, n_p, n_m, n_np down to 1 (section 4.6.2); its band
+  edges move only with the widening below (shrinking them changes tau_fov's shape, which may not hold).
+- full, regular: no cost knobs; the controller does nothing and says so in its trajectory.
+
+Control law, with r = render time / (headroom x budget) per frame:
+- after a level change, wait settle_frames frames (temporal methods need them to settle); then
+- a miss while more than target_miss_rate of the last miss_window frames missed: lower the level by
+  max(miss_step, gain (mean r - aim)), mean r over the last settle_frames frames;
+- else mean r above 1: lower it by max(min_step, gain (mean r - aim));
+- else mean r over the last raise_after frames below raise_below and none of them missed: raise it by
+  up_step. Between raise_below and 1 the level holds, so it does not hunt; a drop aims at the middle of
+  that band, aim = (1 + raise_below) / 2, so that render-time noise does not push it out again.
+At level 0 the controller can do no more: at_floor is set and the compositor reports the rate achieved.
+
+Foveal widening: each foveal radius knob (weier16/18 r0 and r1, rrm fovea_deg, kim21's band edges e_f to
+e_max) is its level value + gaze speed x widen_latency_ms + accuracy_deg, clamped to the field's valid
+range, so the fovea still covers where the eye is when the frame is shown, as far as the tracker knows.
+The widening rounds up to widen_step_deg, grows at once and shrinks only once it has not grown for
+settle_frames frames: every change can cost the method a rebuild (weier18 redraws its sampling tables).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from itertools import islice
+from typing import Any, Literal, NamedTuple
+
+import msgspec
+
+from hmdrt.errors import ConfigError
+from hmdrt.foveation.base import Method
+from hmdrt.foveation.stages.sampling import FRC_PRESETS
+from hmdrt.foveation.weier16 import Weier16Params
+
+SMALL_R0, SMALL_R1, SMALL_P_MIN = FRC_PRESETS["small"]
+RRM_MAX_CYCLE = 20
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """The hold-budget controller's settings; the module docstring says how each acts."""
+
+    target_miss_rate: float = 0.05  # misses allowed (fraction of frames)
+    headroom: float = 0.85  # aim render time at this fraction of the render budget
+    widen_latency_ms: float = 0.0  # tracker latency to cover: fovea widened by gaze speed * this
+    accuracy_deg: float = 0.0  # tracker accuracy to cover: fovea widened by this
+    settle_frames: int = 6  # frames after a level change before the next decision
+    miss_window: int = 60  # frames over which the miss rate is compared with target_miss_rate
+    raise_after: int = 30  # frames well below target, none missed, before the level rises
+    raise_below: float = 0.8  # "well below": mean render time under this fraction of the target
+    gain: float = 1.0  # level dropped per unit of mean r above the aim
+    min_step: float = 0.02  # smallest drop
+    miss_step: float = 0.1  # smallest drop on a miss over the allowed rate
+    up_step: float = 0.05  # one rise
+    widen_step_deg: float = 0.5  # the widening rounds up to a multiple of this (0: exact)
+
+    def __post_init__(self) -> None:
+        checks = {
+            "target_miss_rate": 0.0 <= self.target_miss_rate <= 1.0,
+            "headroom": 0.0 < self.headroom <= 1.0,
+            "widen_latency_ms": self.widen_latency_ms >= 0.0,
+            "accuracy_deg": self.accuracy_deg >= 0.0,
+            "settle_frames": self.settle_frames >= 1,
+            "miss_window": self.miss_window >= 1,
+            "raise_after": self.raise_after >= self.settle_frames,
+            "raise_below": 0.0 < self.raise_below < 1.0,
+            "gain": self.gain >= 0.0,
+            "min_step": 0.0 < self.min_step <= 1.0,
+            "miss_step": 0.0 < self.miss_step <= 1.0,
+            "up_step": 0.0 < self.up_step <= 1.0,
+            "widen_step_deg": self.widen_step_deg >= 0.0,
+        }
+        bad = [f"{name}={getattr(self, name)}" for name, ok in checks.items() if not ok]
+        if bad:
+            raise ConfigError(f"controller settings out of range: {', '.join(bad)}")
+
+
+Floor = float | Callable[[dict[str, Any]], float] | None
+
+
+@dataclass(frozen=True)
+class Knob:
+    """A Params field the level moves: from its configured value (level 1) to `floor` (level 0), a number
+    or a function of the configured values; None leaves it to the widening alone."""
+
+    field: str
+    floor: Floor
+    cheaper: Literal["lower", "higher"] = "lower"
+    foveal: bool = False  # a foveal radius, widened for gaze speed and tracker accuracy
+
+
+FOVEAL_REGION = (Knob("r0", SMALL_R0, foveal=True), Knob("r1", SMALL_R1, foveal=True), Knob("p_min", SMALL_P_MIN))
+KNOBS: dict[str, tuple[Knob, ...]] = {
+    "weier16": FOVEAL_REGION,
+    "weier18": FOVEAL_REGION,
+    "rrm": (
+        Knob("fovea_deg", SMALL_R0, foveal=True),
+        Knob("group_w", lambda v: RRM_MAX_CYCLE // v["group_h"], cheaper="higher"),
+    ),
+    "kim21": (
+        *(Knob(f"n_{band}", 1) for band in ("f", "p", "m", "np")),
+        *(Knob(f"e_{band}", None, foveal=True) for band in ("f", "p", "m", "np", "max")),
+    ),
+}
+
+
+class _Span(NamedTuple):
+    """One knob resolved for the configured parameters: its values at level 1 and 0 and its valid range."""
+
+    field: str
+    top: float
+    bottom: float
+    lo: float
+    hi: float
+    integer: bool
+    foveal: bool
+
+    def at(self, level: float, widen_deg: float) -> float:
+        value = self.bottom + level * (self.top - self.bottom) + (widen_deg if self.foveal else 0.0)
+        value = min(max(value, self.lo), self.hi)
+        return math.floor(value + 0.5) if self.integer else value
+
+
+def field_range(params_type: type[msgspec.Struct], name: str) -> tuple[float, float, bool]:
+    """The bounds a Params field's constraints allow (inclusive or not) and whether it is an integer."""
+    field = next(f for f in msgspec.inspect.type_info(params_type).fields if f.name == name)
+    kind = field.type
+    if isinstance(kind, msgspec.inspect.UnionType):  # an optional field: its number type
+        kind = next(t for t in kind.types if not isinstance(t, msgspec.inspect.NoneType))
+    lo = next((b for b in (kind.ge, kind.gt) if b is not None), -math.inf)
+    hi = next((b for b in (kind.le, kind.lt) if b is not None), math.inf)
+    return lo, hi, isinstance(kind, msgspec.inspect.IntType)
+
+
+def configured_values(params: msgspec.Struct) -> dict[str, Any]:
+    """The configured value of every field; weier16's r0, r1 and p_min as its frc preset resolves them."""
+    values = msgspec.structs.asdict(params)
+    if isinstance(params, Weier16Params):
+        values.update(params.foveal()._asdict())
+    return values
+
+
+def spans(params: msgspec.Struct, knobs: tuple[Knob, ...]) -> tuple[_Span, ...]:
+    values = configured_values(params)
+    out = []
+    for knob in knobs:
+        lo, hi, integer = field_range(type(params), knob.field)
+        top = min(max(values[knob.field], lo), hi)  # frc=full's infinite radii: the largest valid ones
+        floor = knob.floor(values) if callable(knob.floor) else knob.floor
+        bottom = top if floor is None else (min if knob.cheaper == "lower" else max)(top, floor)
+        out.append(_Span(knob.field, top, bottom, lo, hi, integer, knob.foveal))
+    return tuple(out)
+
+
+class BudgetController:
+    """Holds a method's deadline misses under a rate by moving its cost knobs (module docstring).
+
+    Build a new one whenever the method or its parameters are changed from outside: level 1 is the
+    parameters the method had when the controller was made.
+    """
+
+    def __init__(self, method: Method, config: ControllerConfig):
+        self.method = method
+        self.config = config
+        self.base = method.params
+        self._spans = spans(self.base, KNOBS.get(method.name, ()))
+        self.knobs = tuple(s.field for s in self._spans)
+        self._level = 1.0
+        self._ratios: deque[float] = deque(maxlen=config.raise_after)
+        self._misses: deque[bool] = deque(maxlen=max(config.miss_window, config.raise_after))
+        self._since_change = 0
+        self._since_grow = 0
+        self.widen_deg = 0.0
+        self.widenings = 0  # knob changes made by the widening alone (not in the trajectory)
+        self._configured = self._values(1.0, 0.0)
+        self._applied = self._configured
+        self._refused: dict[str, float] | None = None
+        reason = "start" if self._spans else f"{method.name} has no cost knobs: nothing to tune"
+        self.trajectory: list[dict] = [self._entry(None, reason)]
+
+    @property
+    def level(self) -> float:
+        """1.0: the method's own parameters (best quality); 0.0: the knob floor."""
+        return self._level
+
+    @property
+    def at_floor(self) -> bool:
+        """Whether the controller cannot lower the cost any further (level 0, or no knobs at all)."""
+        return not self._spans or self._level <= 0.0
+
+    def update(
+        self, frame_id: int, render_ns: int, budget_ns: int, missed: bool, gaze_speed_deg_s: float | None = None
+    ) -> dict[str, float] | None:
+        """Take one presented frame's render time against its budget; the knob values applied from the
+        next frame on, or None when they stay. gaze_speed_deg_s None (or not finite): unknown, no widening
+        for speed. The trajectory lists every level change and refusal (frame, level, knobs, reason)."""
+        if not self._spans:
+            return None
+        if budget_ns <= 0:
+            raise ValueError(f"budget_ns must be positive, got {budget_ns}")
+        self._ratios.append(render_ns / (self.config.headroom * budget_ns))
+        self._misses.append(missed)
+        self._since_change += 1
+        step, reason = self._decide(missed)
+        level = min(max(self._level + step, 0.0), 1.0)
+        widen = self._widening(gaze_speed_deg_s)
+        values = self._values(level, widen)
+        if values == self._refused:
+            return None  # neither the level nor the widening is taken while the method refuses its knobs
+        if values != self._applied:
+            try:
+                self.method.set_params(self._params(values))
+            except (msgspec.ValidationError, ConfigError, ValueError) as exc:
+                self._refused = values
+                self.trajectory.append(self._entry(frame_id, f"refused {values}: {exc}"))
+                return None
+            self._applied = values
+        else:
+            values = None
+        if level != self._level:
+            self._level, self._since_change = level, 0
+            self.trajectory.append(self._entry(frame_id, reason + (" (floor)" if level <= 0.0 else "")))
+        elif values is not None:
+            self.widenings += 1
+        return values
+
+    def _decide(self, missed: bool) -> tuple[float, str]:
+        """The level step this frame calls for and why (0 and "" for none)."""
+        c = self.config
+        if self._since_change < c.settle_frames:
+            return 0.0, ""
+        recent = _mean(islice(reversed(self._ratios), c.settle_frames))
+        over = c.gain * (recent - 0.5 * (1.0 + c.raise_below))
+        window = list(islice(reversed(self._misses), c.miss_window))
+        miss_rate = sum(window) / len(window)
+        if missed and miss_rate > c.target_miss_rate:
+            return -max(c.miss_step, over), f"miss: {sum(window)} of the last {len(window)} frames missed"
+        if recent > 1.0:
+            return -max(c.min_step, over), f"over target: render {recent:.2f} x target"
+        if self._since_change >= c.raise_after:
+            calm = _mean(self._ratios)
+            if calm < c.raise_below and not any(islice(reversed(self._misses), c.raise_after)):
+                return c.up_step, f"under target: render {calm:.2f} x target"
+        return 0.0, ""
+
+    def _widening(self, gaze_speed_deg_s: float | None) -> float:
+        """The foveal widening for this gaze speed, grown at once and shrunk after settle_frames."""
+        c = self.config
+        speed = gaze_speed_deg_s if gaze_speed_deg_s is not None and math.isfinite(gaze_speed_deg_s) else 0.0
+        want = max(speed, 0.0) * c.widen_latency_ms / 1000.0 + c.accuracy_deg
+        if c.widen_step_deg:
+            want = math.ceil(want / c.widen_step_deg - 1e-9) * c.widen_step_deg
+        self._since_grow += 1
+        if want > self.widen_deg:
+            self._since_grow = 0
+        if want > self.widen_deg or self._since_grow >= c.settle_frames:
+            self.widen_deg = want
+        return self.widen_deg
+
+    def _values(self, level: float, widen_deg: float) -> dict[str, float]:
+        return {s.field: s.at(level, widen_deg) for s in self._spans}
+
+    def _params(self, values: dict[str, float]) -> msgspec.Struct:
+        """The configured parameters with `values`, validated by the Params struct; exactly the configured
+        ones at level 1 without widening."""
+        if values == self._configured:
+            return self.base
+        return msgspec.convert({**msgspec.structs.asdict(self.base), **values}, type(self.base))
+
+    def _entry(self, frame_id: int | None, reason: str) -> dict:
+        return {
+            "frame": frame_id,
+            "level": round(self._level, 4),
+            "knobs": {k: round(v, 4) for k, v in self._applied.items()},
+            "widen_deg": self.widen_deg,
+            "reason": reason,
+        }
+
+
+def _mean(values) -> float:
+    values = list(values)
+    return sum(values) / len(values)

@@ -1,0 +1,483 @@
+"""`hmdrt run CONFIG.toml`: the compositor daemon.
+
+Each frame, as a compositor pacer schedules it (Monado's u_pacing; hmdrt.compositor.pacer): wake at
+the predicted time, sample gaze and head pose predicted for the frame's display time from what has
+arrived, render through the method, and hand the frame to the display, which latches it at its VSync
+or, when it is late, shows the last frame again timewarped to the newest head pose. Telemetry goes
+out per VSync (`frame`) and each second (`stats`); the run report is written at the end, also after
+SIGTERM. In real time the render loop and the display run on their own threads against the host
+clock; with virtual_time the clock moves one period per frame, drivers are polled against it, and
+runs reproduce bit for bit.
+"""
+
+from __future__ import annotations
+
+import queue
+import sys
+import threading
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import zmq
+
+from drivers.base import MONOTONIC, Clock
+from hmdrt import __version__
+from hmdrt.compositor.clock import VirtualClock, VsyncClock
+from hmdrt.compositor.config import RunConfig, load_config
+from hmdrt.compositor.controller import BudgetController, ControllerConfig
+from hmdrt.compositor.display import Display, Frame
+from hmdrt.compositor.endpoints import ControlServer, Ingest, Telemetry
+from hmdrt.compositor.pacer import FrameTiming, Pacer
+from hmdrt.compositor.samples import GazeEstimate, SampleStore
+from hmdrt.compositor.session import Session
+from hmdrt.compositor.sources import Sources
+from hmdrt.errors import ConfigError, HmdrtError
+from hmdrt.foveation import method_params, method_spec
+from hmdrt.optics import EyeCamera
+from hmdrt.present.encode import linear_to_srgb8, write_png
+from hmdrt.sequence import compose_pose, eye_cameras
+from hmdrt.telemetry.report import FrameRecord, RunReport, SampleUse
+from hmdrt.telemetry.stats import FrameStats
+
+FIRST_PRESENT_NS = 50_000_000  # Monado's fake pacer: the first present is assumed 50 ms out
+CONNECT_WAIT_S = 3.0  # how long the start waits for its drivers to connect (a device may come later)
+MAX_AHEAD = 4  # frames the renderer may hand over before the display has shown them (the pacer remembers 16)
+WRITE_QUEUE = 8  # presented frames waiting to be written as PNG; more are skipped and counted
+# A thread waiting for the GIL gets it within this (Python's default is 5 ms, a sixth of a 30 Hz frame): the
+# display and the hand-over of a finished frame must not wait behind the ingest or a driver for that long.
+SWITCH_INTERVAL_S = 0.0005
+
+
+class Compositor:
+    def __init__(self, config: RunConfig, clock: Clock | None = None, context: zmq.Context | None = None):
+        self.config = config
+        virtual = config.run.virtual_time
+        self.clock = clock or (VirtualClock(0) if virtual else MONOTONIC)
+        self._paced = not virtual  # virtual time schedules each frame over the period before its VSync
+        self.session = Session(config)
+        self.store = SampleStore(horizon_ns=int(config.prediction.horizon_ms * 1e6))
+        self.report = RunReport(self.session.profile.refresh_hz, config.run.warmup_s)
+        self.controller = self._make_controller()
+        self._lock = threading.Lock()  # pacer and report: the render and display threads share them
+        self._pending: list[tuple[str, object]] = []  # control changes applied between frames
+        self._presents: queue.SimpleQueue = queue.SimpleQueue()  # (frame id, frame ms, missed) for the controller
+        self._writes: queue.Queue = queue.Queue(WRITE_QUEUE)
+        self.writes_skipped = 0  # frames the writer had no room for
+        self.writes_failed = 0  # frames the writer could not write
+        self._writer_thread = threading.Thread(target=self._writer, name="frame-writer", daemon=True)
+        self.shown_images: list[np.ndarray] | None = None
+        self.stop = threading.Event()
+        self._context = context or zmq.Context.instance()
+        try:
+            self.telemetry = Telemetry(self._context, config.bus.telemetry)
+            self.ingest = Ingest(self._context, config.bus.ingest, self.store.add, self.clock)
+            self.sources = Sources(
+                [d.url for d in config.drivers], self.clock, virtual, self.ingest.address, self.store.add
+            )
+            # compiled kernels, allocated buffers and connected drivers before the VSync clock starts
+            self.session.warm_up()
+            self.sources.wait_connected(CONNECT_WAIT_S)
+            self.vsync = VsyncClock(self.session.profile.period_ns, self.clock.now_ns() + FIRST_PRESENT_NS)
+            self.pacer = Pacer(self.vsync, **self._pacing(config))
+            self._frames_dir(config)
+            self.display = Display(self.vsync, self.clock, self._warp_target, self._shown, self._dropped)
+            self.control = ControlServer(self._context, config.bus.control, self._handle)
+        except (HmdrtError, ValueError):
+            self.close()
+            raise
+        self._started_ns = self.clock.now_ns()
+
+    def _pacing(self, config: RunConfig) -> dict:
+        """The pacer's settings from [pacing], checked against the display period."""
+        p, period_ms = config.pacing, self.session.profile.period_ns / 1e6
+        if p.margin_ms >= period_ms:
+            raise ConfigError(f"pacing.margin_ms = {p.margin_ms} must be shorter than the period {period_ms:.2f} ms")
+        offset = p.present_to_display_ms
+        return {
+            "margin_ns": int(p.margin_ms * 1e6),
+            "present_to_display_ns": None if offset < 0 else int(offset * 1e6),
+            "tail_quantile": p.tail_quantile or None,
+            "tail_window": p.tail_window,
+        }
+
+    @staticmethod
+    def _frames_dir(config: RunConfig) -> None:
+        folder = config.output.frames_dir
+        if folder:
+            try:
+                Path(folder).mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise ConfigError(f"output.frames_dir: cannot create {folder}: {exc.strerror}") from None
+
+    def _make_controller(self) -> BudgetController | None:
+        c = self.config.controller
+        if c.kind == "none":
+            return None
+        settings = ControllerConfig(
+            target_miss_rate=c.target_miss_rate,
+            headroom=c.headroom,
+            widen_latency_ms=c.widen_latency_ms,
+            accuracy_deg=c.accuracy_deg,
+        )
+        return BudgetController(self.session.method, settings)
+
+    # --- sampling -------------------------------------------------------------------------------------------------
+
+    def _estimates(self, t_display: int, now: int):
+        p = self.config.prediction
+        gaze = self.store.gaze_at(t_display, now, p.gaze_device or None)
+        pose = self.store.pose_at(t_display, now, p.pose_device or None)
+        return gaze, pose
+
+    @staticmethod
+    def _use(estimate) -> SampleUse | None:
+        if estimate is None:
+            return None
+        held = estimate.blinking if isinstance(estimate, GazeEstimate) else estimate.tracking_lost
+        return SampleUse(estimate.device, estimate.source_seq, estimate.source_t_host, estimate.predicted_ns, held)
+
+    def _warp_target(self, t_vsync: int) -> tuple[dict[str, EyeCamera], SampleUse] | None:
+        """The eye cameras at the head pose predicted for a repeated frame's display time."""
+        pose = self.store.pose_at(t_vsync + self.pacer.present_to_display_ns, t_vsync, None)
+        if pose is None:
+            return None
+        head = compose_pose(self.session.scene.start, pose)
+        return eye_cameras(self.session.profile, head, self.session.eyes), self._use(pose)
+
+    # --- one frame ------------------------------------------------------------------------------------------------
+
+    def _render(self, timing: FrameTiming, woke: int) -> Frame:
+        t0 = time.perf_counter_ns()
+        gaze, pose = self._estimates(timing.predicted_display_ns, woke)
+        stats = FrameStats()
+        start = self.clock.now_ns()
+        delay = int(self.config.pacing.render_delay_ms * 1e6)
+        images, cameras, render_ns = self.session.render(
+            timing.frame_id, gaze, pose, self.config.run.seed, stats, delay
+        )
+        end = self.clock.now_ns()
+        frame_ns = time.perf_counter_ns() - t0
+        return Frame(
+            timing=timing,
+            images=images,
+            cameras=cameras,
+            actual_wake_ns=woke,
+            render_start_ns=start,
+            render_end_ns=end,
+            gaze=self._use(gaze),
+            pose=self._use(pose),
+            method=self.session.method.name,
+            params=self.session.params(),
+            stages_ms=dict(stats.stages_ms),
+            rays=sum(stats.rays.values()),
+            frame_ms=frame_ns / 1e6,
+            render_ms=render_ns / 1e6,
+        )
+
+    def _shown(self, record: FrameRecord, images: list[np.ndarray]) -> None:
+        with self._lock:
+            if record.shown != "repeat":
+                if self._paced:
+                    self.pacer.presented(record.frame_id, record.actual_present_ns)
+                self._presents.put((record.frame_id, record.frame_ms, record.missed))
+            self.report.add(record)
+        self.shown_images = images
+        self.telemetry.publish("frame", record.to_dict())
+        out = self.config.output
+        if out.frames_dir and record.vsync % out.every == 0:
+            try:
+                self._writes.put_nowait((record.vsync, images))
+            except queue.Full:
+                self.writes_skipped += 1
+
+    def _dropped(self, frame: Frame, t_vsync: int) -> None:
+        with self._lock:
+            if self._paced:
+                self.pacer.presented(frame.timing.frame_id, t_vsync)
+            self.report.drop(t_vsync)
+        self._presents.put((frame.timing.frame_id, frame.frame_ms, True))
+
+    def _tune(self) -> None:
+        """Feed the controller the frames shown or dropped since the last call: their work on the wall clock
+        (also in virtual time) against one period less the margin, the budget of the display's own rate."""
+        while True:
+            try:
+                frame_id, frame_ms, missed = self._presents.get_nowait()
+            except queue.Empty:
+                return
+            if self.controller is None:
+                continue
+            now = self.clock.now_ns()
+            gaze = self.store.gaze_at(now, now, self.config.prediction.gaze_device or None)
+            self.controller.update(
+                frame_id,
+                int(frame_ms * 1e6),
+                self.vsync.period_ns - self.pacer.margin_ns,
+                missed,
+                None if gaze is None else gaze.speed_deg_s,
+            )
+
+    def _apply_pending(self) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, []
+        for kind, value in pending:
+            if kind == "method":
+                self.session.set_method(value)
+                self.controller = self._make_controller()
+            elif kind == "reload":
+                self._reload(value)
+
+    # --- loops ----------------------------------------------------------------------------------------------------
+
+    def _limits(self) -> tuple[int, float]:
+        run = self.config.run
+        return run.frames, run.duration_s
+
+    def _done(self, frames: int, duration_s: float) -> bool:
+        if self.stop.is_set():
+            return True
+        if frames and self.report.vsyncs >= frames:
+            return True
+        return bool(duration_s) and self.clock.now_ns() - self._started_ns >= duration_s * 1e9
+
+    def _render_loop(self) -> None:
+        frames, duration_s = self._limits()
+        while not self._done(frames, duration_s):
+            if self.display.backlog >= MAX_AHEAD:  # a stalled display: wait for it rather than run ahead of it
+                self.stop.wait(self.vsync.period_ns / 1e9)
+                continue
+            self._apply_pending()
+            with self._lock:
+                timing = self.pacer.predict(self.clock.now_ns())
+            if self.stop.wait(max(timing.wake_ns - self.clock.now_ns(), 0) / 1e9):
+                break
+            frame = self._render(timing, self.clock.now_ns())
+            self.display.submit(frame)
+            with self._lock:
+                self.pacer.mark_render(timing.frame_id, frame.render_start_ns, frame.render_end_ns)
+            self._tune()
+
+    def _display_loop(self) -> None:
+        frames, duration_s = self._limits()
+        index = self.vsync.index_at_or_after(self.clock.now_ns())
+        while not self._done(frames, duration_s):
+            if self.stop.wait(max(self.vsync.vsync(index) - self.clock.now_ns(), 0) / 1e9):
+                break
+            self.display.latch(index)
+            index += 1
+        self.stop.set()
+
+    def _virtual_loop(self) -> None:
+        """One period per frame: the frame's work spans the period before the VSync it is shown at."""
+        frames, duration_s = self._limits()
+        period, index = self.vsync.period_ns, 0
+        while not self._done(frames, duration_s):
+            self._apply_pending()
+            t_vsync = self.vsync.vsync(index)
+            self.clock.advance_to(t_vsync - period)
+            self.sources.poll()
+            timing = FrameTiming(
+                frame_id=index,
+                wake_ns=t_vsync - period,
+                desired_present_ns=t_vsync,
+                predicted_display_ns=t_vsync + self.pacer.present_to_display_ns,
+                period_ns=period,
+                budget_ns=period,
+                vsyncs=1,
+            )
+            frame = self._render(timing, self.clock.now_ns())
+            self.display.submit(frame)
+            self.clock.advance_to(t_vsync)
+            self.display.latch(index)
+            self._tune()
+            index += 1
+
+    def _writer(self) -> None:
+        """Writes queued frames as PNG; one that cannot be written is counted, the first failure said once."""
+        while True:
+            item = self._writes.get()
+            if item is None:
+                return
+            vsync, images = item
+            path = Path(self.config.output.frames_dir) / f"vsync_{vsync:06d}.png"
+            try:
+                write_png(path, linear_to_srgb8(np.concatenate(images, axis=1)))
+            except HmdrtError as exc:
+                if not self.writes_failed:
+                    print(f"hmdrt: {exc}; later frames that cannot be written are counted", file=sys.stderr)
+                self.writes_failed += 1
+
+    def run(self) -> dict:
+        """Run until stopped, the frame count or the duration; returns the run report."""
+        self._writer_thread.start()
+        stats = threading.Thread(target=self._stats_loop, name="stats", daemon=True)
+        stats.start()
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        try:
+            if self.config.run.virtual_time:
+                self._virtual_loop()
+            else:
+                display = threading.Thread(target=self._display_loop, name="display")
+                display.start()
+                try:
+                    self._render_loop()
+                finally:
+                    self.stop.set()
+                    display.join()
+        finally:
+            sys.setswitchinterval(switch)
+            self.stop.set()
+            self._writes.put(None)
+            self._writer_thread.join()
+        return self.summary()
+
+    def _stats_loop(self) -> None:
+        while not self.stop.wait(1.0):
+            self.telemetry.publish("stats", self.summary())
+
+    # --- control --------------------------------------------------------------------------------------------------
+
+    def _handle(self, request: dict) -> dict:
+        cmd = request["cmd"]
+        try:
+            if cmd == "status":
+                return {"ok": True, **self.status()}
+            if cmd == "stats":
+                return {"ok": True, "report": self.summary()}
+            if cmd == "set":
+                return self._set(request)
+            if cmd == "snapshot":
+                return self._snapshot(request)
+            if cmd == "shutdown":
+                self.stop.set()
+                return {"ok": True}
+        except HmdrtError as exc:
+            return {"ok": False, "error": str(exc)}
+        return {"ok": False, "error": f"unknown command {cmd!r}; commands: status, stats, set, snapshot, shutdown"}
+
+    def _set(self, request: dict) -> dict:
+        spec, params = request.get("method"), request.get("params", {})
+        if not (isinstance(spec, str) or spec is None) or not isinstance(params, dict) or (spec is None and not params):
+            return {"ok": False, "error": 'set takes "method": "name?key=value" and/or "params": {key: value}'}
+        if spec is None:
+            spec = method_spec(self.session.method.name, {**self.session.params(), **params})
+        elif params:
+            name, current = method_params(spec)
+            spec = method_spec(name, {**msgspec.to_builtins(current), **params})
+        method_params(spec)  # a bad name or value is answered now, not failed on later
+        with self._lock:
+            self._pending.append(("method", spec))
+        return {"ok": True, "method": spec}
+
+    def _snapshot(self, request: dict) -> dict:
+        path = request.get("path")
+        images = self.shown_images
+        if not isinstance(path, str) or not path.endswith(".png"):
+            return {"ok": False, "error": 'snapshot takes "path": "out.png"'}
+        if images is None:
+            return {"ok": False, "error": "nothing has been shown yet"}
+        write_png(Path(path), linear_to_srgb8(np.concatenate(images, axis=1)))
+        return {"ok": True, "path": path}
+
+    def reload(self) -> None:
+        """Re-read the config file (SIGHUP); applied between frames, the bus stays up."""
+        with self._lock:
+            self._pending.append(("reload", self.config.source))
+
+    def _reload(self, source: str) -> None:
+        """Apply a re-read config's method, controller, prediction, pacing and output; a change of scene,
+        display, drivers or bus needs a restart and is reported as such."""
+        try:
+            config = load_config(source)
+            restart = [
+                k for k in ("scene", "display", "drivers", "bus") if getattr(config, k) != getattr(self.config, k)
+            ]
+            pacing = self._pacing(config)
+            self._frames_dir(config)
+            self.session.set_method(config.method_spec)
+        except HmdrtError as exc:
+            self.telemetry.publish("log", {"level": "error", "message": f"reload failed: {exc}"})
+            return
+        self.config = msgspec.structs.replace(
+            config,
+            scene=self.config.scene,
+            display=self.config.display,
+            drivers=self.config.drivers,
+            bus=self.config.bus,
+            run=self.config.run,
+        )
+        with self._lock:
+            self.pacer.configure(**pacing)
+        self.store.horizon_ns = int(config.prediction.horizon_ms * 1e6)
+        self.controller = self._make_controller()
+        message = f"reloaded {source}" + (f"; restart to change {', '.join(restart)}" if restart else "")
+        self.telemetry.publish("log", {"level": "warning" if restart else "info", "message": message})
+
+    def status(self) -> dict:
+        with self._lock:
+            pacing = self.pacer.info()
+            shown = dict(self.report.shown)
+        return {
+            "method": self.session.spec,
+            "params": self.session.params(),
+            "profile": self.session.profile.name,
+            "scene": self.session.scene.name,
+            "vsync_hz": self.session.profile.refresh_hz,
+            "shown": shown,
+            "pacing": pacing,
+            "devices": self.store.devices,
+            "endpoints": {
+                "ingest": self.ingest.address,
+                "telemetry": self.telemetry.address,
+                "control": self.control.address,
+            },
+        }
+
+    def drivers(self) -> dict[str, dict]:
+        out = {}
+        for device, status in self.ingest.status.items():
+            out[device] = {
+                "samples": status.samples,
+                "dropped": status.dropped,
+                "invalid": status.invalid,
+                "malformed": status.malformed,
+                "reconnects": status.reconnects,
+            }
+        out.update(self.sources.counters())
+        return out
+
+    def summary(self) -> dict:
+        with self._lock:
+            report = self.report.to_dict(
+                method=self.session.method.name,
+                method_spec=self.session.spec,
+                profile=self.session.profile.name,
+                scene=self.session.scene.name,
+                drivers=self.drivers(),
+                samples={device: {**vars(c), "dropped": c.dropped} for device, c in self.store.counts().items()},
+                pacing=self.pacer.info(),
+                virtual_time=self.config.run.virtual_time,
+                seed=self.config.run.seed,
+                ingest_malformed=self.ingest.malformed,
+                frames_not_written=self.writes_skipped + self.writes_failed,
+                config=self.config.source,
+                hmdrt=__version__,
+            )
+        if self.controller is not None:
+            report["controller"] = {
+                "kind": self.config.controller.kind,
+                "level": self.controller.level,
+                "at_floor": self.controller.at_floor,
+                "trajectory": self.controller.trajectory,
+            }
+        return report
+
+    def close(self) -> None:
+        self.stop.set()
+        for part in ("sources", "control", "ingest", "telemetry"):
+            if hasattr(self, part):
+                getattr(self, part).close()
+        self.session.close()

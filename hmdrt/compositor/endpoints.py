@@ -1,0 +1,149 @@
+"""The compositor's three sockets (DESIGN.md "Bus"): the ingest SUB that drivers publish to, the
+telemetry PUB (a `frame` per VSync, `stats` each second) and the control REP (status, stats, set,
+snapshot, shutdown).
+
+Every queue is bounded: the ingest's receive high-water mark drops the oldest-waiting messages when
+the compositor falls behind (ZeroMQ counts nothing, so the drivers' own sequence numbers reveal the
+gap), malformed messages are counted, and control requests over 64 KiB or unreadable get an error
+reply rather than a crash. Endpoints ending in ":*" bind a free port; `address` says which.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+import msgspec
+import zmq
+
+from hmdrt.bus.messages import MAX_PAYLOAD_BYTES, MalformedMessage, Status, decode, pack
+from hmdrt.errors import ConfigError
+
+POLL_MS = 50
+INGEST_HWM = 10_000  # messages: several seconds of every driver at its full rate
+
+
+def _bind(context: zmq.Context, kind: int, endpoint: str) -> tuple[zmq.Socket, str]:
+    sock = context.socket(kind)
+    sock.setsockopt(zmq.LINGER, 0)
+    try:
+        sock.bind(endpoint)
+    except zmq.ZMQError as exc:
+        sock.close()
+        raise ConfigError(f"cannot bind {endpoint}: {exc} (is another hmdrt running?)") from None
+    return sock, sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+
+
+class Ingest:
+    """Receives drivers' gaze, pose and status messages on a thread and hands samples to `sink`."""
+
+    def __init__(self, context: zmq.Context, endpoint: str, sink: Callable[[str, object, int], None], clock):
+        self._sock, self.address = _bind(context, zmq.SUB, endpoint)
+        self._sock.setsockopt(zmq.RCVHWM, INGEST_HWM)
+        self._sock.setsockopt(zmq.MAXMSGSIZE, 16 * MAX_PAYLOAD_BYTES)
+        self._sock.setsockopt(zmq.SUBSCRIBE, b"")
+        self._sink = sink
+        self._clock = clock
+        self.malformed = 0
+        self.status: dict[str, Status] = {}  # the newest status of each device
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="ingest", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            if not self._sock.poll(POLL_MS):
+                continue
+            while True:
+                try:
+                    frames = self._sock.recv_multipart(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                try:
+                    kind, device, message = decode(frames)
+                except MalformedMessage:
+                    self.malformed += 1
+                    continue
+                if isinstance(message, Status):
+                    self.status[device] = message
+                else:
+                    self._sink(device, message, self._clock.now_ns())
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._sock.close()
+
+
+class Telemetry:
+    """Publishes frame records and stats; a subscriber that cannot keep up loses messages, not the compositor."""
+
+    def __init__(self, context: zmq.Context, endpoint: str):
+        self._sock, self.address = _bind(context, zmq.PUB, endpoint)
+        self._sock.setsockopt(zmq.SNDHWM, 1000)
+        self._lock = threading.Lock()
+
+    def publish(self, topic: str, fields: dict) -> None:
+        with self._lock:
+            try:
+                self._sock.send_multipart(pack(topic.encode(), fields), flags=zmq.NOBLOCK)
+            except zmq.Again:
+                pass
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+class ControlServer:
+    """Answers control requests ({"cmd": ...} msgpack maps) with handler(request) -> reply map."""
+
+    def __init__(self, context: zmq.Context, endpoint: str, handler: Callable[[dict], dict]):
+        self._sock, self.address = _bind(context, zmq.REP, endpoint)
+        self._handler = handler
+        self.bad_requests = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="control", daemon=True)
+        self._thread.start()
+
+    def _reply(self, frames: list[bytes]) -> dict:
+        if len(frames) != 1 or len(frames[0]) > MAX_PAYLOAD_BYTES:
+            self.bad_requests += 1
+            return {"ok": False, "error": f"a request is one msgpack map of at most {MAX_PAYLOAD_BYTES} bytes"}
+        try:
+            request = msgspec.msgpack.decode(frames[0])
+        except msgspec.DecodeError:
+            request = None
+        if not isinstance(request, dict) or not isinstance(request.get("cmd"), str):
+            self.bad_requests += 1
+            return {"ok": False, "error": 'a request is a msgpack map with a "cmd" string'}
+        return self._handler(request)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            if self._sock.poll(POLL_MS):
+                reply = self._reply(self._sock.recv_multipart())
+                self._sock.send(msgspec.msgpack.encode(reply))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._sock.close()
+
+
+def request(endpoint: str, command: dict, timeout_s: float = 2.0) -> dict:
+    """Send one control request to a running compositor and return its reply (ConfigError if none)."""
+    context = zmq.Context.instance()
+    sock = context.socket(zmq.REQ)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.RCVTIMEO, int(timeout_s * 1000))
+    sock.setsockopt(zmq.MAXMSGSIZE, 16 * MAX_PAYLOAD_BYTES)
+    try:
+        sock.connect(endpoint)
+        sock.send(msgspec.msgpack.encode(command))
+        return msgspec.msgpack.decode(sock.recv())
+    except zmq.Again:
+        raise ConfigError(f"no hmdrt compositor answered at {endpoint} within {timeout_s:g} s") from None
+    except (zmq.ZMQError, msgspec.DecodeError) as exc:
+        raise ConfigError(f"control request to {endpoint} failed: {exc}") from None
+    finally:
+        sock.close()

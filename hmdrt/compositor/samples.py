@@ -1,0 +1,446 @@
+"""The compositor's latest gaze and head pose per device: samples kept in capture-time order as they arrive,
+and estimates at a display time by interpolating between samples or predicting a short way past the newest.
+
+Lookups take `now` and use only samples that had arrived by then and were captured by then, so a frame never
+sees a sample from its future, whatever order the ingest thread delivered them in.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+import threading
+from bisect import bisect_left, bisect_right
+from dataclasses import dataclass, replace
+from typing import NamedTuple
+
+import numpy as np
+
+from hmdrt.bus.messages import Gaze, Pose, usable
+from hmdrt.spatial import quat_conjugate, quat_from_rotvec, quat_multiply, quat_slerp, quat_to_rotvec
+
+KINDS = ("gaze", "pose")
+Vec = tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class GazeEstimate:
+    """Each eye's unit gaze in the head frame at a time, and which sample it came from."""
+
+    left: np.ndarray
+    right: np.ndarray
+    depth_m: float | None
+    source_seq: int  # the newest real sample used
+    source_t_host: int
+    age_ns: int  # t - source_t_host; negative when interpolating towards a later sample
+    predicted_ns: int  # how far past the newest sample the estimate extrapolates; 0 when interpolated or held
+    speed_deg_s: float  # angular gaze speed (the faster eye), 0 while held
+    device: str
+    clamped: bool = False  # t lay beyond the prediction horizon; the estimate stops at the horizon
+    blinking: bool = False  # the newest sample at or before t is invalid (blink, lost tracking): last valid held
+    blink_since_ns: int | None = None  # capture time of the first invalid sample of that blink
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """Head position (m) and unit orientation (w, x, y, z) at a time, and which sample it came from."""
+
+    position: np.ndarray
+    orientation: np.ndarray
+    source_seq: int
+    source_t_host: int
+    age_ns: int
+    predicted_ns: int
+    device: str
+    clamped: bool = False
+    tracking_lost: bool = False  # the newest sample at or before t is invalid: the last valid pose is held
+    lost_since_ns: int | None = None
+
+
+@dataclass
+class DeviceCounts:
+    """What add() did with one device's samples, gaze and pose together."""
+
+    samples: int = 0  # offered to add()
+    stored: int = 0  # held now (filled in by counts())
+    invalid: int = 0  # kept but not usable (blink, lost tracking): marks the eye closed, never estimated from
+    out_of_order: int = 0  # kept, inserted before an earlier-arrived sample with a later capture time
+    duplicates: int = 0  # dropped: same seq and t_host as a kept sample
+    too_old: int = 0  # dropped: captured more than the history before the newest kept sample
+    ahead: int = 0  # dropped: captured more than the history after it was received (a clock-sync fault)
+    malformed: int = 0  # dropped: NaN, infinite or misshapen values in a valid sample, or not a gaze or pose
+    evicted: int = 0  # kept, later removed to stay within the history and size bounds
+    last_invalid_t_host: int | None = None  # capture time of the newest invalid sample kept
+
+    @property
+    def dropped(self) -> int:
+        return self.duplicates + self.too_old + self.ahead + self.malformed
+
+
+def eye_gaze(sample: Gaze) -> dict[str, np.ndarray]:
+    """Each eye's unit gaze of a usable sample: its own direction, else the combined one, else the other eye's."""
+    left, right = _eye_directions(sample)
+    return {"left": np.array(left), "right": np.array(right)}
+
+
+class _Entry(NamedTuple):
+    received_ns: int
+    ok: bool  # usable()
+    sample: Gaze | Pose
+
+
+class _Track:
+    """One device's samples of one kind, sorted by capture time; t mirrors the entries' t_host for bisect."""
+
+    __slots__ = ("t", "entries")
+
+    def __init__(self) -> None:
+        self.t: list[int] = []
+        self.entries: list[_Entry] = []
+
+
+class _Pick(NamedTuple):
+    """The samples a lookup needs, chosen under the lock: mode is "interpolate" (a, b), "predict" (newest
+    first, then the earlier ones to fit a velocity to) or "held" (the last usable sample before an invalid one).
+    """
+
+    mode: str
+    samples: list
+    invalid_since: int | None = None
+
+
+class SampleStore:
+    """Gaze and pose samples per device, added from an ingest thread and looked up from the frame loop.
+
+    Per device and kind it keeps at most max_per_device samples spanning at most history_ns. Predictions
+    extrapolate at most horizon_ns past the newest sample, from a velocity fitted to up to fit_samples
+    consecutive usable samples within fit_window_ns of it.
+    """
+
+    def __init__(
+        self,
+        history_ns: int = 1_000_000_000,
+        max_per_device: int = 4096,
+        horizon_ns: int = 50_000_000,
+        fit_samples: int = 3,
+        fit_window_ns: int = 25_000_000,
+    ) -> None:
+        if history_ns <= 0 or max_per_device < 2 or horizon_ns < 0 or fit_samples < 1 or fit_window_ns < 0:
+            raise ValueError("history_ns > 0, max_per_device >= 2, fit_samples >= 1; horizon and window >= 0")
+        self.history_ns = history_ns
+        self.max_per_device = max_per_device
+        self.horizon_ns = horizon_ns
+        self.fit_samples = fit_samples
+        self.fit_window_ns = fit_window_ns
+        self._lock = threading.Lock()
+        self._tracks: dict[str, dict[str, _Track]] = {kind: {} for kind in KINDS}
+        self._counts: dict[str, DeviceCounts] = {}
+
+    @property
+    def devices(self) -> dict[str, list[str]]:
+        """Device names seen, per kind ("gaze", "pose")."""
+        with self._lock:
+            return {kind: sorted(tracks) for kind, tracks in self._tracks.items()}
+
+    def counts(self) -> dict[str, DeviceCounts]:
+        """A snapshot of each device's counts."""
+        with self._lock:
+            out = {}
+            for device, c in self._counts.items():
+                stored = sum(len(tracks[device].t) for tracks in self._tracks.values() if device in tracks)
+                out[device] = replace(c, stored=stored)
+            return out
+
+    def add(self, device: str, sample: Gaze | Pose, received_ns: int) -> bool:
+        """Keep a sample received at received_ns (host clock); whether it was kept. Invalid samples are kept
+        (to mark blinks) and counted; malformed, too old, too far ahead and duplicate ones are counted and dropped.
+        """
+        admitted = _admit(sample, received_ns)
+        with self._lock:
+            counts = self._counts.get(device)
+            if counts is None:
+                counts = self._counts[device] = DeviceCounts()
+            counts.samples += 1
+            if admitted is None:
+                counts.malformed += 1
+                return False
+            kind, t_host, ok = admitted
+            if t_host > received_ns + self.history_ns:
+                counts.ahead += 1
+                return False
+            track = self._tracks[kind].get(device)
+            if track is None:
+                track = self._tracks[kind][device] = _Track()
+            ts, entries = track.t, track.entries
+            if ts and t_host < ts[-1] - self.history_ns:
+                counts.too_old += 1
+                return False
+            at = bisect_right(ts, t_host)
+            i = at - 1
+            while i >= 0 and ts[i] == t_host:
+                if entries[i].sample.seq == sample.seq:
+                    counts.duplicates += 1
+                    return False
+                i -= 1
+            if at < len(ts):
+                counts.out_of_order += 1
+            ts.insert(at, t_host)
+            entries.insert(at, _Entry(received_ns, ok, sample))
+            if not ok:
+                counts.invalid += 1
+                if counts.last_invalid_t_host is None or t_host > counts.last_invalid_t_host:
+                    counts.last_invalid_t_host = t_host
+            self._trim(track, counts)
+            return True
+
+    def gaze_at(self, t_ns: int, now_ns: int, device: str | None = None) -> GazeEstimate | None:
+        """Gaze at t_ns from what had arrived by now_ns; None when no usable sample at or before t_ns had."""
+        found = self._pick("gaze", t_ns, now_ns, device)
+        if found is None:
+            return None
+        name, pick = found
+        newest = pick.samples[-1] if pick.mode == "interpolate" else pick.samples[0]
+        eyes = [_eye_directions(s) for s in pick.samples]
+        speed, predicted, clamped, depth = 0.0, 0, False, newest.depth_m
+        if pick.mode == "interpolate":
+            a, b = pick.samples
+            u = (t_ns - a.t_host) / (b.t_host - a.t_host)
+            left, right = (_nlerp(eyes[0][e], eyes[1][e], u) for e in (0, 1))
+            speed = max(_angle(eyes[0][e], eyes[1][e]) for e in (0, 1)) / ((b.t_host - a.t_host) * 1e-9)
+            if a.depth_m is not None and b.depth_m is not None:
+                depth = a.depth_m + u * (b.depth_m - a.depth_m)
+        elif pick.mode == "predict":
+            predicted, clamped = self._extrapolation(t_ns, newest.t_host)
+            dts = [(s.t_host - newest.t_host) * 1e-9 for s in pick.samples[1:]]
+            turned = []
+            for e in (0, 1):
+                g0 = eyes[0][e]
+                spin = _rate(dts, [_arc(g0, g[e]) for g in eyes[1:]])  # rad/s about the rotation vector's axis
+                turned.append(_turn(g0, spin, predicted * 1e-9))
+                speed = max(speed, _norm(spin))
+            left, right = turned
+        else:
+            left, right = eyes[0]
+        return GazeEstimate(
+            left=np.array(left),
+            right=np.array(right),
+            depth_m=depth,
+            source_seq=newest.seq,
+            source_t_host=int(newest.t_host),
+            age_ns=int(t_ns - newest.t_host),
+            predicted_ns=predicted,
+            speed_deg_s=math.degrees(speed),
+            device=name,
+            clamped=clamped,
+            blinking=pick.mode == "held",
+            blink_since_ns=pick.invalid_since,
+        )
+
+    def pose_at(self, t_ns: int, now_ns: int, device: str | None = None) -> PoseEstimate | None:
+        """Head pose at t_ns from what had arrived by now_ns; None when no usable sample at or before t_ns had."""
+        found = self._pick("pose", t_ns, now_ns, device)
+        if found is None:
+            return None
+        name, pick = found
+        newest = pick.samples[-1] if pick.mode == "interpolate" else pick.samples[0]
+        positions = [s.position for s in pick.samples]
+        quats = [_unit(s.orientation) for s in pick.samples]
+        predicted, clamped = 0, False
+        if pick.mode == "interpolate":
+            a, b = pick.samples
+            u = (t_ns - a.t_host) / (b.t_host - a.t_host)
+            position = _lerp(positions[0], positions[1], u)
+            orientation = quat_slerp(quats[0], quats[1], u)
+        elif pick.mode == "predict":
+            predicted, clamped = self._extrapolation(t_ns, newest.t_host)
+            h = predicted * 1e-9
+            dts = [(s.t_host - newest.t_host) * 1e-9 for s in pick.samples[1:]]
+            inverse = quat_conjugate(quats[0])
+            spin = _rate(dts, [quat_to_rotvec(quat_multiply(q, inverse)) for q in quats[1:]])
+            velocity = _rate(dts, [_sub(p, positions[0]) for p in positions[1:]])
+            position = _advance(positions[0], velocity, h)
+            orientation = _unit(quat_multiply(quat_from_rotvec([c * h for c in spin]), quats[0]))
+        else:
+            position, orientation = positions[0], quats[0]
+        return PoseEstimate(
+            position=np.array(position, dtype=np.float64),
+            orientation=np.array(orientation, dtype=np.float64),
+            source_seq=newest.seq,
+            source_t_host=int(newest.t_host),
+            age_ns=int(t_ns - newest.t_host),
+            predicted_ns=predicted,
+            device=name,
+            clamped=clamped,
+            tracking_lost=pick.mode == "held",
+            lost_since_ns=pick.invalid_since,
+        )
+
+    def _trim(self, track: _Track, counts: DeviceCounts) -> None:
+        ts = track.t
+        cut = bisect_left(ts, ts[-1] - self.history_ns)
+        cut = max(cut, len(ts) - self.max_per_device)
+        if cut > 0:
+            del ts[:cut]
+            del track.entries[:cut]
+            counts.evicted += cut
+
+    def _extrapolation(self, t_ns: int, newest_t: int) -> tuple[int, bool]:
+        ahead = int(t_ns - newest_t)
+        return min(ahead, self.horizon_ns), ahead > self.horizon_ns
+
+    def _pick(self, kind: str, t: int, now: int, device: str | None) -> tuple[str, _Pick] | None:
+        with self._lock:
+            tracks = self._tracks[kind]
+            name = self._freshest(tracks, now) if device is None else device
+            track = tracks.get(name) if name is not None else None
+            pick = None if track is None else self._choose(track, t, now)
+            return None if pick is None else (name, pick)
+
+    @staticmethod
+    def _freshest(tracks: dict[str, _Track], now: int) -> str | None:
+        """The device whose newest usable sample available by now is the most recent (first name on a tie)."""
+        best, best_t = None, None
+        for name in sorted(tracks):
+            ts, entries = tracks[name].t, tracks[name].entries
+            i = bisect_right(ts, now) - 1
+            while i >= 0 and (entries[i].received_ns > now or not entries[i].ok):
+                i -= 1
+            if i >= 0 and (best_t is None or ts[i] > best_t):
+                best, best_t = name, ts[i]
+        return best
+
+    def _choose(self, track: _Track, t: int, now: int) -> _Pick | None:
+        ts, entries = track.t, track.entries
+        end = bisect_right(ts, min(t, now))
+        i = end - 1
+        while i >= 0 and entries[i].received_ns > now:
+            i -= 1
+        if i < 0:
+            return None
+        if not entries[i].ok:
+            since = ts[i]
+            i -= 1
+            while i >= 0 and (entries[i].received_ns > now or not entries[i].ok):
+                if entries[i].received_ns <= now:
+                    since = ts[i]
+                i -= 1
+            return None if i < 0 else _Pick("held", [entries[i].sample], since)
+        j = end
+        while j < len(ts) and ts[j] <= now and entries[j].received_ns > now:
+            j += 1
+        if j < len(ts) and ts[j] <= now and entries[j].ok:
+            return _Pick("interpolate", [entries[i].sample, entries[j].sample])
+        fit = [entries[i].sample]
+        k = i - 1
+        while k >= 0 and len(fit) < self.fit_samples and ts[i] - ts[k] <= self.fit_window_ns:
+            if entries[k].received_ns <= now:
+                if not entries[k].ok:
+                    break  # velocity from before a blink says nothing about the gaze after it
+                fit.append(entries[k].sample)
+            k -= 1
+        return _Pick("predict", fit)
+
+
+def _admit(sample: Gaze | Pose, received_ns: int) -> tuple[str, int, bool] | None:
+    """(kind, t_host, usable) of a gaze or pose sample; None when it is malformed."""
+    kind = "gaze" if isinstance(sample, Gaze) else "pose" if isinstance(sample, Pose) else None
+    try:
+        t_host = operator.index(sample.t_host)
+        operator.index(received_ns)
+        if kind is None or (sample.valid and not _well_formed(sample)):
+            return None
+    except (AttributeError, TypeError, ValueError):
+        return None
+    return kind, t_host, bool(sample.valid) and usable(sample)
+
+
+def _well_formed(sample: Gaze | Pose) -> bool:
+    """Finite vectors of the right length (the bus decoder checks this; samples built in-process may not be)."""
+    if isinstance(sample, Pose):
+        vectors = ((sample.position, 3), (sample.orientation, 4))
+    else:
+        vectors = ((sample.C, 3), (sample.L, 3), (sample.R, 3))
+        if sample.depth_m is not None and not math.isfinite(sample.depth_m):
+            return False
+    return all(v is None or (len(v) == n and all(map(math.isfinite, v))) for v, n in vectors)
+
+
+def _eye_directions(sample: Gaze) -> tuple[Vec, Vec]:
+    """Unit (left, right) gaze: each eye's own direction, else the combined one, else the other eye's."""
+    left = next(v for v in (sample.L, sample.C, sample.R) if v is not None)
+    right = next(v for v in (sample.R, sample.C, sample.L) if v is not None)
+    return _unit(left), _unit(right)
+
+
+# Small-vector arithmetic on tuples: for 3- and 4-vectors plain Python is several times faster than numpy.
+
+
+def _norm(v: Vec) -> float:
+    return math.hypot(*v)
+
+
+def _unit(v: Vec) -> Vec:
+    n = math.hypot(*v)
+    return tuple(c / n for c in v)
+
+
+def _dot(a: Vec, b: Vec) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _sub(a: Vec, b: Vec) -> Vec:
+    return tuple(x - y for x, y in zip(a, b, strict=True))
+
+
+def _advance(p: Vec, v: Vec, h: float) -> Vec:
+    return tuple(x + h * y for x, y in zip(p, v, strict=True))
+
+
+def _lerp(a: Vec, b: Vec, u: float) -> Vec:
+    return tuple(x + u * (y - x) for x, y in zip(a, b, strict=True))
+
+
+def _cross(a: Vec, b: Vec) -> Vec:
+    ax, ay, az = a
+    bx, by, bz = b
+    return (ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx)
+
+
+def _nlerp(a: Vec, b: Vec, u: float) -> Vec:
+    v = _lerp(a, b, u)
+    n = _norm(v)
+    return tuple(c / n for c in v) if n > 1e-12 else (a if u < 0.5 else b)
+
+
+def _angle(a: Vec, b: Vec) -> float:
+    """Angle in radians between unit directions."""
+    return math.atan2(_norm(_cross(a, b)), _dot(a, b))
+
+
+def _arc(a: Vec, b: Vec) -> Vec:
+    """Rotation vector (axis times radians) of the shortest rotation turning unit direction a into b."""
+    c = _cross(a, b)
+    s = _norm(c)
+    if s <= 1e-15:
+        return (0.0, 0.0, 0.0)
+    k = math.atan2(s, _dot(a, b)) / s
+    return tuple(x * k for x in c)
+
+
+def _turn(d: Vec, spin: Vec, h: float) -> Vec:
+    """Unit direction d turned for h seconds at angular velocity spin (rad/s rotation vector; Rodrigues)."""
+    rate = _norm(spin)
+    if rate * h < 1e-15:
+        return d
+    k = tuple(c / rate for c in spin)
+    cos, sin = math.cos(rate * h), math.sin(rate * h)
+    along = _dot(k, d) * (1.0 - cos)
+    return _unit(tuple(x * cos + y * sin + z * along for x, y, z in zip(d, _cross(k, d), k, strict=True)))
+
+
+def _rate(dts: list[float], offsets: list[Vec]) -> Vec:
+    """Least-squares velocity through the newest sample: v minimising sum |offset_i - v dt_i|^2 (zero if none)."""
+    den = sum(dt * dt for dt in dts)
+    if den == 0.0:
+        return (0.0, 0.0, 0.0)
+    return tuple(sum(dt * o[c] for dt, o in zip(dts, offsets, strict=True)) / den for c in range(3))

@@ -1,0 +1,106 @@
+"""What frames are rendered with: the HMD profile, the scene and its tracer, the method and the eyes;
+and the one step that turns a gaze and head-pose estimate into per-eye images.
+
+The method can be swapped or retuned between frames (control `set`, the budget controller, a config
+reload): the same method with new parameters keeps its history (Method.set_params); another method
+starts fresh.
+"""
+
+from __future__ import annotations
+
+import time
+
+import msgspec
+import numpy as np
+
+from hmdrt.compositor.config import RunConfig
+from hmdrt.errors import ConfigError
+from hmdrt.foveation import make_method, method_params
+from hmdrt.foveation.base import EYES, Method
+from hmdrt.optics import HmdProfile, get_profile
+from hmdrt.present.timewarp import timewarp
+from hmdrt.scene import load_scene
+from hmdrt.sequence import FrameInput, compose_pose, eye_cameras, frame_requests
+from hmdrt.spatial import Pose
+from hmdrt.telemetry.stats import FrameStats
+from hmdrt.trace.integrator import Whitted
+
+AHEAD = np.array([0.0, 0.0, -1.0])
+
+
+def display_profile(config: RunConfig) -> HmdProfile:
+    """The profile of the config's display, with its resolution and refresh overrides."""
+    display = config.display
+    profile = get_profile(display.profile)
+    if display.resolution:
+        try:
+            w, h = (int(v) for v in display.resolution.lower().split("x"))
+        except ValueError:
+            raise ConfigError(f"display.resolution must be WIDTHxHEIGHT, got {display.resolution!r}") from None
+        profile = profile.with_resolution(w, h)
+    if display.refresh_hz:
+        profile = msgspec.structs.replace(profile, refresh_hz=display.refresh_hz)
+    return profile
+
+
+class Session:
+    def __init__(self, config: RunConfig):
+        self.profile = display_profile(config)
+        self.eyes = EYES if config.display.eyes == "both" else (config.display.eyes,)
+        self.scene = load_scene(config.scene)
+        self.tracer = Whitted(self.scene, threads=config.run.threads or None)
+        self.spec = config.method_spec
+        try:
+            self.method: Method = make_method(self.spec, self.tracer)
+        except ConfigError:
+            self.tracer.close()
+            raise
+
+    def warm_up(self) -> None:
+        """Render one frame with a throwaway instance of the method and timewarp it, so that the kernels are
+        compiled and the tracer's buffers allocated before the first VSync (a compile on the display thread would
+        stall it for seconds); the method itself starts without history."""
+        method, self.method = self.method, make_method(self.spec, self.tracer)
+        try:
+            images, cameras, _ = self.render(0, None, None, 0, FrameStats())
+        finally:
+            self.method = method
+        camera = next(iter(cameras.values()))
+        timewarp(images[0], camera, camera)
+
+    def set_method(self, spec: str) -> None:
+        """Use method `spec` from the next frame: retuned in place when only its parameters change."""
+        name, params = method_params(spec)
+        if name == self.method.name:
+            self.method.set_params(params)
+        else:
+            self.method = make_method(spec, self.tracer)
+        self.spec = spec
+
+    def params(self) -> dict:
+        return msgspec.to_builtins(self.method.params)
+
+    def render(
+        self, frame_id: int, gaze, pose, seed: int, stats: FrameStats, delay_ns: int = 0
+    ) -> tuple[list[np.ndarray], dict, int]:
+        """Copies of the eyes' images for a gaze and head-pose estimate (None: straight ahead, the scene's
+        start pose), the eye cameras they were rendered with, and the nanoseconds the method's render took
+        (with delay_ns of sleep added: a slower renderer, for tests and benchmarks)."""
+        head = self.scene.start if pose is None else compose_pose(self.scene.start, pose)
+        if gaze is None:
+            directions, depth = {"left": AHEAD, "right": AHEAD}, None
+        else:
+            directions, depth = {"left": gaze.left, "right": gaze.right}, gaze.depth_m
+        frame = FrameInput(frame_id, 0, Pose(head.position, head.orientation), directions, depth)
+        cameras = eye_cameras(self.profile, frame.pose, self.eyes)
+        images, start = [], time.perf_counter_ns()
+        for request in frame_requests(frame, cameras, seed):
+            images.append(self.method.render(request, stats))
+        if delay_ns:
+            with stats.stage("render_delay"):
+                time.sleep(delay_ns / 1e9)
+        took = time.perf_counter_ns() - start
+        return [image.copy() for image in images], cameras, took
+
+    def close(self) -> None:
+        self.tracer.close()

@@ -1,0 +1,194 @@
+"""Per-VSync frame records and the run report of `hmdrt run` (DESIGN.md "run report" keys).
+
+Each VSync the display shows something: a new frame (on time or late) or the last one again,
+timewarped to the newest head pose. A record carries Monado's per-frame metrics (predicted wake,
+present and display; actual wake, render start and end, actual present; margin; missed) plus what
+hmdrt adds: the method's parameters, stage times and rays, and the gaze and pose samples used with
+their capture times, so gaze-to-photon = present - capture of the gaze sample shown. VSyncs whose
+gaze was held through a blink (or pose through lost tracking) are counted apart, not as latency: no
+newer sample existed to be late about.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+SHOWN = ("new", "late", "repeat")
+
+
+@dataclass(frozen=True)
+class SampleUse:
+    """A gaze or pose sample a frame used: its device, seq and capture time, how far it was predicted, and
+    whether it was held through a blink or lost tracking (the newest sample said the eye or head was lost)."""
+
+    device: str
+    seq: int
+    t_host: int
+    predicted_ns: int = 0
+    held: bool = False
+
+
+@dataclass
+class FrameRecord:
+    vsync: int  # index of the VSync it was shown at
+    frame_id: int  # the rendered frame shown
+    shown: str  # new | late | repeat
+    actual_present_ns: int
+    predicted_wake_ns: int
+    predicted_present_ns: int
+    predicted_display_ns: int
+    actual_wake_ns: int
+    render_start_ns: int
+    render_end_ns: int
+    missed: bool  # a rendered frame shown after its desired present + 0.5 ms
+    gaze: SampleUse | None
+    pose: SampleUse | None
+    method: str = ""
+    params: dict = field(default_factory=dict)
+    stages_ms: dict[str, float] = field(default_factory=dict)
+    rays: int = 0
+    # Work measured on the wall clock, also in virtual time: the frame's work from wake-up to the end of
+    # rendering, the method's own part of it, and the display's work for this VSync (latch, timewarp)
+    frame_ms: float = 0.0
+    render_ms: float = 0.0
+    present_ms: float = 0.0
+    warp_pose: SampleUse | None = None  # the pose a repeat was warped to
+
+    @property
+    def margin_ns(self) -> int:
+        return self.predicted_present_ns - self.render_end_ns
+
+    @property
+    def overhead_ms(self) -> float:
+        """The compositor's work for a new frame: everything but the method's render (for a repeat, the
+        display's work is its timewarp, reported apart)."""
+        return self.present_ms if self.shown == "repeat" else self.frame_ms - self.render_ms + self.present_ms
+
+    def gaze_to_photon_ms(self) -> float | None:
+        return None if self.gaze is None else (self.actual_present_ns - self.gaze.t_host) / 1e6
+
+    def pose_to_photon_ms(self) -> float | None:
+        pose = self.warp_pose or self.pose
+        return None if pose is None else (self.actual_present_ns - pose.t_host) / 1e6
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        out.update(
+            margin_ns=self.margin_ns,
+            overhead_ms=self.overhead_ms,
+            gaze_to_photon_ms=self.gaze_to_photon_ms(),
+            pose_to_photon_ms=self.pose_to_photon_ms(),
+        )
+        return out
+
+
+def percentiles(values: list[float], keys: tuple[int, ...] = (50, 95, 99)) -> dict[str, float]:
+    """{p50, p95, p99, max} rounded to microseconds (all None when there are no values)."""
+    if not values:
+        return {**{f"p{k}": None for k in keys}, "max": None}
+    arr = np.asarray(values, dtype=np.float64)
+    return {**{f"p{k}": round(float(np.percentile(arr, k)), 3) for k in keys}, "max": round(float(arr.max()), 3)}
+
+
+class RunReport:
+    """Accumulates frame records into the run report; cheap per record, so it runs every VSync."""
+
+    def __init__(self, vsync_hz: float, warmup_s: float = 2.0):
+        self.vsync_hz = vsync_hz
+        self.warmup_ns = int(warmup_s * 1e9)  # misses after this long are also counted apart
+        self.settled = {"rendered": 0, "misses": 0}
+        self.shown = dict.fromkeys(SHOWN, 0)
+        self.misses = 0
+        self.dropped = 0  # rendered frames never shown (a newer one was ready first)
+        self.frame_ms: list[float] = []
+        self.overhead_ms: list[float] = []
+        self.warp_ms: list[float] = []
+        self.gaze_ms: list[float] = []
+        self.pose_ms: list[float] = []
+        self.held = {"gaze": 0, "pose": 0}  # VSyncs whose sample was held through a blink or lost tracking
+        self.stages_ms: dict[str, float] = {}
+        self.rays = 0
+        self.first_present: int | None = None
+        self.last_present: int | None = None
+        self.last_frame_id = -1
+        self.out_of_order = 0
+
+    def _settled(self, t_ns: int, missed: bool) -> None:
+        if self.first_present is not None and t_ns - self.first_present >= self.warmup_ns:
+            self.settled["rendered"] += 1
+            self.settled["misses"] += missed
+
+    def add(self, record: FrameRecord) -> None:
+        self.shown[record.shown] += 1
+        if self.first_present is None:
+            self.first_present = record.actual_present_ns
+        self.last_present = record.actual_present_ns
+        for kind, values, use, latency in (
+            ("gaze", self.gaze_ms, record.gaze, record.gaze_to_photon_ms()),
+            ("pose", self.pose_ms, record.warp_pose or record.pose, record.pose_to_photon_ms()),
+        ):
+            if use is not None and use.held:
+                self.held[kind] += 1  # no new sample to be late about: not a latency of the pipeline
+            elif latency is not None:
+                values.append(latency)
+        if record.shown == "repeat":
+            self.warp_ms.append(record.present_ms)
+            return
+        self.overhead_ms.append(record.overhead_ms)
+        if record.frame_id <= self.last_frame_id:
+            self.out_of_order += 1
+        self.last_frame_id = record.frame_id
+        self.misses += record.missed
+        self._settled(record.actual_present_ns, record.missed)
+        self.frame_ms.append(record.frame_ms)
+        self.rays += record.rays
+        for stage, ms in record.stages_ms.items():
+            self.stages_ms[stage] = self.stages_ms.get(stage, 0.0) + ms
+
+    @property
+    def frames(self) -> int:
+        """Rendered frames shown (on time or late)."""
+        return self.shown["new"] + self.shown["late"]
+
+    @property
+    def vsyncs(self) -> int:
+        return sum(self.shown.values())
+
+    def drop(self, t_vsync: int) -> None:
+        """A rendered frame a newer one overtook at t_vsync: it missed its deadline and was never shown."""
+        self.dropped += 1
+        self.misses += 1
+        self._settled(t_vsync, True)
+
+    def to_dict(self, **extra) -> dict:
+        n = max(self.frames, 1)
+        rendered = max(self.frames + self.dropped, 1)
+        span_s = (self.last_present - self.first_present) / 1e9 + 1.0 / self.vsync_hz if self.vsyncs else 0.0
+        return {
+            "frames": self.frames,
+            "vsyncs": self.vsyncs,
+            "vsync_hz": self.vsync_hz,
+            "presented": self.frames,
+            "re_presented": self.shown["repeat"],
+            "late": self.shown["late"],
+            "dropped": self.dropped,
+            "out_of_order": self.out_of_order,
+            "deadline_misses": self.misses,
+            "miss_rate": round(self.misses / rendered, 5),
+            "warmup_s": self.warmup_ns / 1e9,
+            "miss_rate_after_warmup": round(self.settled["misses"] / max(self.settled["rendered"], 1), 5),
+            "achieved_hz": round(self.frames / span_s, 3) if span_s else 0.0,
+            "frame_ms": percentiles(self.frame_ms),
+            "compositor_overhead_ms": percentiles(self.overhead_ms),
+            "timewarp_ms": percentiles(self.warp_ms),
+            "latency_ms": {
+                "gaze_to_photon": percentiles(self.gaze_ms),
+                "pose_to_photon": percentiles(self.pose_ms),
+                "held_vsyncs": dict(self.held),
+            },
+            "stages_ms": {k: round(v / n, 3) for k, v in self.stages_ms.items()},
+            "rays_per_frame": round(self.rays / n),
+            **extra,
+        }

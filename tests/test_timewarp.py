@@ -1,0 +1,159 @@
+"""Rotational timewarp: identity, one-pixel turns, agreement with EyeCamera.project, edge handling and
+the outside fraction, on symmetric (sim-cpu) and asymmetric (dk2, vive_pro_eye) frusta of both eyes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hmdrt.optics import EyeCamera, get_profile
+from hmdrt.optics.profiles import HmdProfile
+from hmdrt.present.timewarp import timewarp
+from hmdrt.spatial import Pose, quat_from_yaw_pitch, quat_multiply
+
+HEAD = np.array([0.2, 1.6, -0.4])
+EYES = ("left", "right")
+
+
+def small(name: str) -> HmdProfile:
+    """The profile's optics at about sim-cpu's pixel count, to keep the tests fast."""
+    profile = get_profile(name)
+    return profile if name == "sim-cpu" else profile.with_resolution(160, 192)
+
+
+def camera(profile: HmdProfile, eye: str, yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> EyeCamera:
+    half = math.radians(roll) / 2
+    q = quat_multiply(quat_from_yaw_pitch(yaw, pitch), np.array([math.cos(half), 0.0, 0.0, math.sin(half)]))
+    return EyeCamera.for_eye(profile, Pose(HEAD, q), eye)
+
+
+def texture(profile: HmdProfile, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).random((profile.height, profile.width, 3), dtype=np.float32)
+
+
+def principal_pixel(cam: EyeCamera) -> tuple[int, int]:
+    """The pixel (column, row) the camera's optical axis passes through."""
+    xy = cam.project((cam.position + cam.rotation @ [0.0, 0.0, -1.0])[None])[0][0]
+    return int(xy[0]), int(xy[1])
+
+
+def reference_outside(rendered: EyeCamera, target: EyeCamera) -> float:
+    """Fraction of target pixel centres whose direction misses the rendered image, via EyeCamera's own methods."""
+    ys, xs = np.mgrid[0 : target.height, 0 : target.width] + 0.5
+    dirs = target.directions(np.stack([xs.ravel(), ys.ravel()], axis=1))
+    xy, depth = rendered.project(rendered.position + dirs.astype(np.float64))
+    with np.errstate(invalid="ignore"):
+        inside = (depth > 0) & (xy[:, 0] >= 0) & (xy[:, 0] < rendered.width) & (xy[:, 1] >= 0)
+        inside &= xy[:, 1] < rendered.height
+    return 1.0 - inside.mean()
+
+
+PROFILES_EYES = [(name, eye) for name in ("sim-cpu", "dk2", "vive_pro_eye") for eye in EYES]
+
+
+@pytest.mark.parametrize(("name", "eye"), PROFILES_EYES)
+def test_identity_returns_the_image(name: str, eye: str) -> None:
+    profile = small(name)
+    image = texture(profile)
+    rendered = camera(profile, eye, 7.0, -3.0, 2.0)
+    moved = EyeCamera(**{**rendered.__dict__, "position": rendered.position + [0.3, -0.1, 0.5]})
+    for target in (rendered, moved):  # positions are ignored: only the rotation matters
+        warped, outside = timewarp(image, rendered, target)
+        # lookups land on pixel centres up to float64 rounding: a neighbour weighs in at ~1e-13
+        np.testing.assert_allclose(warped, image, rtol=1e-6, atol=1e-9)
+        assert outside == 0.0
+
+
+@pytest.mark.parametrize(("name", "eye"), [("sim-cpu", "left"), ("dk2", "left"), ("dk2", "right")])
+def test_yaw_of_one_pixel_shifts_by_one_pixel(name: str, eye: str) -> None:
+    profile = small(name)
+    rendered = camera(profile, eye)
+    pixel_deg = math.degrees(math.atan((rendered.tan_right - rendered.tan_left) / rendered.width))
+    target = camera(profile, eye, yaw=pixel_deg)  # a right turn: the scene moves one pixel left
+    image = texture(profile)
+    warped = timewarp(image, rendered, target).image
+    cx, cy = principal_pixel(rendered)
+    rows, cols = slice(cy - 8, cy + 8), slice(cx - 8, cx + 8)
+    shifted = image[rows, cx - 7 : cx + 9]
+    assert np.abs(warped[rows, cols] - shifted).max() < 0.03
+    assert np.abs(warped[rows, cols] - image[rows, cols]).mean() > 0.2
+
+
+@pytest.mark.parametrize(("name", "eye"), PROFILES_EYES)
+def test_marked_pixel_lands_where_eyecamera_projects_it(name: str, eye: str) -> None:
+    profile = small(name)
+    rendered = camera(profile, eye, 10.0, 5.0)
+    target = camera(profile, eye, 14.0, 2.0, 3.0)
+    col, row = int(0.3 * profile.width), int(0.6 * profile.height)
+    image = np.zeros((profile.height, profile.width, 3), np.float32)
+    image[row, col] = 1.0
+    direction = rendered.directions(np.array([[col + 0.5, row + 0.5]]))[0].astype(np.float64)
+    expected = target.project((target.position + direction)[None])[0][0]
+    expected_in_target = expected - [col + 0.5, row + 0.5]
+    assert np.hypot(*expected_in_target) > 5.0  # the rotation does move the mark
+
+    lum = timewarp(image, rendered, target).image[..., 0]
+    ys, xs = np.mgrid[0 : profile.height, 0 : profile.width] + 0.5
+    centroid = np.array([(xs * lum).sum(), (ys * lum).sum()]) / lum.sum()
+    assert np.hypot(*(centroid - expected)) < 0.5
+    peak_row, peak_col = np.unravel_index(np.argmax(lum), lum.shape)
+    assert abs(peak_col + 0.5 - expected[0]) <= 1.0 and abs(peak_row + 0.5 - expected[1]) <= 1.0
+
+
+@pytest.mark.parametrize(("name", "eye"), [("sim-cpu", "left"), ("dk2", "right"), ("vive_pro_eye", "left")])
+def test_outside_fraction_grows_with_rotation_and_matches_eyecamera(name: str, eye: str) -> None:
+    profile = small(name)
+    image = texture(profile)
+    rendered = camera(profile, eye)
+    fractions = []
+    for yaw in (0.0, 0.5, 2.0, 8.0, 20.0):
+        target = camera(profile, eye, yaw, yaw / 2)
+        outside = timewarp(image, rendered, target).outside
+        assert outside == pytest.approx(reference_outside(rendered, target), abs=2.0 / image[..., 0].size)
+        fractions.append(outside)
+    assert fractions[0] == 0.0
+    assert all(a < b for a, b in zip(fractions, fractions[1:], strict=False))
+
+
+def test_uncovered_pixels_repeat_the_edge_and_behind_the_eye_is_black() -> None:
+    profile = small("sim-cpu")
+    image = texture(profile)
+    image[:, -1] = 0.7  # the right edge column: what a right turn must repeat
+    rendered = camera(profile, "left")
+    warped, outside = timewarp(image, rendered, camera(profile, "left", yaw=10.0))
+    assert 0.0 < outside < 0.5
+    np.testing.assert_allclose(warped[:, -1], 0.7, atol=1e-6)
+
+    warped, outside = timewarp(image, rendered, camera(profile, "left", yaw=150.0))
+    assert outside == 1.0
+    np.testing.assert_array_equal(warped, 0.0)
+
+
+def test_out_buffer_is_reused() -> None:
+    profile = small("sim-cpu")
+    image = texture(profile)
+    out = np.full_like(image, np.nan)
+    result = timewarp(image, camera(profile, "left"), camera(profile, "left", 3.0), out)
+    assert result.image is out
+    assert np.isfinite(out).all()
+
+
+def test_mismatches_raise() -> None:
+    profile = small("dk2")
+    image = texture(profile)
+    left, right = camera(profile, "left"), camera(profile, "right")
+    other_size = camera(profile.with_resolution(profile.width, profile.height + 2), "left")
+    with pytest.raises(ValueError, match="same eye"):
+        timewarp(image, left, right)  # dk2's frusta are asymmetric: the eyes' tangents differ
+    with pytest.raises(ValueError, match="same eye"):
+        timewarp(image, left, other_size)
+    with pytest.raises(ValueError, match="image must be"):
+        timewarp(image[:-1], left, left)
+    with pytest.raises(ValueError, match="out must be"):
+        timewarp(image, left, left, np.empty((profile.height, profile.width, 3), np.float64))
+    with pytest.raises(ValueError, match="out must be"):
+        timewarp(image, left, left, np.empty((profile.height - 1, profile.width, 3), np.float32))
+    with pytest.raises(ValueError, match="overlap"):
+        timewarp(image, left, left, image)
