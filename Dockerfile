@@ -1,5 +1,5 @@
 # Builds hmdrt and runs the README's two commands: the test suite at build time, the main job as
-# the container's command (the rendered image lands in /home/hmdrt/out).
+# the container's command (its run report lands in /home/hmdrt/out).
 FROM python:3.11-slim
 
 RUN useradd --create-home hmdrt
@@ -12,5 +12,4 @@ COPY --chown=hmdrt:hmdrt . .
 RUN pip install --user -e '.[test]' && pytest -q
 
 VOLUME /home/hmdrt/out
-CMD ["hmdrt", "render", "--scene", "whitted", "--profile", "sim-cpu", "--method", "full", \
-     "--out", "/home/hmdrt/out/whitted.png", "--stats", "/home/hmdrt/out/whitted.json"]
+CMD ["hmdrt", "run", "configs/default.toml", "--duration", "10", "--report", "/home/hmdrt/out/report.json"]

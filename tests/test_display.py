@@ -35,7 +35,7 @@ def image(seed: int) -> np.ndarray:
 class Screen:
     """A Display on a virtual clock that keeps what it showed and dropped."""
 
-    def __init__(self, warp_to: dict | None = None):
+    def __init__(self, warp_to: dict | None = None, warp_deadline: bool = False):
         self.clock = VirtualClock(0)
         self.vsync = VsyncClock(PERIOD, T0)
         self.shown: list[tuple[FrameRecord, list[np.ndarray]]] = []
@@ -48,6 +48,7 @@ class Screen:
             lambda t: None if self.warp_to is None else (self.warp_to, self.warp_pose),
             lambda record, images: self.shown.append((record, images)),
             lambda frame, t: self.dropped.append((frame.timing.frame_id, t)),
+            warp_deadline,
         )
 
     def submit(self, frame_id: int, target: int, at_ns: int) -> Frame:
@@ -164,3 +165,19 @@ def test_backlog_counts_frames_handed_over_and_not_yet_shown_or_dropped():
     assert s.display.backlog == 2
     s.latch(3)  # frame 2 overtakes frame 1, which is dropped
     assert s.display.backlog == 0 and s.dropped == [(1, 130 * MS)]
+
+
+def test_with_a_warp_deadline_a_warp_that_cannot_end_before_the_next_vsync_is_skipped_and_counted():
+    target = cameras(5.0)
+    s = Screen(warp_to=target, warp_deadline=True)
+    frame = s.submit(0, target=0, at_ns=95 * MS)
+    s.latch(0)
+    late = s.latch(1, at_ns=121 * MS)  # the display thread woke after the next VSync: no time left to warp
+    assert late.shown == "repeat" and late.warp_skipped and late.warp_pose is None
+    assert s.shown[1][1][0] is frame.images[0] and s.display.warps_skipped == 1
+    on_time = s.latch(2, at_ns=121 * MS)
+    assert not on_time.warp_skipped and on_time.warp_pose == s.warp_pose
+    expected = timewarp(frame.images[0], frame.cameras["left"], target["left"]).image
+    np.testing.assert_array_equal(s.shown[2][1][0], expected)
+    again = s.latch(3, at_ns=141 * MS)  # skipped again: what was shown last is shown, with its pose
+    assert again.warp_skipped and again.warp_pose == s.warp_pose and s.shown[3][1][0] is s.shown[2][1][0]

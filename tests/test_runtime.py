@@ -48,6 +48,7 @@ REPORT_KEYS = {
     "vsync_hz",
     "presented",
     "re_presented",
+    "repeat_rate",
     "late",
     "dropped",
     "out_of_order",
@@ -269,6 +270,7 @@ def test_a_renderer_slower_than_the_period_drops_to_every_other_vsync_and_repeat
     assert wall_s < 30  # 1.3 s of VSyncs: no stall
     assert report["vsyncs"] == 40 and report["presented"] + report["re_presented"] == 40
     assert report["re_presented"] >= 10 and report["out_of_order"] == 0
+    assert report["repeat_rate"] == pytest.approx(report["re_presented"] / 40, abs=1e-5)
     assert report["pacing"]["vsyncs"] >= 2 and report["pacing"]["fits"] is False
     assert report["achieved_hz"] < 0.8 * report["vsync_hz"]
     assert report["frame_ms"]["p50"] >= 45

@@ -225,7 +225,7 @@ def test_missing_eyes_are_filled_from_the_combined_gaze_or_the_other_eye():
 
 def test_concurrent_adds_and_lookups_stay_consistent():
     store = SampleStore()
-    n, errors = 3000, []
+    n, errors = 1000, []
 
     def yaw_at(t_ns):
         return -45.0 + 30.0 * t_ns * 1e-9
@@ -245,8 +245,8 @@ def test_concurrent_adds_and_lookups_stay_consistent():
     while thread.is_alive() or lookups == 0:
         g = store.gaze_at(10**12, now_ns=10**12)
         p = store.pose_at(10**12, now_ns=10**12)
-        if g is None or p is None:
-            continue
+        if g is None or p is None or min(g.source_seq, p.source_seq) < 1:
+            continue  # one sample gives no velocity: nothing to check the prediction against yet
         lookups += 1
         assert g.source_seq >= last_seq
         last_seq = g.source_seq

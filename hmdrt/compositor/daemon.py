@@ -82,7 +82,9 @@ class Compositor:
             self.vsync = VsyncClock(self.session.profile.period_ns, self.clock.now_ns() + FIRST_PRESENT_NS)
             self.pacer = Pacer(self.vsync, **self._pacing(config))
             self._frames_dir(config)
-            self.display = Display(self.vsync, self.clock, self._warp_target, self._shown, self._dropped)
+            self.display = Display(
+                self.vsync, self.clock, self._warp_target, self._shown, self._dropped, warp_deadline=not virtual
+            )
             self.control = ControlServer(self._context, config.bus.control, self._handle)
         except (HmdrtError, ValueError):
             self.close()

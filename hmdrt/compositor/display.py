@@ -26,6 +26,7 @@ from hmdrt.present.timewarp import timewarp
 from hmdrt.telemetry.report import FrameRecord, SampleUse
 
 MISS_NS = 500_000  # Monado: a present later than desired by more than this is a miss
+WARP_RETRY_DECAY = 0.98  # each skipped warp shrinks the warp estimate, so a warp is tried again now and then
 
 
 @dataclass
@@ -57,16 +58,31 @@ Dropped = Callable[[Frame, int], None]
 
 
 class Display:
-    def __init__(self, vsync: VsyncClock, clock: Clock, warp_target: WarpTarget, on_shown: Shown, on_dropped: Dropped):
+    def __init__(
+        self,
+        vsync: VsyncClock,
+        clock: Clock,
+        warp_target: WarpTarget,
+        on_shown: Shown,
+        on_dropped: Dropped,
+        warp_deadline: bool = False,
+    ):
+        """With warp_deadline, a repeat is warped only when the warp (its filtered wall time) would end before
+        the next VSync; otherwise what was shown last is shown again and counted (warps_skipped), so that at
+        a resolution where one warp takes longer than a period the display does not starve the renderer."""
         self.vsync = vsync
         self.clock = clock
         self._warp_target = warp_target
         self._on_shown = on_shown
         self._on_dropped = on_dropped
+        self._warp_deadline = warp_deadline
         self._lock = threading.Lock()
         self._pending: list[Frame] = []
         self.last: Frame | None = None  # the newest frame shown
+        self._shown: tuple[list[np.ndarray], SampleUse | None] = ([], None)  # the images shown last, and their pose
+        self._warp_ns = 0.0  # filtered wall time of one warp of all eyes
         self.dropped = 0
+        self.warps_skipped = 0
 
     def submit(self, frame: Frame) -> None:
         """Hand over a rendered frame; its render_end_ns becomes now."""
@@ -102,6 +118,7 @@ class Display:
         if frame is not None:
             late = t > frame.timing.desired_present_ns + MISS_NS
             self.last = frame
+            self._shown = (frame.images, None)
             record = self._record(index, t, frame, "late" if late else "new", late)
             record.present_ms = (time.perf_counter_ns() - start) / 1e6
             self._on_shown(record, frame.images)
@@ -109,19 +126,28 @@ class Display:
         if self.last is None:
             return None
         target = self._warp_target(t)
-        images = self.last.images
-        warp_pose = None
-        if target is not None:
+        record = self._record(index, t, self.last, "repeat", False)
+        if target is not None and self._warp_fits(t):
             cameras, warp_pose = target
             rendered = self.last.cameras
             images = [
-                timewarp(image, rendered[eye], cameras[eye]).image for eye, image in zip(rendered, images, strict=True)
+                timewarp(image, rendered[eye], cameras[eye]).image
+                for eye, image in zip(rendered, self.last.images, strict=True)
             ]
-        record = self._record(index, t, self.last, "repeat", False)
+            self._shown = (images, warp_pose)
+            took = time.perf_counter_ns() - start
+            self._warp_ns = took if not self._warp_ns else 0.8 * self._warp_ns + 0.2 * took
+        elif target is not None:
+            self.warps_skipped += 1
+            record.warp_skipped = True
+            self._warp_ns *= WARP_RETRY_DECAY
+        images, record.warp_pose = self._shown
         record.present_ms = (time.perf_counter_ns() - start) / 1e6
-        record.warp_pose = warp_pose
         self._on_shown(record, images)
         return record
+
+    def _warp_fits(self, t_vsync: int) -> bool:
+        return not self._warp_deadline or self.clock.now_ns() + self._warp_ns <= t_vsync + self.vsync.period_ns
 
     @staticmethod
     def _record(index: int, t: int, frame: Frame, shown: str, missed: bool) -> FrameRecord:

@@ -55,6 +55,7 @@ class FrameRecord:
     render_ms: float = 0.0
     present_ms: float = 0.0
     warp_pose: SampleUse | None = None  # the pose a repeat was warped to
+    warp_skipped: bool = False  # a repeat shown unwarped: the warp would not have ended before the next VSync
 
     @property
     def margin_ns(self) -> int:
@@ -107,6 +108,7 @@ class RunReport:
         self.warp_ms: list[float] = []
         self.gaze_ms: list[float] = []
         self.pose_ms: list[float] = []
+        self.warps_skipped = 0
         self.held = {"gaze": 0, "pose": 0}  # VSyncs whose sample was held through a blink or lost tracking
         self.stages_ms: dict[str, float] = {}
         self.rays = 0
@@ -134,7 +136,10 @@ class RunReport:
             elif latency is not None:
                 values.append(latency)
         if record.shown == "repeat":
-            self.warp_ms.append(record.present_ms)
+            if record.warp_skipped:
+                self.warps_skipped += 1
+            else:
+                self.warp_ms.append(record.present_ms)
             return
         self.overhead_ms.append(record.overhead_ms)
         if record.frame_id <= self.last_frame_id:
@@ -172,6 +177,7 @@ class RunReport:
             "vsync_hz": self.vsync_hz,
             "presented": self.frames,
             "re_presented": self.shown["repeat"],
+            "repeat_rate": round(self.shown["repeat"] / max(self.vsyncs, 1), 5),  # VSyncs without a new frame
             "late": self.shown["late"],
             "dropped": self.dropped,
             "out_of_order": self.out_of_order,
@@ -183,6 +189,7 @@ class RunReport:
             "frame_ms": percentiles(self.frame_ms),
             "compositor_overhead_ms": percentiles(self.overhead_ms),
             "timewarp_ms": percentiles(self.warp_ms),
+            "timewarp_skipped": self.warps_skipped,
             "latency_ms": {
                 "gaze_to_photon": percentiles(self.gaze_ms),
                 "pose_to_photon": percentiles(self.pose_ms),
