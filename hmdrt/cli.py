@@ -38,14 +38,6 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def _resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ConfigError(f"resolution must be WIDTHxHEIGHT, e.g. 640x720, got {text!r}") from None
-    return w, h
-
-
 def _write_json(path: str | Path, record: dict) -> None:
     try:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -103,7 +95,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     """Render a frame or a sequence of a scene through an HMD profile with a method; PNGs and stats JSON."""
     profile = get_profile(args.profile)
     if args.resolution:
-        profile = profile.with_resolution(*_resolution(args.resolution))
+        profile = profile.with_resolution_text(args.resolution)
     options = {}
     if args.spp is not None:
         if args.method.partition("?")[0] != "regular":

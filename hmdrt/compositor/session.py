@@ -21,7 +21,6 @@ from hmdrt.optics import HmdProfile, get_profile
 from hmdrt.present.timewarp import timewarp
 from hmdrt.scene import load_scene
 from hmdrt.sequence import FrameInput, compose_pose, eye_cameras, frame_requests
-from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
 
@@ -33,11 +32,7 @@ def display_profile(config: RunConfig) -> HmdProfile:
     display = config.display
     profile = get_profile(display.profile)
     if display.resolution:
-        try:
-            w, h = (int(v) for v in display.resolution.lower().split("x"))
-        except ValueError:
-            raise ConfigError(f"display.resolution must be WIDTHxHEIGHT, got {display.resolution!r}") from None
-        profile = profile.with_resolution(w, h)
+        profile = profile.with_resolution_text(display.resolution, "display.resolution")
     if display.refresh_hz:
         profile = msgspec.structs.replace(profile, refresh_hz=display.refresh_hz)
     return profile
@@ -91,7 +86,7 @@ class Session:
             directions, depth = {"left": AHEAD, "right": AHEAD}, None
         else:
             directions, depth = {"left": gaze.left, "right": gaze.right}, gaze.depth_m
-        frame = FrameInput(frame_id, 0, Pose(head.position, head.orientation), directions, depth)
+        frame = FrameInput(frame_id, 0, head, directions, depth)
         cameras = eye_cameras(self.profile, frame.pose, self.eyes)
         images, start = [], time.perf_counter_ns()
         for request in frame_requests(frame, cameras, seed):

@@ -63,6 +63,14 @@ class HmdProfile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     def period_ns(self) -> int:
         return round(1e9 / self.refresh_hz)
 
+    def with_resolution_text(self, text: str, name: str = "resolution") -> HmdProfile:
+        """with_resolution from "WIDTHxHEIGHT" (a command-line or config value called `name`)."""
+        try:
+            w, h = (int(v) for v in text.lower().split("x"))
+        except ValueError:
+            raise ConfigError(f"{name} must be WIDTHxHEIGHT, e.g. 640x720, got {text!r}") from None
+        return self.with_resolution(w, h)
+
     def with_resolution(self, width: int, height: int) -> HmdProfile:
         """The same optics at another per-eye pixel count."""
         if width < 1 or height < 1:
