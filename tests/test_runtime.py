@@ -21,6 +21,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import msgspec
+import numba
 import numpy as np
 import pytest
 import zmq
@@ -342,6 +343,24 @@ def test_the_seed_changes_a_stochastic_method_and_only_the_seed(tmp_path, contex
     assert all(a != b for a, b in zip(hashes_0, hashes_1, strict=True))
 
 
+def test_kernel_threads_set_the_render_threads_numba_threads_and_leave_the_frames_unchanged(tmp_path, context):
+    threads = []
+    path = write_config(tmp_path / "k1.toml", eyes="left", run={"kernel_threads": 1})
+    with compositor(path, context, frames=4, virtual_time=True) as comp:
+        render = comp.session.render
+
+        def counting(*args, **kwargs):
+            threads.append(numba.get_num_threads())
+            return render(*args, **kwargs)
+
+        comp.session.render = counting
+        run_bounded(comp)
+        one = [digest(images) for _, images in comp.shown]
+    assert threads == [1, 1, 1, 1]
+    every, _ = virtual_run(tmp_path, context, "k0.toml", 4, eyes="left")  # kernel_threads 0: all of numba's
+    assert one == every
+
+
 def test_frames_dir_gets_every_nth_vsync_as_shown(tmp_path, context):
     out = tmp_path / "frames"
     config = write_config(tmp_path / "png.toml", output={"frames_dir": "frames", "every": 3})
@@ -564,6 +583,7 @@ def test_load_config_of_a_missing_file(tmp_path):
         ("bus", {"control": "nonsense"}, "cannot bind nonsense"),
         ("drivers", [{"url": "bogus://x"}], "no driver for bogus://"),
         ("drivers", [{"url": "replay://missing.jsonl"}], "trace not found"),
+        ("run", {"kernel_threads": 256}, "run.kernel_threads = 256: numba has"),
     ],
 )
 def test_hmdrt_run_on_a_bad_config_is_a_one_line_error(tmp_path, capsys, own_signals, section, keys, message):

@@ -79,6 +79,8 @@ class Output(_Section):
 class Run(_Section):
     seed: int = 0
     threads: Annotated[int, msgspec.Meta(ge=0, le=256)] = 0  # tracing threads (0: all cores)
+    # numba threads of the render and display threads' per-pixel kernels (0: all cores)
+    kernel_threads: Annotated[int, msgspec.Meta(ge=0, le=256)] = 0
     virtual_time: bool = False
     frames: Annotated[int, msgspec.Meta(ge=0)] = 0  # stop after this many VSyncs (0: until stopped)
     duration_s: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0  # or after this long

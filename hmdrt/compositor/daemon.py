@@ -16,9 +16,12 @@ import queue
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import msgspec
+import numba
 import numpy as np
 import zmq
 
@@ -56,6 +59,7 @@ class Compositor:
         virtual = config.run.virtual_time
         self.clock = clock or (VirtualClock(0) if virtual else MONOTONIC)
         self._paced = not virtual  # virtual time schedules each frame over the period before its VSync
+        self._kernel_threads = self._kernel_thread_count(config)
         self.session = Session(config)
         self.store = SampleStore(horizon_ns=int(config.prediction.horizon_ms * 1e6))
         self.report = RunReport(self.session.profile.refresh_hz, config.run.warmup_s)
@@ -90,6 +94,23 @@ class Compositor:
             self.close()
             raise
         self._started_ns = self.clock.now_ns()
+
+    @staticmethod
+    def _kernel_thread_count(config: RunConfig) -> int:
+        wanted, most = config.run.kernel_threads, numba.config.NUMBA_NUM_THREADS
+        if wanted > most:
+            raise ConfigError(f"run.kernel_threads = {wanted}: numba has {most} threads (NUMBA_NUM_THREADS)")
+        return wanted or most
+
+    @contextmanager
+    def _kernels(self) -> Iterator[None]:
+        """The calling thread's numba kernels on run.kernel_threads threads (numba's setting is per thread)."""
+        before = numba.get_num_threads()
+        numba.set_num_threads(self._kernel_threads)
+        try:
+            yield
+        finally:
+            numba.set_num_threads(before)
 
     def _pacing(self, config: RunConfig) -> dict:
         """The pacer's settings from [pacing], checked against the display period."""
@@ -264,11 +285,12 @@ class Compositor:
     def _display_loop(self) -> None:
         frames, duration_s = self._limits()
         index = self.vsync.index_at_or_after(self.clock.now_ns())
-        while not self._done(frames, duration_s):
-            if self.stop.wait(max(self.vsync.vsync(index) - self.clock.now_ns(), 0) / 1e9):
-                break
-            self.display.latch(index)
-            index += 1
+        with self._kernels():
+            while not self._done(frames, duration_s):
+                if self.stop.wait(max(self.vsync.vsync(index) - self.clock.now_ns(), 0) / 1e9):
+                    break
+                self.display.latch(index)
+                index += 1
         self.stop.set()
 
     def _virtual_loop(self) -> None:
@@ -319,16 +341,17 @@ class Compositor:
         switch = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         try:
-            if self.config.run.virtual_time:
-                self._virtual_loop()
-            else:
-                display = threading.Thread(target=self._display_loop, name="display")
-                display.start()
-                try:
-                    self._render_loop()
-                finally:
-                    self.stop.set()
-                    display.join()
+            with self._kernels():
+                if self.config.run.virtual_time:
+                    self._virtual_loop()
+                else:
+                    display = threading.Thread(target=self._display_loop, name="display")
+                    display.start()
+                    try:
+                        self._render_loop()
+                    finally:
+                        self.stop.set()
+                        display.join()
         finally:
             sys.setswitchinterval(switch)
             self.stop.set()
