@@ -16,17 +16,16 @@ import numpy as np
 
 from drivers.emulators import EMULATORS
 from hmdrt import __version__
+from hmdrt.atomic import write_atomic
 from hmdrt.bus import CONTROL, INGEST
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.foveation import METHODS, make_method
 from hmdrt.optics import get_profile
 from hmdrt.present.encode import linear_to_srgb8, write_png
 from hmdrt.scene import load_scene
-from hmdrt.sequence import FrameInput, SequenceCounts, builtin_path, from_trace, render_frames
-from hmdrt.spatial import gaze_direction, parse_gaze
+from hmdrt.sequence import FrameInput, SequenceCounts, render_frames, sequence_inputs
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
-from replay import load_trace
 
 UNTIL = "stop after SEC seconds (default: until SIGINT/SIGTERM)"
 
@@ -39,27 +38,12 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _write_json(path: str | Path, record: dict) -> None:
-    try:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        Path(path).write_text(json.dumps(record, indent=2) + "\n")
-    except OSError as exc:
-        raise HmdrtError(f"cannot write {path}: {exc.strerror}") from None
+    write_atomic(path, (json.dumps(record, indent=2) + "\n").encode())
 
 
 def _inputs(args: argparse.Namespace, start, period_ns: int) -> tuple[list[FrameInput], SequenceCounts | None]:
     """The frames to render: one still frame, a still sequence, the built-in path, or a trace."""
-    if args.trace and args.trace != "builtin":
-        reading = load_trace(args.trace)
-        frames = args.frames
-        if frames is None:
-            times = [s.t_host for s in reading.samples]
-            frames = (max(times) - min(times)) // period_ns + 1 if times else 1
-        return from_trace(reading, frames, period_ns, start)
-    frames = args.frames or 1
-    if args.trace == "builtin":
-        return builtin_path(frames, period_ns, start, args.seed), None
-    g = gaze_direction(*parse_gaze(args.gaze))
-    return [FrameInput(f, f * period_ns, start, {"left": g, "right": g}) for f in range(frames)], None
+    return sequence_inputs(start, period_ns, args.frames, trace=args.trace, gaze=args.gaze, seed=args.seed)
 
 
 def _record(stats: FrameStats, ms: float, width: int, height: int, method: str, scene: str) -> dict:
@@ -296,6 +280,23 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval(args: argparse.Namespace) -> int:
+    """Render every cell of an eval config, score it against the ground truth, write results and plots."""
+    from hmdrt.evaluate.config import load_eval_config
+    from hmdrt.evaluate.results import table, write_results
+    from hmdrt.evaluate.runner import evaluate
+
+    config = load_eval_config(args.config, frames=args.frames, warmup_frames=args.warmup_frames)
+    out = Path(args.out)
+    write_atomic(out / ".hmdrt-eval-check", b"")  # an unwritable output folder fails now, not after the run
+    (out / ".hmdrt-eval-check").unlink()
+    evaluation = evaluate(config)
+    written = write_results(evaluation, config, out, with_plots=not args.no_plots)
+    print(table(evaluation))
+    print(f"wrote {len(written)} files to {out}: results.csv, results.json" + ("" if args.no_plots else ", plots"))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="hmdrt", description="A simulated HMD runtime with foveated ray tracing.")
     parser.add_argument("--version", action="version", version=f"hmdrt {__version__}")
@@ -360,6 +361,13 @@ def build_parser() -> argparse.ArgumentParser:
     status.add_argument("--report", action="store_true", help="print the run report so far (JSON)")
     status.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for an answer (default 2)")
     status.set_defaults(run=cmd_status)
+    evaluation = sub.add_parser("eval", help="measure error against run time of methods over scenes and traces")
+    evaluation.add_argument("config", help="eval config (.toml), e.g. configs/eval/quick.toml")
+    evaluation.add_argument("--out", required=True, help="output folder: results.csv, results.json, plots")
+    evaluation.add_argument("--frames", type=int, help="frames per cell (overrides the config's)")
+    evaluation.add_argument("--warmup-frames", type=int, help="frames rendered before timing (overrides the config's)")
+    evaluation.add_argument("--no-plots", action="store_true", help="write the results only")
+    evaluation.set_defaults(run=cmd_eval)
     record = sub.add_parser("record", help="record a device's gaze and pose from the bus into a native trace")
     record.add_argument("--out", required=True, help="output trace (.jsonl)")
     record.add_argument("--bus", default=INGEST, help=f"endpoint to bind as the ingest (default {INGEST})")

@@ -17,8 +17,9 @@ from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import EYES, FrameRequest, Method
 from hmdrt.foveation.stages.gaze import vergence_depth
 from hmdrt.optics import EyeCamera, HmdProfile
-from hmdrt.spatial import Pose, gaze_direction, quat_multiply, quat_to_matrix
+from hmdrt.spatial import Pose, gaze_direction, parse_gaze, quat_multiply, quat_to_matrix
 from hmdrt.telemetry.stats import FrameStats
+from replay import load_trace
 from replay.trace import Gaze, TraceReading, usable
 from replay.trace import Pose as PoseSample
 
@@ -93,6 +94,24 @@ def from_trace(
         pose = start if pi < 0 else compose_pose(start, valid_pose[pi])
         inputs.append(FrameInput(f, t, pose, _eye_gaze(sample), sample.depth_m))
     return inputs, counts
+
+
+def sequence_inputs(
+    start: Pose, period_ns: int, frames: int | None, trace: str | None = None, gaze: str = "0,0", seed: int = 0
+) -> tuple[list[FrameInput], SequenceCounts | None]:
+    """What each frame sees: a fixed gaze with the head still at `start` (trace None), the built-in path
+    (trace "builtin"), or a trace file (frames None: as many as the trace spans at the period)."""
+    if trace and trace != "builtin":
+        reading = load_trace(trace)
+        if frames is None:
+            times = [s.t_host for s in reading.samples]
+            frames = (max(times) - min(times)) // period_ns + 1 if times else 1
+        return from_trace(reading, frames, period_ns, start)
+    frames = frames or 1
+    if trace == "builtin":
+        return builtin_path(frames, period_ns, start, seed), None
+    g = gaze_direction(*parse_gaze(gaze))
+    return [FrameInput(f, f * period_ns, start, {"left": g, "right": g}) for f in range(frames)], None
 
 
 def builtin_path(frames: int, period_ns: int, start: Pose, seed: int = 0) -> list[FrameInput]:

@@ -7,14 +7,13 @@ to the config file, so a config runs the same from any working directory.
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
 import msgspec
 
 from hmdrt.bus import CONTROL, INGEST, TELEMETRY
-from hmdrt.errors import ConfigError
+from hmdrt.configfile import convert, read_toml
 from hmdrt.foveation import method_spec
 
 Ms = Annotated[float, msgspec.Meta(ge=0.0, le=10_000.0)]
@@ -124,21 +123,10 @@ def load_config(path: str | Path | None = None, **overrides) -> RunConfig:
     data: dict = {}
     base = Path.cwd()
     if path is not None:
-        path = Path(path)
-        try:
-            data = tomllib.loads(path.read_text())
-        except FileNotFoundError:
-            raise ConfigError(f"config not found: {path}") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"cannot read config {path}: {exc}") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{path} is not valid TOML: {exc}") from None
-        base = path.resolve().parent
+        data = read_toml(path)
+        base = Path(path).resolve().parent
     data.setdefault("run", {}).update({k: v for k, v in overrides.items() if v is not None})
-    try:
-        config = msgspec.convert(data, RunConfig)
-    except msgspec.ValidationError as exc:
-        raise ConfigError(f"{path or 'config'}: {exc}") from None
+    config = convert(data, RunConfig, path)
     drivers = [Driver(_relative(d.url, base)) for d in config.drivers]
     output = config.output
     output = msgspec.structs.replace(

@@ -1,0 +1,107 @@
+"""The config of `hmdrt eval CONFIG.toml`: scenes, profiles, gaze and pose traces, and methods with parameter
+sweeps; every cell of their product is rendered and scored. Paths are relative to the config file.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+from pathlib import Path
+from typing import Annotated, Literal
+
+import msgspec
+
+from hmdrt.configfile import convert, read_toml
+from hmdrt.errors import ConfigError
+from hmdrt.foveation import method_params, method_spec
+from hmdrt.spatial import parse_gaze
+
+Scalar = str | int | float | bool
+
+
+class _Table(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    pass
+
+
+class Trace(_Table):
+    """What the eye and head do: a fixed gaze with the head still, a recorded trace, or the built-in path
+    (head sway with fixations and saccades). Exactly one of gaze, path, builtin."""
+
+    name: str = ""
+    gaze: str = ""  # "YAW,PITCH" in degrees
+    path: str = ""  # a gaze/pose trace (JSONL, CSV, EyeLink ASC)
+    builtin: bool = False
+
+    def __post_init__(self) -> None:
+        if sum((bool(self.gaze), bool(self.path), self.builtin)) != 1:
+            raise ValueError("a trace needs exactly one of gaze, path or builtin = true")
+        if self.gaze:
+            try:
+                parse_gaze(self.gaze)
+            except ConfigError as exc:
+                raise ValueError(str(exc)) from None
+
+    @property
+    def label(self) -> str:
+        return self.name or (f"gaze {self.gaze}" if self.gaze else Path(self.path).stem if self.path else "builtin")
+
+
+class MethodSweep(_Table):
+    """A method with fixed options and a sweep: one cell per combination of the sweep's values."""
+
+    name: str
+    options: dict[str, Scalar] = {}
+    sweep: dict[str, list[Scalar]] = {}
+
+    def specs(self) -> list[str]:
+        keys = list(self.sweep)
+        combos = itertools.product(*(self.sweep[k] for k in keys)) if keys else [()]
+        return [method_spec(self.name, {**self.options, **dict(zip(keys, combo, strict=True))}) for combo in combos]
+
+
+def default_cache_dir() -> str:
+    return str(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "hmdrt" / "truth")
+
+
+class EvalConfig(_Table):
+    scenes: list[str] = msgspec.field(default_factory=lambda: ["whitted"])
+    profiles: list[str] = msgspec.field(default_factory=lambda: ["sim-cpu"])
+    resolution: str = ""  # per-eye WIDTHxHEIGHT overriding every profile's, same field of view
+    eye: Literal["left", "right"] = "left"
+    frames: Annotated[int, msgspec.Meta(ge=1, le=100_000)] = 8  # per cell
+    warmup_frames: Annotated[int, msgspec.Meta(ge=0, le=100_000)] = 2  # rendered, neither timed nor scored
+    truth_spp: Annotated[int, msgspec.Meta(ge=1, le=1024)] = 36  # the ground truth: regular at this many spp
+    seed: int = 0
+    threads: Annotated[int, msgspec.Meta(ge=0, le=256)] = 0  # tracing threads (0: all cores)
+    cache_dir: str = ""  # ground truths are cached here ("": $XDG_CACHE_HOME/hmdrt/truth)
+    crop_px: Annotated[int, msgspec.Meta(ge=8, le=4096)] = 96  # side of the crops at the gaze point
+    traces: list[Trace] = msgspec.field(default_factory=lambda: [Trace(gaze="0,0")])
+    methods: list[MethodSweep] = msgspec.field(default_factory=lambda: [MethodSweep("full"), MethodSweep("rrm")])
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        if self.warmup_frames >= self.frames:
+            raise ValueError(f"warmup_frames ({self.warmup_frames}) must be fewer than frames ({self.frames})")
+        if not (self.scenes and self.profiles and self.traces and self.methods):
+            raise ValueError("scenes, profiles, traces and methods each need at least one entry")
+
+    def specs(self) -> list[str]:
+        """Every method cell as "name?key=value&...", in config order, without repeats."""
+        return list(dict.fromkeys(spec for m in self.methods for spec in m.specs()))
+
+
+def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
+    """A validated EvalConfig from a TOML file, with its trace paths and cache folder resolved against the file;
+    every method spec is checked before anything is rendered."""
+    data = read_toml(path)
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    config = convert(data, EvalConfig, path)
+    base = Path(path).resolve().parent
+    traces = [
+        msgspec.structs.replace(t, path=str(base / t.path)) if t.path and not Path(t.path).is_absolute() else t
+        for t in config.traces
+    ]
+    cache = str(base / config.cache_dir) if config.cache_dir else default_cache_dir()
+    for spec in config.specs():
+        method_params(spec)
+    return msgspec.structs.replace(config, traces=traces, cache_dir=cache, source=str(path))

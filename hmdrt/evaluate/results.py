@@ -1,0 +1,68 @@
+"""What `hmdrt eval` writes: results.csv and results.json (one row per cell; written atomically), the plots, and
+a short table on stdout."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+from hmdrt.atomic import write_atomic
+from hmdrt.evaluate import plots
+from hmdrt.evaluate.config import EvalConfig
+from hmdrt.evaluate.runner import Evaluation
+from hmdrt.quality import BANDS
+
+
+def write_results(evaluation: Evaluation, config: EvalConfig, out: Path, with_plots: bool = True) -> list[Path]:
+    """Write the results into `out`; the paths written."""
+    rows = evaluation.rows
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_atomic(out / "results.csv", text.getvalue().encode())
+    write_atomic(out / "results.json", (json.dumps(evaluation.to_dict(config), indent=2) + "\n").encode())
+    written = [out / "results.csv", out / "results.json"]
+    if with_plots:
+        written += plots.error_vs_time(rows, out)
+        written += plots.band_psnr(rows, out)
+        written += plots.crops(evaluation.crops, config.crop_px, out)
+    return written
+
+
+def _cell(value: float | None, spec: str) -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def table(evaluation: Evaluation) -> str:
+    """The rows as a plain-text table, then each group's best foveated setting against full."""
+    bands = ("fovea", "image")
+    lines = [
+        f"{'scene':12s} {'profile':8s} {'trace':14s} {'method':40s} {'ms':>8s} {'x full':>7s} {'rays':>10s} "
+        + " ".join(f"{b[:6] + ' dB':>9s}" for b in bands)
+        + " pareto"
+    ]
+    for r in evaluation.rows:
+        lines.append(
+            f"{r['scene'][:12]:12s} {r['profile'][:8]:8s} {r['trace'][:14]:14s} {r['params'][:40]:40s} "
+            f"{r['ms_per_frame']:8.1f} {_cell(r['speedup_vs_full'], '7.2f'):>7s} {r['rays_per_frame']:10,d} "
+            + " ".join(f"{_cell(r[f'psnr_{b}'], '9.2f'):>9s}" for b in bands)
+            + ("  *" if r["pareto"] else "")
+        )
+    for s in evaluation.summary:
+        where = f"{s['scene']} at {s['profile']}, {s['trace']}"
+        if s["best"] is None:
+            lines.append(f"{where}: no foveated setting on the Pareto front reaches full's foveal PSNR")
+        else:
+            lines.append(
+                f"{where}: best foveated {s['best']} is {s['best_speedup']:.2f}x faster than full with foveal PSNR "
+                f"{s['best_psnr_fovea']:.2f} dB (full {s['full_psnr_fovea']:.2f} dB)"
+            )
+    lines.append(
+        f"bands (degrees of eccentricity): {', '.join(f'{k} {lo:g}-{hi:g}' for k, (lo, hi) in BANDS.items())}; "
+        f"ground truths rendered {evaluation.truths_rendered}, read from the cache {evaluation.truths_read}; "
+        f"{evaluation.seconds:.0f} s"
+    )
+    return "\n".join(lines)

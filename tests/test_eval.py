@@ -1,0 +1,227 @@
+"""hmdrt eval (issue 6): band metrics, the ground-truth cache, the Pareto front and the command end to end."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hmdrt.cli import main
+from hmdrt.errors import ConfigError
+from hmdrt.evaluate.config import load_eval_config
+from hmdrt.evaluate.runner import pareto_front, summarise
+from hmdrt.evaluate.truth import TruthCache, scene_digest
+from hmdrt.optics import EyeCamera, get_profile
+from hmdrt.quality import BANDS, BandScores, ssim_map
+from hmdrt.scene import load_scene
+from hmdrt.spatial import Pose
+from hmdrt.trace.integrator import Whitted
+
+RNG = np.random.default_rng(7)
+
+
+def test_ssim_is_one_for_identical_images_and_matches_a_direct_window_sum_inside():
+    a = RNG.random((40, 48, 3), dtype=np.float32)
+    b = np.clip(a + RNG.normal(0, 0.1, a.shape).astype(np.float32), 0, 1)
+    assert np.allclose(ssim_map(a, a), 1.0)
+    # one interior pixel by the definition: 11 x 11 Gaussian window, sigma 1.5, on Rec. 709 luminance
+    y, x = 20, 24
+    k = np.exp(-0.5 * (np.arange(-5, 6) / 1.5) ** 2)
+    w = np.outer(k, k) / np.outer(k, k).sum()
+    la = (a @ [0.2126, 0.7152, 0.0722])[y - 5 : y + 6, x - 5 : x + 6]
+    lb = (b @ [0.2126, 0.7152, 0.0722])[y - 5 : y + 6, x - 5 : x + 6]
+    ma, mb = (w * la).sum(), (w * lb).sum()
+    va, vb, cab = (w * la * la).sum() - ma**2, (w * lb * lb).sum() - mb**2, (w * la * lb).sum() - ma * mb
+    c1, c2 = 0.01**2, 0.03**2
+    expected = (2 * ma * mb + c1) * (2 * cab + c2) / ((ma**2 + mb**2 + c1) * (va + vb + c2))
+    assert ssim_map(a, b)[y, x] == pytest.approx(expected, abs=1e-6)
+    assert expected < 0.99  # the noise is seen
+
+
+def test_band_scores_pool_the_squared_error_over_frames_and_measure_flicker_beyond_the_truths():
+    truth = np.full((30, 40, 3), 0.5, dtype=np.float32)
+    eccentricity = np.tile(np.linspace(0, 40, 40, dtype=np.float32), (30, 1))
+    scores = BandScores()
+    scores.add(truth + 0.1, truth, eccentricity)  # squared error 0.01
+    scores.add(truth - 0.1, truth, eccentricity)  # squared error 0.01, and a change of 0.2 from the last frame
+    scores.add(truth + 0.1, truth, eccentricity)
+    result = scores.result()
+    for band in (*BANDS, "image"):
+        assert result[f"psnr_{band}"] == pytest.approx(20.0, abs=1e-3)  # 10 log10(1 / 0.01)
+        assert result[f"flicker_{band}"] == pytest.approx(0.2, abs=1e-6)  # the truth is steady
+    steady = BandScores()
+    for _ in range(3):
+        steady.add(truth + 0.1, truth, eccentricity)
+    assert steady.result()["flicker_image"] == pytest.approx(0.0, abs=1e-7)
+    assert steady.result()["ssim_image"] == pytest.approx(ssim_map(truth + 0.1, truth).mean(), abs=1e-9)
+    empty = BandScores()
+    empty.add(truth, truth, np.zeros((30, 40), dtype=np.float32))  # every pixel in the fovea
+    assert empty.result()["psnr_fovea"] == math.inf and empty.result()["psnr_parafovea"] is None
+
+
+def test_pareto_front_keeps_only_points_no_other_beats():
+    points = [(10.0, 30.0), (5.0, 30.0), (5.0, 25.0), (20.0, 40.0), (20.0, 35.0), (1.0, None), (5.0, 30.0)]
+    assert pareto_front(points) == [False, True, False, True, False, False, True]
+
+
+def test_summary_picks_the_fastest_foveated_cell_on_the_front_at_least_as_sharp_as_full():
+    def row(method, ms, psnr, pareto):
+        return {
+            "scene": "s",
+            "profile": "p",
+            "trace": "t",
+            "method": method.partition("?")[0],
+            "params": method,
+            "ms_per_frame": ms,
+            "psnr_fovea": psnr,
+            "pareto": pareto,
+            "speedup_vs_full": 40.0 / ms,
+        }
+
+    rows = [
+        row("full", 40.0, 30.0, False),
+        row("rrm?a=1", 5.0, 29.0, True),
+        row("kim21", 10.0, 31.0, True),
+        row("weier16", 8.0, 30.0, False),
+        row("regular?spp=4", 9.0, 32.0, True),
+    ]
+    [entry] = summarise(rows)
+    assert entry["best"] == "kim21" and entry["best_speedup"] == 4.0 and entry["full_psnr_fovea"] == 30.0
+
+
+def test_truth_cache_renders_a_view_once_and_reads_it_back(tmp_path):
+    scene = load_scene("whitted")
+    profile = get_profile("sim-cpu").with_resolution_text("32x36")
+    camera = EyeCamera.for_eye(profile, scene.start)
+    moved = EyeCamera.for_eye(profile, Pose(scene.start.position + [0.0, 0.1, 0.0], scene.start.orientation))
+    with Whitted(scene) as tracer:
+        cache = TruthCache(tmp_path, spp=4)
+        first = cache.get(tracer, scene_digest(scene), camera)
+        again = cache.get(tracer, scene_digest(scene), camera)
+        other = cache.get(tracer, scene_digest(scene), moved)
+        assert (cache.rendered, cache.read) == (2, 1)
+        assert np.array_equal(first, again) and not np.array_equal(first, other)
+        assert first.shape == (36, 32, 3) and np.isfinite(first).all()
+        assert sorted(p.suffix for p in tmp_path.iterdir()) == [".npy", ".npy"]  # no temporary file left
+        next(tmp_path.iterdir()).write_bytes(b"truncated")
+        fresh = TruthCache(tmp_path, spp=4)
+        fresh.get(tracer, scene_digest(scene), camera)
+        fresh.get(tracer, scene_digest(scene), moved)
+        assert (fresh.rendered, fresh.read) == (1, 1)  # the damaged file is rendered again, the other read
+        assert TruthCache(tmp_path, spp=8).key(scene_digest(scene), camera) != cache.key(scene_digest(scene), camera)
+
+
+def test_scene_digest_follows_the_scene_content():
+    assert scene_digest(load_scene("whitted")) == scene_digest(load_scene("whitted"))
+    assert scene_digest(load_scene("whitted")) != scene_digest(load_scene("tunnel_maps"))
+
+
+EVAL = """
+scenes = ["whitted"]
+resolution = "48x54"
+frames = 4
+warmup_frames = 1
+truth_spp = 4
+cache_dir = "cache"
+
+[[traces]]
+gaze = "0,0"
+
+[[traces]]
+name = "path"
+builtin = true
+
+[[methods]]
+name = "full"
+
+[[methods]]
+name = "rrm"
+options = { group_w = 1, group_h = 1 }
+sweep = { fovea_deg = [5.0, 20.0] }
+"""
+
+
+def test_hmdrt_eval_writes_one_row_per_cell_with_band_scores_plots_and_a_summary(tmp_path, capsys):
+    config = tmp_path / "eval.toml"
+    config.write_text(EVAL)
+    out = tmp_path / "out"
+    assert main(["eval", str(config), "--out", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    with open(out / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    result = json.loads((out / "results.json").read_text())
+    assert len(rows) == len(result["rows"]) == 2 * 3  # two traces x (full + two rrm settings)
+    assert {r["params"] for r in rows} == {
+        "full",
+        "rrm?group_w=1&group_h=1&fovea_deg=5.0",
+        "rrm?group_w=1&group_h=1&fovea_deg=20.0",
+    }
+    for r in result["rows"]:
+        assert r["frames"] == 3 and r["ms_per_frame"] > 0 and r["width"] == 48 and r["height"] == 54
+        assert all(f"{k}_{b}" in r for k in ("psnr", "ssim", "flicker") for b in (*BANDS, "image"))
+        assert r["psnr_image"] is not None and 0 < r["psnr_image"] < 100
+    full = [r for r in result["rows"] if r["method"] == "full"]
+    assert all(r["speedup_vs_full"] == 1.0 and r["sample_fraction"] == 1.0 for r in full)
+    # rrm with N = 1 refreshes every pixel each frame: the image is full's, and a smaller fovea is no cheaper
+    for r in result["rows"]:
+        twin = next(f for f in full if f["trace"] == r["trace"])
+        assert r["psnr_image"] == pytest.approx(twin["psnr_image"], abs=1e-6)
+    assert result["truth"]["rendered"] == 1 + 3  # still head: one view; the head path: three scored views
+    assert [s["trace"] for s in result["summary"]] == ["gaze 0,0", "path"]
+    assert sorted(p.name.split("_")[0] for p in out.glob("*.png")) == [
+        "band",
+        "band",
+        "crops",
+        "crops",
+        "error",
+        "error",
+    ]
+    assert "best foveated" in stdout or "no foveated setting" in stdout
+
+    assert main(["eval", str(config), "--out", str(out), "--no-plots", "--frames", "3"]) == 0
+    again = json.loads((out / "results.json").read_text())
+    assert again["truth"] == {**result["truth"], "rendered": 0, "read": 2 * 2}  # the cache answers
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("frames = 2\nwarmup_frames = 2\n", "warmup_frames (2) must be fewer than frames (2)"),
+        ('[[methods]]\nname = "nosuch"\n', "unknown method 'nosuch'"),
+        ('[[methods]]\nname = "rrm"\nsweep = { group_w = [0] }\n', "method 'rrm'"),
+        ('[[traces]]\ngaze = "0,0"\nbuiltin = true\n', "exactly one of gaze, path or builtin"),
+        ('[[traces]]\ngaze = "95,0"\n', "within +-90 degrees"),
+        ("scenes = []\n", "at least one entry"),
+        ("nonsense = 1\n", "unknown field `nonsense`"),
+    ],
+)
+def test_bad_eval_configs_are_one_line_errors(tmp_path, text, message):
+    config = tmp_path / "bad.toml"
+    config.write_text(text)
+    with pytest.raises(ConfigError, match=None) as err:
+        load_eval_config(config)
+    assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_hmdrt_eval_into_an_unwritable_folder_fails_before_rendering(tmp_path, capsys):
+    config = tmp_path / "eval.toml"
+    config.write_text(EVAL)
+    (tmp_path / "file").write_text("")
+    assert main(["eval", str(config), "--out", str(tmp_path / "file" / "out")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("hmdrt: error: cannot write") and err.count("\n") == 1
+    assert not (tmp_path / "cache").exists()  # nothing was rendered
+
+
+def test_eval_config_paths_are_relative_to_the_file(tmp_path):
+    (tmp_path / "sub").mkdir()
+    config = tmp_path / "sub" / "e.toml"
+    config.write_text('cache_dir = "c"\n[[traces]]\npath = "t.jsonl"\n')
+    loaded = load_eval_config(config)
+    assert (
+        Path(loaded.cache_dir) == tmp_path / "sub" / "c" and Path(loaded.traces[0].path) == tmp_path / "sub" / "t.jsonl"
+    )
