@@ -285,6 +285,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from hmdrt.evaluate.config import load_eval_config
     from hmdrt.evaluate.results import table, write_results
     from hmdrt.evaluate.runner import evaluate
+    from hmdrt.evaluate.tables import paper_tables
 
     config = load_eval_config(args.config, frames=args.frames, warmup_frames=args.warmup_frames)
     out = Path(args.out)
@@ -293,7 +294,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     evaluation = evaluate(config)
     written = write_results(evaluation, config, out, with_plots=not args.no_plots)
     print(table(evaluation))
-    print(f"wrote {len(written)} files to {out}: results.csv, results.json" + ("" if args.no_plots else ", plots"))
+    if config.tables:
+        print(paper_tables(evaluation.rows, config.tables))
+    print(f"wrote {len(written)} files to {out}: {', '.join(p.name for p in written)}")
     return 0
 
 

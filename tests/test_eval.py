@@ -76,6 +76,7 @@ def test_summary_picks_the_fastest_foveated_cell_on_the_front_at_least_as_sharp_
             "trace": "t",
             "method": method.partition("?")[0],
             "params": method,
+            "label": method,
             "ms_per_frame": ms,
             "psnr_fovea": psnr,
             "pareto": pareto,
@@ -225,3 +226,125 @@ def test_eval_config_paths_are_relative_to_the_file(tmp_path):
     assert (
         Path(loaded.cache_dir) == tmp_path / "sub" / "c" and Path(loaded.traces[0].path) == tmp_path / "sub" / "t.jsonl"
     )
+
+
+TABLES = """
+tables = ["weier2016", "kim2021", "smith2013", "weier2018"]
+scenes = ["whitted", "whitted?max_depth=0"]
+resolution = "48x54"
+frames = 3
+warmup_frames = 1
+truth_spp = 2
+cache_dir = "cache"
+
+[[methods]]
+name = "full"
+label = "full"
+
+[[methods]]
+name = "weier16"
+label = "weier16"
+scenes = ["whitted"]
+
+[[methods]]
+name = "regular"
+label = "Regular_36"
+options = { spp = 3 }
+scenes = ["whitted"]
+
+[[methods]]
+name = "kim21"
+label = "Selective"
+options = { tau_0 = 1.0, tau_f = 1.0, tau_f_slope = 0.0, tau_np = 1.0, n_f = 4, n_p = 4, n_m = 4, n_np = 4 }
+scenes = ["whitted"]
+
+[[methods]]
+name = "kim21"
+label = "Sel_Fov"
+scenes = ["whitted"]
+
+[[methods]]
+name = "rrm"
+label = "rrm"
+options = { group_w = 1, group_h = 2 }
+
+[[methods]]
+name = "weier18"
+label = "weier18"
+scenes = ["whitted?max_depth=0"]
+
+[[methods]]
+name = "weier18"
+label = "weier18 full"
+options = { r0 = 90.0, r1 = 90.0, p_min = 1.0 }
+scenes = ["whitted?max_depth=0"]
+"""
+
+
+def table_lines(markdown: str, title: str) -> list[list[str]]:
+    """The body rows of the Markdown table under the heading that starts with `title`."""
+    section = markdown.split(f"### {title}")[1].split("###")[0]
+    return [
+        [c.strip() for c in line.strip("|").split("|")] for line in section.splitlines()[4:] if line.startswith("|")
+    ]
+
+
+def test_paper_tables_are_filled_from_the_labelled_cells_of_each_scene(tmp_path):
+    config = tmp_path / "tables.toml"
+    config.write_text(TABLES)
+    assert main(["eval", str(config), "--out", str(tmp_path / "out"), "--no-plots"]) == 0
+    rows = json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
+    assert {r["scene"] for r in rows if r["label"] == "weier18"} == {"whitted?max_depth=0"}  # scenes = [...]
+    assert (
+        len(rows) == 6 + 4
+    )  # whitted: full, weier16, Regular_36, Selective, Sel_Fov, rrm; the other: full, rrm, 2 x weier18
+    markdown = (tmp_path / "out" / "tables.md").read_text()
+    by = {(r["scene"], r["label"]): r for r in rows}
+
+    [weier16] = table_lines(markdown, "weier2016")
+    full, ours = by["whitted", "full"], by["whitted", "weier16"]
+    assert weier16[0] == "whitted" and float(weier16[-1]) == pytest.approx(
+        full["ms_per_frame"] / ours["ms_per_frame"], abs=0.01
+    )
+    assert weier16[5] == f"{ours['stages_ms']['trace']:.2f}"  # the trace stage's mean ms
+
+    kim = table_lines(markdown, "kim2021")
+    assert [line[1] for line in kim] == ["Regular_36", "Regular_1", "Selective", "Sel_Fov"]
+    assert kim[1][2] == f"{full['ms_per_frame']:.1f}"  # Regular_1 is full's cell
+    assert by["whitted", "Regular_36"]["rays_primary"] == 3 * 48 * 54
+
+    smith = table_lines(markdown, "smith2013")
+    assert sorted(line[1] for line in smith) == ["no", "yes"]  # with and without secondary rays
+
+    foveated, every = table_lines(markdown, "weier2018")
+    assert (foveated[1], every[1]) == ("foveated", "full")
+    assert int(every[-1].replace(",", "")) == 48 * 54 > int(foveated[-1].replace(",", ""))
+
+
+def test_full_and_regular_skip_the_warm_up_frames(tmp_path):
+    config = tmp_path / "e.toml"
+    config.write_text(EVAL.replace("frames = 4\nwarmup_frames = 1", "frames = 5\nwarmup_frames = 3"))
+    load = load_eval_config(config)
+    from hmdrt.evaluate import runner
+
+    calls: dict[str, int] = {}
+    real = runner.make_method
+
+    def counting(spec, tracer):
+        method = real(spec, tracer)
+        render = method.render
+
+        def counted(request, stats):
+            calls[spec] = calls.get(spec, 0) + 1
+            return render(request, stats)
+
+        method.render = counted
+        return method
+
+    runner.make_method = counting
+    try:
+        runner.evaluate(load, progress=False)
+    finally:
+        runner.make_method = real
+    assert calls["full"] == 2 * 2  # two traces x the two timed frames
+    assert calls["rrm?group_w=1&group_h=1&fovea_deg=5.0"] == 2 * 5

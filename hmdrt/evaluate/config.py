@@ -47,16 +47,26 @@ class Trace(_Table):
 
 
 class MethodSweep(_Table):
-    """A method with fixed options and a sweep: one cell per combination of the sweep's values."""
+    """A method with fixed options and a sweep: one cell per combination of the sweep's values. A label names
+    the cell in tables and plots (a sweep's cells add their values to it)."""
 
     name: str
     options: dict[str, Scalar] = {}
     sweep: dict[str, list[Scalar]] = {}
+    label: str = ""
+    scenes: list[str] = []  # only on these of the config's scenes ([]: on all)
 
-    def specs(self) -> list[str]:
+    def cells(self) -> list[tuple[str, str]]:
+        """(spec, label) of each cell."""
         keys = list(self.sweep)
         combos = itertools.product(*(self.sweep[k] for k in keys)) if keys else [()]
-        return [method_spec(self.name, {**self.options, **dict(zip(keys, combo, strict=True))}) for combo in combos]
+        out = []
+        for combo in combos:
+            swept = dict(zip(keys, combo, strict=True))
+            spec = method_spec(self.name, {**self.options, **swept})
+            label = " ".join([self.label, *(f"{k}={v}" for k, v in swept.items())]) if self.label else spec
+            out.append((spec, label))
+        return out
 
 
 def default_cache_dir() -> str:
@@ -74,6 +84,7 @@ class EvalConfig(_Table):
     seed: int = 0
     threads: Annotated[int, msgspec.Meta(ge=0, le=256)] = 0  # tracing threads (0: all cores)
     cache_dir: str = ""  # ground truths are cached here ("": $XDG_CACHE_HOME/hmdrt/truth)
+    tables: list[Literal["weier2016", "kim2021", "smith2013", "weier2018"]] = []  # the papers' tables to fill
     crop_px: Annotated[int, msgspec.Meta(ge=8, le=4096)] = 96  # side of the crops at the gaze point
     traces: list[Trace] = msgspec.field(default_factory=lambda: [Trace(gaze="0,0")])
     methods: list[MethodSweep] = msgspec.field(default_factory=lambda: [MethodSweep("full"), MethodSweep("rrm")])
@@ -84,10 +95,16 @@ class EvalConfig(_Table):
             raise ValueError(f"warmup_frames ({self.warmup_frames}) must be fewer than frames ({self.frames})")
         if not (self.scenes and self.profiles and self.traces and self.methods):
             raise ValueError("scenes, profiles, traces and methods each need at least one entry")
+        for m in self.methods:
+            if unknown := set(m.scenes) - set(self.scenes):
+                raise ValueError(f"method {m.name!r} names scenes not in scenes: {', '.join(sorted(unknown))}")
 
-    def specs(self) -> list[str]:
-        """Every method cell as "name?key=value&...", in config order, without repeats."""
-        return list(dict.fromkeys(spec for m in self.methods for spec in m.specs()))
+    def cells(self, scene: str | None = None) -> dict[str, str]:
+        """Every method cell (on `scene`; None: on any) as "name?key=value&..." and its label, in config order,
+        without repeats."""
+        return dict(
+            cell for m in self.methods if scene is None or not m.scenes or scene in m.scenes for cell in m.cells()
+        )
 
 
 def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
@@ -102,6 +119,6 @@ def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
         for t in config.traces
     ]
     cache = str(base / config.cache_dir) if config.cache_dir else default_cache_dir()
-    for spec in config.specs():
+    for spec in config.cells():
         method_params(spec)
     return msgspec.structs.replace(config, traces=traces, cache_dir=cache, source=str(path))

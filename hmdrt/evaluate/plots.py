@@ -38,7 +38,7 @@ def error_vs_time(rows: list[dict], folder: Path) -> list[Path]:
             marker = "*" if r["method"] == "full" else "o"
             ax.scatter(r["ms_per_frame"], r["psnr_fovea"], marker=marker, s=60 if r["pareto"] else 25)
             ax.annotate(
-                r["params"], (r["ms_per_frame"], r["psnr_fovea"]), fontsize=6, xytext=(3, 3), textcoords="offset points"
+                r["label"], (r["ms_per_frame"], r["psnr_fovea"]), fontsize=6, xytext=(3, 3), textcoords="offset points"
             )
         front = sorted((r["ms_per_frame"], r["psnr_fovea"]) for r in group if r["pareto"])
         if front:
@@ -62,7 +62,7 @@ def band_psnr(rows: list[dict], folder: Path) -> list[Path]:
         width = 0.8 / len(group)
         for i, r in enumerate(group):
             values = [r[f"psnr_{b}"] if r[f"psnr_{b}"] is not None else np.nan for b in bands]
-            ax.bar(np.arange(len(bands)) + i * width, np.minimum(values, 99.0), width, label=r["params"])
+            ax.bar(np.arange(len(bands)) + i * width, np.minimum(values, 99.0), width, label=r["label"])
         ax.set_xticks(np.arange(len(bands)) + 0.4 - width / 2, [b.replace("_", " ") for b in bands], fontsize=8)
         ax.set_ylabel("PSNR (dB)")
         ax.set_title(f"PSNR per band: {scene} at {profile}, {trace}", fontsize=9)

@@ -1,5 +1,5 @@
-"""What `hmdrt eval` writes: results.csv and results.json (one row per cell; written atomically), the plots, and
-a short table on stdout."""
+"""What `hmdrt eval` writes: results.csv and results.json (one row per cell), tables.md when the config asks
+for the papers' tables (all written atomically), the plots, and a short table on stdout."""
 
 from __future__ import annotations
 
@@ -12,24 +12,36 @@ from hmdrt.atomic import write_atomic
 from hmdrt.evaluate import plots
 from hmdrt.evaluate.config import EvalConfig
 from hmdrt.evaluate.runner import Evaluation
+from hmdrt.evaluate.tables import paper_tables
 from hmdrt.quality import BANDS
 
 
 def write_results(evaluation: Evaluation, config: EvalConfig, out: Path, with_plots: bool = True) -> list[Path]:
     """Write the results into `out`; the paths written."""
-    rows = evaluation.rows
+    rows = [flat(r) for r in evaluation.rows]
+    fields = list(dict.fromkeys(k for r in rows for k in r))
     text = io.StringIO()
-    writer = csv.DictWriter(text, fieldnames=list(rows[0]), lineterminator="\n")
+    writer = csv.DictWriter(text, fieldnames=fields, lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
     write_atomic(out / "results.csv", text.getvalue().encode())
     write_atomic(out / "results.json", (json.dumps(evaluation.to_dict(config), indent=2) + "\n").encode())
     written = [out / "results.csv", out / "results.json"]
+    if config.tables:
+        write_atomic(out / "tables.md", paper_tables(evaluation.rows, config.tables).encode())
+        written.append(out / "tables.md")
     if with_plots:
-        written += plots.error_vs_time(rows, out)
-        written += plots.band_psnr(rows, out)
+        written += plots.error_vs_time(evaluation.rows, out)
+        written += plots.band_psnr(evaluation.rows, out)
         written += plots.crops(evaluation.crops, config.crop_px, out)
     return written
+
+
+def flat(row: dict) -> dict:
+    """A row with its stage times as stage_ms_NAME columns, for the CSV."""
+    out = {k: v for k, v in row.items() if k != "stages_ms"}
+    out.update({f"stage_ms_{k}": v for k, v in row["stages_ms"].items()})
+    return out
 
 
 def _cell(value: float | None, spec: str) -> str:
@@ -46,7 +58,7 @@ def table(evaluation: Evaluation) -> str:
     ]
     for r in evaluation.rows:
         lines.append(
-            f"{r['scene'][:12]:12s} {r['profile'][:8]:8s} {r['trace'][:14]:14s} {r['params'][:40]:40s} "
+            f"{r['scene'][:12]:12s} {r['profile'][:8]:8s} {r['trace'][:14]:14s} {r['label'][:40]:40s} "
             f"{r['ms_per_frame']:8.1f} {_cell(r['speedup_vs_full'], '7.2f'):>7s} {r['rays_per_frame']:10,d} "
             + " ".join(f"{_cell(r[f'psnr_{b}'], '9.2f'):>9s}" for b in bands)
             + ("  *" if r["pareto"] else "")

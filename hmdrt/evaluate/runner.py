@@ -2,8 +2,9 @@
 virtual time, timed per frame, and scored per eccentricity band against the cached ground truth.
 
 Within a scene, profile and trace the methods render frame by frame in turn, so that load on a shared machine
-hits every method alike; the first warmup_frames frames (compilation, empty temporal history, RRM's first
-refresh cycle) are rendered but neither timed nor scored. ms_per_frame is the median of the timed frames.
+hits every method alike; the first warmup_frames frames (empty temporal history, RRM's first refresh cycle) are
+rendered but neither timed nor scored (full and regular, which keep no history, skip them). ms_per_frame is the
+median of the timed frames.
 """
 
 from __future__ import annotations
@@ -26,20 +27,23 @@ from hmdrt.optics import get_profile
 from hmdrt.quality import BandScores
 from hmdrt.scene import load_scene
 from hmdrt.sequence import eye_cameras, frame_requests, sequence_inputs
-from hmdrt.telemetry.stats import FrameStats
+from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
 
-REFERENCES = ("full", "regular")  # not foveated: never the "best foveated" cell
+REFERENCES = ("full", "regular")  # not foveated (never the "best foveated" cell) and stateless (no warm-up)
 
 
 @dataclass
 class _Cell:
     spec: str
+    label: str
     method: Method
     scores: BandScores = field(default_factory=BandScores)
     ms: list[float] = field(default_factory=list)
     rays: list[int] = field(default_factory=list)
     fractions: list[float] = field(default_factory=list)
+    stages_ms: dict[str, float] = field(default_factory=dict)  # summed over the timed frames, top-level stages
+    rays_by_kind: dict[str, int] = field(default_factory=lambda: dict.fromkeys(RAY_KINDS, 0))  # summed likewise
     last: np.ndarray | None = None
 
 
@@ -89,12 +93,14 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
     """Render and score every cell of `config`; a progress bar on stderr when `progress` and it is a terminal."""
     started = time.perf_counter()
     cache = TruthCache(config.cache_dir, config.truth_spp, config.seed)
-    specs = config.specs()
-    total = len(config.scenes) * len(config.profiles) * len(config.traces) * config.frames * len(specs)
+    cells_per_scene = sum(len(config.cells(scene)) for scene in config.scenes)
+    total = len(config.profiles) * len(config.traces) * config.frames * cells_per_scene
     rows: list[dict] = []
     crops: list[Crops] = []
     with tqdm(total=total, unit="frame", disable=None if progress else True, leave=False) as bar:
         for scene_name in config.scenes:
+            if not config.cells(scene_name):
+                continue
             scene = load_scene(scene_name)
             with Whitted(scene, threads=config.threads or None) as tracer:
                 truth = partial(cache.get, tracer, scene_digest(scene))
@@ -110,10 +116,13 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
                         gaze=trace.gaze or "0,0",
                         seed=config.seed,
                     )
-                    cells = [_Cell(spec, make_method(spec, tracer)) for spec in specs]
+                    cells = [
+                        _Cell(spec, label, make_method(spec, tracer))
+                        for spec, label in config.cells(scene_name).items()
+                    ]
                     last = _render(inputs, cells, profile, truth, config, bar.update)
                     rows += _rows(group, cells, profile)
-                    crops.append(Crops(**group, **last, images={c.spec: c.last for c in cells}))
+                    crops.append(Crops(**group, **last, images={c.label: c.last for c in cells}))
     return Evaluation(rows, summarise(rows), crops, cache.rendered, cache.read, time.perf_counter() - started)
 
 
@@ -129,6 +138,9 @@ def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, t
             eccentricity = request.camera.eccentricity(request.gaze)
             last = {"truth": truth, "gaze_xy": tuple(float(v) for v in request.camera.gaze_pixel(request.gaze))}
         for cell in cells:
+            if not scored and cell.method.name in REFERENCES:
+                tick()  # stateless: nothing to warm up
+                continue
             stats = FrameStats()
             t = time.perf_counter()
             image = cell.method.render(request, stats)
@@ -137,9 +149,14 @@ def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, t
                 pixels = image.shape[0] * image.shape[1]
                 cell.ms.append(ms)
                 cell.rays.append(sum(stats.rays.values()))
+                for kind, n in stats.rays.items():
+                    cell.rays_by_kind[kind] += n
                 cell.fractions.append(stats.metrics.get("sample_fraction", stats.rays["primary"] / pixels))
                 cell.scores.add(image, truth, eccentricity)
                 cell.last = image.copy()
+                for stage, stage_ms in stats.stages_ms.items():
+                    if "/" not in stage:
+                        cell.stages_ms[stage] = cell.stages_ms.get(stage, 0.0) + stage_ms
             tick()
     return last
 
@@ -154,11 +171,14 @@ def _rows(group: dict, cells: list[_Cell], profile) -> list[dict]:
                 "height": profile.height,
                 "method": cell.spec.partition("?")[0],
                 "params": cell.spec,
+                "label": cell.label,
                 "frames": len(cell.ms),
                 "ms_per_frame": round(statistics.median(cell.ms), 3),
                 "rays_per_frame": round(float(np.mean(cell.rays))),
+                **{f"rays_{k}": round(n / len(cell.ms)) for k, n in cell.rays_by_kind.items()},
                 "sample_fraction": round(float(np.mean(cell.fractions)), 5),
                 **{k: _round(v) for k, v in cell.scores.result().items()},
+                "stages_ms": {k: round(v / len(cell.ms), 3) for k, v in cell.stages_ms.items()},
             }
         )
     full = next((r for r in rows if r["method"] == "full"), None)
@@ -208,7 +228,7 @@ def summarise(rows: list[dict]) -> list[dict]:
             ]
             best = min(candidates, key=lambda r: r["ms_per_frame"], default=None)
         entry.update(
-            best=None if best is None else best["params"],
+            best=None if best is None else best["label"],
             best_ms=None if best is None else best["ms_per_frame"],
             best_psnr_fovea=None if best is None else best["psnr_fovea"],
             best_speedup=None if best is None else best["speedup_vs_full"],

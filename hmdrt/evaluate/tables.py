@@ -1,0 +1,133 @@
+"""The papers' tables filled from eval rows (configs/eval/paper_tables.toml), as Markdown.
+
+A table takes, per scene, the rows whose labels it names; a scene without all of them is left out:
+- weier2016 Table 1: "full" and "weier16": rays, per-stage ms (reproject, trace, cache update, merge, post),
+  total and speed-up (section 4.1);
+- kim2021 Table 2: "Regular_36", "full" (the paper's Regular_1), "Selective", "Sel_Fov": ms, rays and PSNR in
+  the four central bands (section 5);
+- smith2013: "full" and "rrm" on a scene with and without secondary rays: ms and speed-up (section 5);
+- weier2018 Table 1: "weier18" and "weier18 full": ray tracing, TAA, PPI, CoC, filter, combine, total and
+  samples (section 4.1).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+Row = dict
+
+
+def _markdown(header: list[str], lines: list[list[str]]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(line) + " |" for line in lines]
+    return "\n".join(out)
+
+
+def _by_scene(rows: list[Row], labels: tuple[str, ...]) -> list[tuple[str, dict[str, Row]]]:
+    """(scene, {label: row}) for each scene, profile and trace that has a row for every label."""
+    groups: dict[tuple, dict[str, Row]] = {}
+    for r in rows:
+        if r["label"] in labels:
+            groups.setdefault((r["scene"], r["profile"], r["trace"]), {})[r["label"]] = r
+    return [(key[0], found) for key, found in groups.items() if set(found) == set(labels)]
+
+
+def _ms(row: Row, stage: str) -> str:
+    value = row["stages_ms"].get(stage)
+    return "-" if value is None else f"{value:.2f}"
+
+
+def _mrays(row: Row) -> str:
+    n = row["rays_per_frame"]
+    return f"{n / 1e6:.2f}M" if n >= 1e5 else f"{n / 1e3:.1f}k"
+
+
+def _db(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+def weier2016(rows: list[Row]) -> str:
+    header = ["scene", "rays full", "rays ours", "full ms", "reproject", "trace", "cache update", "merge", "post",
+              "ours ms", "speed-up"]  # fmt: skip
+    lines = [
+        [
+            scene,
+            _mrays(f),
+            _mrays(o),
+            f"{f['ms_per_frame']:.1f}",
+            *(_ms(o, s) for s in ("reproject", "trace", "cache_update", "merge", "post")),
+            f"{o['ms_per_frame']:.1f}",
+            f"{f['ms_per_frame'] / o['ms_per_frame']:.2f}",
+        ]
+        for scene, found in _by_scene(rows, ("full", "weier16"))
+        for f, o in [(found["full"], found["weier16"])]
+    ]
+    return _markdown(header, lines)
+
+
+KIM21_LABELS = ("Regular_36", "full", "Selective", "Sel_Fov")  # full is the paper's Regular_1
+
+
+def kim2021(rows: list[Row]) -> str:
+    header = ["scene", "method", "ms", "rays (k)", "fovea dB", "parafovea dB", "perifovea dB", "near periphery dB"]
+    lines = [
+        [
+            scene,
+            "Regular_1" if label == "full" else label,
+            f"{r['ms_per_frame']:.1f}",
+            f"{r['rays_per_frame'] / 1e3:,.0f}",
+            *(_db(r[f"psnr_{b}"]) for b in ("fovea", "parafovea", "perifovea", "near_periphery")),
+        ]
+        for scene, found in _by_scene(rows, KIM21_LABELS)
+        for label in KIM21_LABELS
+        for r in [found[label]]
+    ]
+    return _markdown(header, lines)
+
+
+def smith2013(rows: list[Row]) -> str:
+    header = ["scene", "secondary rays", "full ms", "rrm ms", "rays full", "rays rrm", "speed-up"]
+    lines = [
+        [
+            scene,
+            "yes" if f["rays_secondary"] else "no",
+            f"{f['ms_per_frame']:.1f}",
+            f"{r['ms_per_frame']:.1f}",
+            _mrays(f),
+            _mrays(r),
+            f"{f['ms_per_frame'] / r['ms_per_frame']:.2f}",
+        ]
+        for scene, found in _by_scene(rows, ("full", "rrm"))
+        for f, r in [(found["full"], found["rrm"])]
+    ]
+    return _markdown(header, lines)
+
+
+def weier2018(rows: list[Row]) -> str:
+    header = ["scene", "mode", "ray tracing", "TAA", "PPI", "CoC", "filter", "combine", "total", "samples"]
+    stages = ("trace", "taa", "ppi", "coc", "dof_filter", "combine")
+    lines = [
+        [
+            scene,
+            mode,
+            *(_ms(r, s) for s in stages),
+            f"{r['ms_per_frame']:.2f}",
+            f"{round(r['sample_fraction'] * r['width'] * r['height']):,d}",
+        ]
+        for scene, found in _by_scene(rows, ("weier18", "weier18 full"))
+        for mode, r in (("foveated", found["weier18"]), ("full", found["weier18 full"]))
+    ]
+    return _markdown(header, lines)
+
+
+TABLES: dict[str, tuple[str, Callable[[list[Row]], str]]] = {
+    "weier2016": ("weier2016 Table 1: ms per stage, full vs foveated (weier16, r0 10, r1 20, p_min 0.05)", weier2016),
+    "kim2021": ("kim2021 Table 2: time, rays and PSNR per band against regular 36 spp", kim2021),
+    "smith2013": ("smith2013: RRM's speed-up over full, with and without secondary rays", smith2013),
+    "weier2018": ("weier2018 Table 1: ms per stage, foveated vs full sampling, and samples", weier2018),
+}
+
+
+def paper_tables(rows: list[Row], names: list[str]) -> str:
+    """The named tables as one Markdown document."""
+    return "\n\n".join(f"### {TABLES[name][0]}\n\n{TABLES[name][1](rows)}" for name in names) + "\n"
