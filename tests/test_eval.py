@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -348,3 +349,28 @@ def test_full_and_regular_skip_the_warm_up_frames(tmp_path):
         runner.make_method = real
     assert calls["full"] == 2 * 2  # two traces x the two timed frames
     assert calls["rrm?group_w=1&group_h=1&fovea_deg=5.0"] == 2 * 5
+
+
+def test_jod_without_the_eval_extra_is_a_one_line_error(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyfvvdp", None)  # as if not installed: importing it raises ImportError
+    config = tmp_path / "e.toml"
+    config.write_text("jod = true\n")
+    with pytest.raises(ConfigError, match=r"jod = true needs the eval extra \(pip install -e '\.\[eval\]'\)"):
+        load_eval_config(config)
+
+
+def test_jod_scores_foveated_output_against_the_truth_when_the_eval_extra_is_installed(tmp_path):
+    pytest.importorskip("pyfvvdp")
+    from hmdrt.evaluate.perceptual import JodScorer
+
+    profile = get_profile("sim-cpu").with_resolution_text("64x72")
+    scorer = JodScorer(profile, "left")
+    truth = RNG.random((72, 64, 3), dtype=np.float32) * 0.5
+    noisy = np.clip(truth + RNG.normal(0, 0.05, truth.shape).astype(np.float32), 0, 1)
+    assert scorer.score(truth, truth, (32, 36)) == pytest.approx(10.0, abs=1e-3)
+    assert 0 < scorer.score(noisy, truth, (32, 36)) < 9.9
+    config = tmp_path / "e.toml"
+    config.write_text(EVAL.replace("frames = 4", "jod = true\nframes = 3"))
+    assert main(["eval", str(config), "--out", str(tmp_path / "out"), "--no-plots"]) == 0
+    rows = json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
+    assert all(0 < r["jod"] <= 10 for r in rows)

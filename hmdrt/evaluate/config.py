@@ -13,6 +13,7 @@ import msgspec
 
 from hmdrt.configfile import convert, read_toml
 from hmdrt.errors import ConfigError
+from hmdrt.evaluate import perceptual
 from hmdrt.foveation import method_params, method_spec
 from hmdrt.spatial import parse_gaze
 
@@ -84,6 +85,7 @@ class EvalConfig(_Table):
     seed: int = 0
     threads: Annotated[int, msgspec.Meta(ge=0, le=256)] = 0  # tracing threads (0: all cores)
     cache_dir: str = ""  # ground truths are cached here ("": $XDG_CACHE_HOME/hmdrt/truth)
+    jod: bool = False  # FovVideoVDP's foveated JOD per cell (needs the eval extra)
     tables: list[Literal["weier2016", "kim2021", "smith2013", "weier2018"]] = []  # the papers' tables to fill
     crop_px: Annotated[int, msgspec.Meta(ge=8, le=4096)] = 96  # side of the crops at the gaze point
     traces: list[Trace] = msgspec.field(default_factory=lambda: [Trace(gaze="0,0")])
@@ -121,4 +123,6 @@ def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
     cache = str(base / config.cache_dir) if config.cache_dir else default_cache_dir()
     for spec in config.cells():
         method_params(spec)
+    if config.jod:
+        perceptual.require()
     return msgspec.structs.replace(config, traces=traces, cache_dir=cache, source=str(path))

@@ -21,6 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from hmdrt.evaluate.config import EvalConfig
+from hmdrt.evaluate.perceptual import JodScorer
 from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.foveation import Method, make_method
 from hmdrt.optics import get_profile
@@ -43,6 +44,7 @@ class _Cell:
     rays: list[int] = field(default_factory=list)
     fractions: list[float] = field(default_factory=list)
     stages_ms: dict[str, float] = field(default_factory=dict)  # summed over the timed frames, top-level stages
+    jod: list[float] = field(default_factory=list)
     rays_by_kind: dict[str, int] = field(default_factory=lambda: dict.fromkeys(RAY_KINDS, 0))  # summed likewise
     last: np.ndarray | None = None
 
@@ -120,13 +122,14 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
                         _Cell(spec, label, make_method(spec, tracer))
                         for spec, label in config.cells(scene_name).items()
                     ]
-                    last = _render(inputs, cells, profile, truth, config, bar.update)
+                    jod = JodScorer(profile, config.eye) if config.jod else None
+                    last = _render(inputs, cells, profile, truth, config, bar.update, jod)
                     rows += _rows(group, cells, profile)
                     crops.append(Crops(**group, **last, images={c.label: c.last for c in cells}))
     return Evaluation(rows, summarise(rows), crops, cache.rendered, cache.read, time.perf_counter() - started)
 
 
-def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, tick) -> dict:
+def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, tick, jod: JodScorer | None) -> dict:
     """Each input frame through every cell's method in turn; the frames after the warm-up timed and scored.
     Returns the last scored frame's truth and gaze pixel."""
     last: dict = {}
@@ -154,6 +157,8 @@ def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, t
                 cell.fractions.append(stats.metrics.get("sample_fraction", stats.rays["primary"] / pixels))
                 cell.scores.add(image, truth, eccentricity)
                 cell.last = image.copy()
+                if jod is not None:
+                    cell.jod.append(jod.score(image, truth, last["gaze_xy"]))
                 for stage, stage_ms in stats.stages_ms.items():
                     if "/" not in stage:
                         cell.stages_ms[stage] = cell.stages_ms.get(stage, 0.0) + stage_ms
@@ -178,6 +183,7 @@ def _rows(group: dict, cells: list[_Cell], profile) -> list[dict]:
                 **{f"rays_{k}": round(n / len(cell.ms)) for k, n in cell.rays_by_kind.items()},
                 "sample_fraction": round(float(np.mean(cell.fractions)), 5),
                 **{k: _round(v) for k, v in cell.scores.result().items()},
+                **({"jod": round(float(np.mean(cell.jod)), 4)} if cell.jod else {}),
                 "stages_ms": {k: round(v / len(cell.ms), 3) for k, v in cell.stages_ms.items()},
             }
         )
