@@ -43,7 +43,8 @@ def _mrays(row: Row) -> str:
 
 
 def _db(value: float | None) -> str:
-    return "-" if value is None else f"{value:.2f}"
+    """dB; infinite: the image is the truth itself (Regular_36 against the truth it renders)."""
+    return "-" if value is None else "= truth" if value == float("inf") else f"{value:.2f}"
 
 
 def weier2016(rows: list[Row]) -> str:
