@@ -29,11 +29,14 @@ from hmdrt.bus.messages import ClockEstimate
 
 @nb.njit(cache=True)
 def _line(x: np.ndarray, y: np.ndarray, min_span: float) -> tuple[float, float]:
-    """Offset and drift through the minima (least squares); a flat lower bound until they span min_span."""
+    """Offset and drift through the minima (least squares); a flat lower bound until they span min_span
+    (and while they all share one device time, where the slope is 0 / 0)."""
     if x.size >= 3 and x[-1] - x[0] >= min_span:
         dx = x - x.mean()
-        drift = (dx * (y - y.mean())).sum() / (dx * dx).sum()
-        return y.mean() - drift * x.mean(), drift
+        spread = (dx * dx).sum()
+        if spread > 0.0:
+            drift = (dx * (y - y.mean())).sum() / spread
+            return y.mean() - drift * x.mean(), drift
     return y.min(), 0.0
 
 
@@ -68,6 +71,11 @@ class ClockSync:
         min_span_ns: int = 2_000_000_000,
         floor_ns: int = 0,
     ):
+        if window_ns <= 0 or windows < 1 or reset_ns <= 0 or min_span_ns < 0 or (wrap_ns is not None and wrap_ns <= 0):
+            raise ValueError(
+                "clock sync needs window_ns > 0, windows >= 1, reset_ns > 0, min_span_ns >= 0 and wrap_ns > 0 or None;"
+                f" got {window_ns}, {windows}, {reset_ns}, {min_span_ns}, {wrap_ns}"
+            )
         self.window_ns = window_ns
         self.wrap_ns = wrap_ns
         self.reset_ns = reset_ns

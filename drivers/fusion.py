@@ -18,7 +18,10 @@ translations do not tip the estimate. The first sample with a usable acceleromet
 directly (yaw starts at 0). Steps with dt <= 0 change nothing; a step longer than max_dt_ns (a stall:
 the device paused or samples were lost) is clamped to max_dt_ns and counted in `clamped`, because
 spreading one gyro reading over time it did not observe would invent rotation; the accelerometer then
-re-levels pitch and roll. Non-finite samples are counted in `rejected` and skipped. The quaternion
+re-levels pitch and roll. The correction is explicit: a step of dt turns by gain * dt times the error,
+which overshoots past gain * dt = 1 and diverges past 2 (the explicit-integration stability limit), so
+each step uses min(gain, 1 / dt), removing the error in one step at most, and counts the steps it
+limited in `gain_limited`. Non-finite samples are counted in `rejected` and skipped. The quaternion
 (w, x, y, z) is renormalised every step, so it never leaves the unit sphere and never becomes NaN.
 
 Axes: the filter works in the head frame of DESIGN.md (+X right, +Y up, +Z back); the driver hands it
@@ -54,6 +57,7 @@ class OrientationFusion:
         self._north_sum = [0.0, 0.0, int(north_s * 1e9)]  # heading sum, and the time left to add to it
         self.clamped = 0
         self.rejected = 0
+        self.gain_limited = 0
 
     def _up_direction(self, accel: Sequence[float]) -> tuple[float, float, float] | None:
         """The measured up direction (unit) if the accelerometer reads close to 1 g, else None."""
@@ -110,15 +114,20 @@ class OrientationFusion:
         if dt_ns > self.max_dt_ns:
             self.clamped += 1
             dt_ns = self.max_dt_ns
+        dt = dt_ns * 1e-9
+        gain = self.gain
+        if gain * dt > 1.0:
+            gain = 1.0 / dt
+            self.gain_limited += 1
         w, x, y, z = self.orientation
         gx, gy, gz = gyro
         # Up direction predicted by the estimate: R^T (0, 1, 0), the second row of R(q).
         vx, vy, vz = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
         if up is not None:
             ax, ay, az = up
-            gx += self.gain * (ay * vz - az * vy)
-            gy += self.gain * (az * vx - ax * vz)
-            gz += self.gain * (ax * vy - ay * vx)
+            gx += gain * (ay * vz - az * vy)
+            gy += gain * (az * vx - ax * vz)
+            gz += gain * (ax * vy - ay * vx)
         heading = self._heading(mag) if mag is not None else None
         if heading is not None and self.north is None:
             self._learn_north(heading, dt_ns)
@@ -126,8 +135,7 @@ class OrientationFusion:
             # the estimate's yaw error: the signed angle about +Y from the reference heading to this one
             nx, nz = self.north
             error = math.atan2(nz * heading[0] - nx * heading[1], nx * heading[0] + nz * heading[1])
-            gx, gy, gz = gx - self.gain * error * vx, gy - self.gain * error * vy, gz - self.gain * error * vz
-        dt = dt_ns * 1e-9
+            gx, gy, gz = gx - gain * error * vx, gy - gain * error * vy, gz - gain * error * vz
         rate = math.sqrt(gx * gx + gy * gy + gz * gz)
         if not math.isfinite(rate * dt):  # rates so large the step overflows
             self.rejected += 1

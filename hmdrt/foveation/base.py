@@ -29,7 +29,9 @@ EYES = ("left", "right")
 class FrameRequest:
     """One eye's frame: its camera, that eye's unit gaze (head frame), frame number, seed and eye.
 
-    gaze_depth_m is the vergence depth of the two eyes' gaze when the source knows it.
+    gaze_depth_m is the vergence depth of the two eyes' gaze when the source knows it. A gaze that is not a
+    finite, non-zero 3-vector (NaN from a tracker, say) is refused with ValueError: every method would
+    otherwise turn it into NaN eccentricities and render without a fovea.
     """
 
     camera: EyeCamera
@@ -38,6 +40,11 @@ class FrameRequest:
     seed: int = 0
     eye: str = "left"
     gaze_depth_m: float | None = None
+
+    def __post_init__(self) -> None:
+        g = np.asarray(self.gaze, dtype=np.float64)
+        if g.shape != (3,) or not np.all(np.isfinite(g)) or not np.any(g):
+            raise ValueError(f"gaze must be a finite, non-zero 3-vector (head frame), got {self.gaze!r}")
 
 
 @dataclass(frozen=True)

@@ -41,6 +41,7 @@ Positive = Annotated[float, msgspec.Meta(gt=0.0, le=1e3)]
 Threshold = Annotated[float, msgspec.Meta(ge=0.0, le=10.0)]
 Samples = Annotated[int, msgspec.Meta(ge=1, le=16)]
 Deg = Annotated[float, msgspec.Meta(ge=0.0, le=180.0)]
+Weight = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]  # a blending factor: above 1, (1 - a)^i changes sign
 MAX_SUBPIXEL_SAMPLES = 16
 POPCOUNT4 = np.array([bin(m).count("1") for m in range(16)], np.int64)
 
@@ -79,7 +80,7 @@ class Kim21Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     tau_reuse: Threshold = 1.0
     smooth: bool = True
     smooth_frames: Annotated[int, msgspec.Meta(ge=0, le=4)] = 4
-    alpha: tuple[Threshold, Threshold, Threshold, Threshold, Threshold, Threshold] = (0.9, 0.8, 0.7, 0.5, 0.2, 0.1)
+    alpha: tuple[Weight, Weight, Weight, Weight, Weight, Weight] = (0.9, 0.8, 0.7, 0.5, 0.2, 0.1)
     depth_tolerance: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 0.02  # relative, for reuse and smoothing
 
     def __post_init__(self) -> None:

@@ -24,7 +24,16 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.base import HISTORY, Configurable, FrameRequest, Stage, pixel_keys, plan
-from hmdrt.foveation.stages.dof import DEPTH_INACCURACY_M, DOF_PRESETS, DofPreset, coc_map, gaze_depth, layered_blur
+from hmdrt.foveation.stages.dof import (
+    DEPTH_INACCURACY_M,
+    DOF_PRESETS,
+    MAX_BLUR_PX,
+    DofPreset,
+    coc_map,
+    focal_lengths,
+    gaze_depth,
+    layered_blur,
+)
 from hmdrt.foveation.stages.filters import contrast_enhance
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push, quincunx_rgbd
 from hmdrt.foveation.stages.reproject import FAR, camera_arrays, project, world_point
@@ -207,11 +216,15 @@ class Weier18(Configurable):
                 dense_depth = np.where(base[..., 4] >= 0.5 * FAR, np.inf, base[..., 4])
                 focus = gaze_depth(dense_depth, por, ppd, request.gaze_depth_m)
             with stats.stage("coc"):
-                coc = coc_map(dense_depth, focus, preset, ppd)
+                coc = coc_map(dense_depth, focus, preset, ppd, p.depth_inaccuracy_m)
             with stats.stage("dof_filter"):
                 image = layered_blur(image, coc, ecc, p.r0, p.r1, current)
             stats.metrics["focus_m"] = focus
+            # 1 when focus - t fell below the lens's near limit and d_n was kept at 2 d_i (dof.focal_lengths)
+            near_mm = focal_lengths(focus, p.depth_inaccuracy_m)[0]
+            stats.metrics["focus_near_clamped"] = int(near_mm > focus * 1000.0 - p.depth_inaccuracy_m * 1000.0)
             stats.metrics["coc_max_px"] = float(np.abs(coc).max())
+            stats.metrics["coc_capped_pixels"] = int((np.abs(coc) > MAX_BLUR_PX).sum())  # blurred at the cap
         if "combine" in steps:
             with stats.stage("combine"):
                 image = contrast_enhance(image, ecc, current, p.contrast, p.r0, p.r1)

@@ -34,6 +34,7 @@ def _eye_directions(xy, tan_l, tan_r, tan_u, tan_d, width, height, rot, out):
 _eye_directions_parallel = nb.njit(parallel=True, cache=True)(_eye_directions)
 _eye_directions_serial = nb.njit(cache=True)(_eye_directions)
 PARALLEL_MIN = 4096
+OFF_IMAGE_TAN = 1e6  # gaze_pixel's point of regard for a gaze that never meets the image plane, in tangent units
 
 
 @nb.njit(parallel=True, cache=True)
@@ -132,7 +133,22 @@ class EyeCamera:
         return out.reshape(self.height, self.width) if xy is None else out
 
     def gaze_pixel(self, gaze: np.ndarray) -> np.ndarray:
-        """Continuous pixel coordinates (2,) where the gaze ray (head frame) meets the image plane."""
+        """Continuous pixel coordinates (2,) where the gaze ray (head frame) meets the image plane.
+
+        A gaze at or beyond 90 degrees from the view axis never meets the plane in front of the eye (at 90
+        the point is at infinity, behind the eye project() would mirror it): its point of regard is put
+        OFF_IMAGE_TAN tangent units from the axis in the direction the gaze leans (+x when it points straight
+        back), off any image, so that what is placed around it (a foveal rectangle, weier2018's S_in) is off
+        the image too. ValueError for a gaze that is not a finite, non-zero 3-vector.
+        """
         g = np.asarray(gaze, dtype=np.float64)
+        if g.shape != (3,) or not np.all(np.isfinite(g)) or not np.any(g):
+            raise ValueError(f"gaze must be a finite, non-zero 3-vector (head frame), got {gaze!r}")
+        side = math.hypot(g[0], g[1])
+        if -g[2] * OFF_IMAGE_TAN <= side:
+            tx, ty = (g[0] / side * OFF_IMAGE_TAN, g[1] / side * OFF_IMAGE_TAN) if side > 0.0 else (OFF_IMAGE_TAN, 0.0)
+            x = (tx - self.tan_left) / (self.tan_right - self.tan_left) * self.width
+            y = (self.tan_up - ty) / (self.tan_up - self.tan_down) * self.height
+            return np.array([x, y])
         world = self.position + self.rotation @ g
         return self.project(world[None])[0][0]

@@ -45,33 +45,38 @@ DOF_PRESETS: dict[str, DofPreset | None] = {
 
 def focal_lengths(d_o_m: float, t_m: float = DEPTH_INACCURACY_M) -> tuple[float, float, float, float]:
     """(d_n, d_f, f_n, f_f) in mm: the widened focus range and the focal lengths that image each onto
-    the retina (1/f = 1/d + 1/d_i). d_n is kept above the focal length so the lens equation holds."""
+    the retina (1/f = 1/d + 1/d_i). d_n is kept at 2 d_i or more (where d_o <= t would make it zero or
+    negative), above the focal length so the lens equation holds, and d_f at d_n or more. d_o = inf gives
+    d_n = d_f = inf and f_n = f_f = d_i: focused at infinity."""
     d_o = d_o_m * 1000.0
     d_n = max(d_o - t_m * 1000.0, 2.0 * IMAGE_DISTANCE_MM)
-    d_f = d_o + t_m * 1000.0
+    d_f = max(d_o + t_m * 1000.0, d_n)
     f = lambda d: 1.0 / (1.0 / d + 1.0 / IMAGE_DISTANCE_MM)  # noqa: E731
     return d_n, d_f, f(d_n), f(d_f)
 
 
 @nb.njit(cache=True, inline="always")
 def _image_distance(f, g):
-    """V(F, G) = F G / (G - F): where a lens of focal length F images an object at G (G > F)."""
+    """V(F, G) = F G / (G - F): where a lens of focal length F images an object at G (G > F); F at G = inf."""
+    if math.isinf(g):
+        return f
     return f * g / (g - f)
 
 
 @nb.njit(cache=True, inline="always")
 def circle_of_confusion(g_mm, d_n, d_f, f_n, f_f, k, e):
-    """Equation (3): signed CoC of an object at distance g (mm); 0 inside [d_n, d_f], > 0 near, < 0 far."""
+    """Equation (3): signed CoC of an object at distance g (mm); 0 inside [d_n, d_f], > 0 near, < 0 far.
+
+    An object at or inside the focal length (g <= f: nothing closer than about 2 cm to the eye) has no real
+    image; it takes the CoC of g = f (1 + 1e-9), finite and larger than any other. The blur filters cap every
+    CoC at MAX_BLUR_PX (weier18 counts those pixels in its coc_capped_pixels metric)."""
     if g_mm < d_n:
         f, d = f_n, d_n
     elif g_mm > d_f:
         f, d = f_f, d_f
     else:
         return 0.0
-    if math.isinf(g_mm):
-        vg = f  # an object at infinity is imaged at the focal plane
-    else:
-        vg = _image_distance(f, max(g_mm, f * (1.0 + 1e-9)))
+    vg = _image_distance(f, max(g_mm, f * (1.0 + 1e-9)))  # an object at infinity is imaged at the focal plane
     return (vg - _image_distance(f, d)) * (k * vg) * e
 
 
@@ -83,9 +88,11 @@ def _coc_map(depth_m, d_n, d_f, f_n, f_f, k, e, out):
             out[y, x] = circle_of_confusion(depth_m[y, x] * 1000.0, d_n, d_f, f_n, f_f, k, e)
 
 
-def coc_map(depth_m: np.ndarray, focus_m: float, preset: DofPreset, ppd: float) -> np.ndarray:
-    """Per-pixel signed CoC in pixels for hit distances depth_m (m, inf for misses)."""
-    d_n, d_f, f_n, f_f = focal_lengths(focus_m)
+def coc_map(
+    depth_m: np.ndarray, focus_m: float, preset: DofPreset, ppd: float, t_m: float = DEPTH_INACCURACY_M
+) -> np.ndarray:
+    """Per-pixel signed CoC in pixels for hit distances depth_m (m, inf for misses), focus widened by t_m."""
+    d_n, d_f, f_n, f_f = focal_lengths(focus_m, t_m)
     out = np.empty(depth_m.shape, np.float32)
     _coc_map(depth_m.astype(np.float64), d_n, d_f, f_n, f_f, preset.pupil_mm, preset.retina * ppd / REFERENCE_PPD, out)
     return out
@@ -126,7 +133,8 @@ def _far_gauss(src, coc, central, horizontal, out):
                     out[y, x, ch] = src[y, x, ch]
                 continue
             sigma = max(-0.5 * c0, 0.5)
-            radius = min(int(math.ceil(2.0 * sigma)), MAX_BLUR_PX)
+            # capped before the integer conversion, which would overflow for CoCs beyond about 1e18 pixels
+            radius = MAX_BLUR_PX if sigma >= 0.5 * MAX_BLUR_PX else int(math.ceil(2.0 * sigma))
             wsum = r = g = b = 0.0
             for d in range(-radius, radius + 1):
                 yy, xx = (y, x + d) if horizontal else (y + d, x)

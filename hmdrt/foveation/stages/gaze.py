@@ -14,7 +14,10 @@ class FixationFilter:
     smith2013 places "an auxiliary smoothing filter" between tracker and renderer because peripheral
     vision is sensitive to the jitter of raw fixations; the paper does not specify it. This one is an
     exponential moving average on the unit gaze direction with weight `alpha` for the new sample,
-    which jumps straight to the new sample when it is more than `saccade_deg` away (a saccade).
+    which jumps straight to the new sample when it is more than `saccade_deg` away (a saccade), or when
+    the blend cancels out (the new sample opposite the fixation, possible with saccade_deg = 180). The
+    filter counts samples, not time: a stall between two samples is one step like any other. A gaze that
+    is not a finite, non-zero 3-vector raises ValueError and leaves the state as it was.
     """
 
     def __init__(self, alpha: float = 0.5, saccade_deg: float = 3.0):
@@ -26,11 +29,14 @@ class FixationFilter:
 
     def __call__(self, gaze: np.ndarray) -> np.ndarray:
         g = np.asarray(gaze, dtype=np.float64)
+        if g.shape != (3,) or not np.all(np.isfinite(g)) or not np.any(g):
+            raise ValueError(f"gaze must be a finite, non-zero 3-vector, got {gaze!r}")
         if self.state is None or float(self.state @ g) < self.cos_saccade:
             self.state = g.copy()
         else:
             blend = self.alpha * g + (1.0 - self.alpha) * self.state
-            self.state = blend / np.linalg.norm(blend)
+            norm = float(np.linalg.norm(blend))
+            self.state = blend / norm if norm > 1e-9 else g.copy()
         return self.state
 
 

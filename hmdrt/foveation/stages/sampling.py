@@ -40,11 +40,16 @@ class Foveal(NamedTuple):
 
 
 def foveal_config(frc: str, r0: float | None, r1: float | None, p_min: float | None) -> Foveal:
-    """A preset, with any of r0, r1, p_min overriding it; r0 must not exceed r1."""
+    """A preset, with any of r0, r1, p_min overriding it; r0 must not exceed r1, radii are >= 0 (inf: no
+    limit), p_min lies in [0, 1]."""
     if frc not in FRC_PRESETS:
         raise ConfigError(f"unknown foveal region configuration {frc!r}; presets: {', '.join(FRC_PRESETS)}")
     base = FRC_PRESETS[frc]
     cfg = Foveal(base[0] if r0 is None else r0, base[1] if r1 is None else r1, base[2] if p_min is None else p_min)
+    if not (cfg.r0 >= 0.0 and cfg.r1 >= 0.0):  # also false for NaN
+        raise ConfigError(f"r0 and r1 must be angles >= 0 degrees, got r0={cfg.r0}, r1={cfg.r1}")
+    if not 0.0 <= cfg.p_min <= 1.0:
+        raise ConfigError(f"p_min must lie in [0, 1], got {cfg.p_min}")
     if cfg.r0 > cfg.r1:
         raise ConfigError(f"r0 ({cfg.r0}) must not exceed r1 ({cfg.r1})")
     return cfg
@@ -174,13 +179,20 @@ def _table_mask(ecc, r0, r1, s_in, s_out, gx, gy, out):
                 out[y, x] = True
             elif e < r1:
                 ty, tx = y - gy + ry, x - gx + rx
-                out[y, x] = 0 <= ty < s_in.shape[0] and 0 <= tx < s_in.shape[1] and s_in[ty, tx]
+                if 0 <= ty < s_in.shape[0] and 0 <= tx < s_in.shape[1]:
+                    out[y, x] = s_in[ty, tx]
+                else:  # off S_in (far off-axis, or the point of regard off the image): S_out's p_min
+                    out[y, x] = s_out[y, x]
             else:
                 out[y, x] = s_out[y, x]
 
 
 def table_mask(ecc: np.ndarray, cfg: Foveal, tables: SamplingTables, gaze_pixel: np.ndarray) -> np.ndarray:
-    """weier2018's ray generation: S_in addressed relative to the point of regard inside r1, S_out outside."""
+    """weier2018's ray generation: S_in addressed relative to the point of regard inside r1, S_out outside.
+
+    S_in spans r1 at the centre's pixel density; a transition pixel beyond its reach (off-axis, where the
+    image plane stretches angles, or with the point of regard off the image) takes S_out, density p_min,
+    rather than no sample at all."""
     out = np.empty(ecc.shape, dtype=bool)
     gx, gy = (int(math.floor(c)) for c in gaze_pixel)
     _table_mask(ecc, cfg.r0, min(cfg.r1, 180.0), tables.s_in, tables.s_out, gx, gy, out)

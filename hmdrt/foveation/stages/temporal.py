@@ -29,9 +29,12 @@ def k_of_age(dt, k_min, k_max, t_max):
     """weier2016's k_t(dt) = min(exp(x0 + (dt - 1) / (t_max - 1) (x1 - x0)), k_max), x0 = ln k_min, x1 = ln k_max.
 
     t_max = 1 leaves no room to grow (the formula divides by zero there): k is k_max for every dt >= 1.
+    Ages count frames from 1 (a sample one frame old); a younger one (dt < 1: the same frame number again,
+    or frames numbered afresh) takes k_min, where the formula would fall below the bound.
     """
     if t_max <= 1.0:
         return k_max
+    dt = max(dt, 1.0)
     x0, x1 = math.log(k_min), math.log(k_max)
     return min(math.exp(x0 + (dt - 1.0) / (t_max - 1.0) * (x1 - x0)), k_max)
 
@@ -43,10 +46,14 @@ def running_estimate(rho_prev, k):
     alpha' = 1 / (rho_{t-1} + 1); alpha = max(alpha', k); rho_t = (alpha^2 + (1 - alpha)^2 / rho_{t-1})^-1.
     The paper prints min(alpha', k) but defines k as "the minimum possible weight for the new sample"
     that grows with age; only max makes it a lower bound, so max is implemented.
+    The limits are kept: nothing accumulated (rho_{t-1} <= 0, the limit rho -> 0) gives alpha = rho = 1, and
+    alpha = 0 with rho_{t-1} = inf (k = 0) gives rho = inf, where the formula would divide by zero.
     """
+    if rho_prev <= 0.0:
+        return 1.0, 1.0
     alpha = max(1.0 / (rho_prev + 1.0), k)
-    rho = 1.0 / (alpha * alpha + (1.0 - alpha) * (1.0 - alpha) / rho_prev)
-    return alpha, rho
+    den = alpha * alpha + (1.0 - alpha) * (1.0 - alpha) / rho_prev
+    return alpha, (1.0 / den if den > 0.0 else math.inf)
 
 
 class History:
@@ -97,10 +104,11 @@ def _smooth(cur_cam, depth, color, alpha, slots, positions, rotations, frusta, r
         acc = np.empty((w, 3))
         points = np.empty((w, 3))
         for x in range(w):
-            a = alpha[y, x]
-            wsum[x] = a
+            # the weights a (1 - a)^i over their sum, with the common factor a taken out: at a = 0 (the limit)
+            # they are equal, where a (1 - a)^i / sum would be 0 / 0
+            wsum[x] = 1.0
             for c in range(3):
-                acc[x, c] = a * color[y, x, c]
+                acc[x, c] = color[y, x, c]
             points[x, 0], points[x, 1], points[x, 2] = world_point(cur_cam, x + 0.5, y + 0.5, depth[y, x])
         for i in range(slots.shape[0]):
             cam = CameraArrays(positions[i], rotations[i], frusta[i])
@@ -113,7 +121,7 @@ def _smooth(cur_cam, depth, color, alpha, slots, positions, rotations, frusta, r
                 d = d_prev[j // w, j % w]
                 same = math.isinf(d) if math.isinf(depth[y, x]) else abs(d - dist) <= rel_depth * dist
                 if same:
-                    weight = alpha[y, x] * (1.0 - alpha[y, x]) ** (i + 1)
+                    weight = (1.0 - alpha[y, x]) ** (i + 1)
                     r, g, b = bilinear3(c_prev, qx, qy)
                     wsum[x] += weight
                     acc[x, 0] += weight * r
@@ -135,7 +143,8 @@ def exponential_smoothing(
 ) -> np.ndarray:
     """kim2021's closed form C*_t(p) = sum_i a (1 - a)^i C(pi_{t-i}(p)) / sum_i a (1 - a)^i over the
     current frame and up to `frames` earlier ones (newest first) whose back-projected pixel sees the
-    same surface: relative distance difference within rel_depth (misses match misses)."""
+    same surface: relative distance difference within rel_depth (misses match misses). alpha in [0, 1]; at
+    alpha = 0 the frames weigh alike (the limit of the closed form), at alpha = 1 only the current one counts."""
     slots = history.order(depth.shape)[:frames]
     out = np.empty_like(color)
     if len(slots) == 0:
