@@ -95,6 +95,7 @@ class Counters:
     dropped: int = 0
     malformed: int = 0
     reconnects: int = 0
+    crashes: int = 0  # unexpected errors in the driver's own code; the host restarts it with backoff
 
 
 class Driver(ABC):
@@ -126,6 +127,8 @@ class Driver(ABC):
             raise ConfigError(f"{self.scheme}:// has no option {sorted(unknown)[0]!r}; expected {self.grammar}")
         self.opt = {name: self._option(name, *spec) for name, spec in known.items()}
         self.device = str(self.opt["name"])
+        if not (self.device.isascii() and self.device.isprintable() and self.device):
+            raise ConfigError(f"{self.scheme}:// name= must be printable ASCII (a bus topic), got {self.device!r}")
         self.sync = ClockSync(wrap_ns=self.clock_wrap_ns, floor_ns=round(self.opt["device_latency"] * 1e6))
         self.state = "closed"
 

@@ -7,8 +7,8 @@ image in z, so directions and positions map (x, y, z) -> (x, y, -z) and orientat
 (w, -x, -y, z) (protocols.fove.mirror_vector / mirror_quaternion). A gaze sample is valid when its
 result is ok or Data_LowAccuracy, both eyes are Opened and its vectors are unit; Data_NoUpdate and
 Data_Unreliable (lost tracking, gaze (0, 0, 1)) are invalid. Device timestamps (us) are kept as t_dev
-in ns and mapped to host time; frame-id gaps count as dropped, frames that do not parse as malformed;
-an oversize frame or a closed connection raises DeviceLost.
+in ns and mapped to host time; frame-id gaps count as dropped, frames that do not parse (or carry a
+time past the bus's 2**62 ns) as malformed; an oversize frame or a closed connection raises DeviceLost.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from hmdrt.errors import ConfigError
 GAZE_CAPS = Capability.EYE_TRACKING | Capability.GAZE_DEPTH
 POSE_CAPS = Capability.ORIENTATION | Capability.POSITION
 VALID_RESULTS = (Result.OK, Result.DATA_LOW_ACCURACY)
+MAX_T_DEV_NS = 2**62  # the bus's time range
 
 
 class FoveDriver(Driver):
@@ -130,11 +131,13 @@ class FoveDriver(Driver):
             record = fove.decode(payload)
         except fove.FrameError:
             record = None
+        if isinstance(record, fove.Eye | fove.Pose) and record.timestamp * 1000 > MAX_T_DEV_NS:
+            record = None  # a u64 microsecond time the bus cannot carry (nor msgpack, past 2**64 ns)
         if isinstance(record, fove.Eye):
             return self._gaze(record, t_recv)
         if isinstance(record, fove.Pose):
             return self._pose(record, t_recv)
-        self.counters.malformed += 1  # garbage, or a record the server should not send now
+        self.counters.malformed += 1  # garbage, a record the server should not send now, or a time out of range
         return None
 
     def _gaze(self, eye: fove.Eye, t_recv: int) -> Gaze:

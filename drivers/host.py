@@ -4,13 +4,16 @@ The host connects a PUB socket (an XPUB, to see the ingest's subscription arrive
 message) to the compositor's ingest SUB, opens the driver, and publishes each
 normalised sample as gaze.<device> / pose.<device>, plus status.<device> on every state change and
 once a second. When the device goes away (DeviceLost) it closes the driver and reopens it with
-exponential backoff, counting reconnects; configuration errors are not retried. A full send queue
+exponential backoff, counting reconnects; a driver that crashes (an unexpected error in its own code) is
+restarted the same way and counted; configuration errors are not retried. A full send queue
 (the compositor not keeping up) drops the newest sample and counts it, rather than blocking the device.
 """
 
 from __future__ import annotations
 
+import sys
 import threading
+import time
 
 import zmq
 
@@ -18,6 +21,8 @@ from drivers import open_driver
 from drivers.base import MONOTONIC, Clock, Counters, DeviceLost, Driver
 from hmdrt.bus import INGEST
 from hmdrt.bus.messages import encode
+from hmdrt.bus.security import ClientKeys
+from hmdrt.errors import HmdrtError
 
 
 class DriverHost:
@@ -31,6 +36,7 @@ class DriverHost:
         queue: int = 10_000,
         context: zmq.Context | None = None,
         subscriber_wait_s: float = 1.0,
+        curve: ClientKeys | None = None,  # connect as this CURVE client (an ingest with [security] needs it)
     ):
         self.driver: Driver = open_driver(url, clock)
         self.clock = clock
@@ -40,8 +46,12 @@ class DriverHost:
         self._socket = self._context.socket(zmq.XPUB)
         self._socket.setsockopt(zmq.SNDHWM, queue)
         self._socket.setsockopt(zmq.LINGER, 500)
+        if curve is not None:
+            curve.apply(self._socket)
         self._socket.connect(bus)
         self._last_status = 0
+        self._delay = backoff_s[0]  # the current backoff: doubles after each failed open or crash
+        self._opened_at: float | None = None
         self._await_subscriber(subscriber_wait_s)
 
     def _await_subscriber(self, timeout_s: float) -> None:
@@ -67,28 +77,57 @@ class DriverHost:
             self._last_status = now
 
     def _open(self, stop: threading.Event) -> bool:
-        """Open the driver, retrying with backoff while the device is away; False if stopped first."""
-        delay = self.backoff_s[0]
+        """Open the driver, retrying with growing backoff while the device is away; False if stopped first."""
         while not stop.is_set():
             self.driver.state = "connecting"
             self._status(force=True)
             try:
                 self.driver.open()
                 self.driver.state = "connected"
+                self._opened_at = time.monotonic()
                 self._status(force=True)
                 return True
             except DeviceLost:
-                self.driver.state = "lost"
-                self.driver.close()
-                self.driver.counters.reconnects += 1
-                self._publish(self.driver.status())
-                if stop.wait(delay):
-                    break
-                delay = min(2 * delay, self.backoff_s[1])
+                self._lost()
+            except HmdrtError:
+                raise  # a configuration error: retrying cannot help
+            except Exception as exc:  # noqa: BLE001 - a bug in the driver: restart it rather than die
+                self._crashed(exc)
+            if self._backoff(stop):
+                break
         return False
 
+    def _lost(self) -> None:
+        self.driver.state = "lost"
+        self._status(force=True)
+        self.driver.close()
+        self.driver.counters.reconnects += 1
+
+    def _crashed(self, exc: Exception) -> None:
+        """Count a crash and say what it was on stderr (the status says "crashed"). The backoff starts afresh
+        when the driver had run longer than the longest backoff; a driver that crashes again at once waits longer
+        each time."""
+        self.driver.counters.crashes += 1
+        self.driver.state = "crashed"
+        self._status(force=True)
+        print(f"hmdrt driver {self.driver.device}: crashed ({type(exc).__name__}: {exc}); restarting", file=sys.stderr)
+        if self._opened_at is not None and time.monotonic() - self._opened_at > self.backoff_s[1]:
+            self._delay = self.backoff_s[0]
+        try:
+            self.driver.close()
+        except Exception:  # noqa: BLE001 - the driver is already broken; its close must not stop the restart
+            pass
+
+    def _backoff(self, stop: threading.Event) -> bool:
+        """Wait the current backoff and double it for next time; whether stop was set meanwhile."""
+        stopped = stop.wait(self._delay)
+        self._delay = min(2 * self._delay, self.backoff_s[1])
+        return stopped
+
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> Counters:
-        """Publish until `stop` is set or duration_s passes; returns the driver's counters."""
+        """Publish until `stop` is set or duration_s passes; returns the driver's counters. A driver that
+        loses its device is reopened at once, then with backoff; one that crashes is restarted after the
+        backoff."""
         stop = stop or threading.Event()
         timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
         if timer:
@@ -103,10 +142,13 @@ class DriverHost:
                                 self.driver.counters.dropped += 1
                         self._status()
                 except DeviceLost:
-                    self.driver.state = "lost"
-                    self._status(force=True)
-                    self.driver.close()
-                    self.driver.counters.reconnects += 1
+                    self._lost()
+                    self._delay = self.backoff_s[0]  # it had worked: reconnect at once, then back off afresh
+                    continue
+                except Exception as exc:  # noqa: BLE001 - see _open
+                    self._crashed(exc)
+                    if self._backoff(stop):
+                        break
                     continue
                 break
         finally:

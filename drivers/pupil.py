@@ -33,6 +33,7 @@ MAX_ZMQ_MESSAGE = 16 * MAX_DATUM_BYTES  # libzmq disconnects a peer that sends m
 MAX_BATCH = 10_000  # messages taken per read(), so a flood cannot hold read() forever
 TIME_PROBES = 3  # `t` round trips per offset measurement; the fastest is kept
 MAX_TIME_NS = 2**62  # the bus's time range
+MAX_DEPTH_M = 1e6  # the bus's vergence depth range (hmdrt.bus.messages.Gaze.depth_m)
 
 Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
 Vec3 = tuple[Finite, Finite, Finite]
@@ -81,6 +82,8 @@ def decode_gaze(topic: bytes, payload: bytes) -> Gaze:
         datum = _decoder.decode(payload)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         raise MalformedDatum(str(exc)) from None
+    except RecursionError:  # an ignored key's value nested deeper than msgspec follows
+        raise MalformedDatum("payload nested too deeply") from None
     eyes = {b"gaze.3d.01.": "01", b"gaze.3d.0.": "0", b"gaze.3d.1.": "1"}.get(bytes(topic))
     if eyes == "01":
         normals = datum.gaze_normals_3d or {}
@@ -101,6 +104,8 @@ def decode_gaze(topic: bytes, payload: bytes) -> Gaze:
     depth_m = None
     if datum.gaze_point_3d is not None:
         depth_m = float(np.linalg.norm(datum.gaze_point_3d)) / 1000.0 or None
+        if depth_m is not None and depth_m > MAX_DEPTH_M:
+            raise MalformedDatum(f"gaze_point_3d is {depth_m:.3g} m away, beyond {MAX_DEPTH_M:g} m")
     t_dev = round(datum.timestamp * 1e9)
     return Gaze(
         seq=0,

@@ -199,11 +199,8 @@ class SmiDriver(Driver):
     def _sample(self, text: str) -> SplSample | None:
         """The fields of an ET_SPL line; other well-formed lines (replies, fixation events) give None."""
         try:
-            if text.startswith("ET_SPL"):
-                sample = self._parse(text)
-            else:
-                parse_line(text)
-                sample = None
+            mnemonic, _ = parse_line(text)  # the parsed mnemonic decides, whatever whitespace came before it
+            sample = self._parse(text) if mnemonic == "ET_SPL" else None
         except SmiError:
             self.counters.malformed += 1
             return None

@@ -28,3 +28,15 @@ def write_atomic(path: str | Path, data: bytes) -> None:
     finally:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
+
+
+def check_writable(folder: str | Path) -> None:
+    """Create `folder` and write and remove a file in it: an output that cannot be written fails at start, not
+    after a run. HmdrtError naming the folder."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise HmdrtError(f"cannot write {folder}: {exc.strerror or exc}") from None

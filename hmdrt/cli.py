@@ -13,11 +13,13 @@ from itertools import chain
 from pathlib import Path
 
 import numpy as np
+import zmq
 
 from drivers.emulators import EMULATORS
 from hmdrt import __version__
-from hmdrt.atomic import write_atomic
+from hmdrt.atomic import check_writable, write_atomic
 from hmdrt.bus import CONTROL, INGEST
+from hmdrt.bus.security import ClientKeys, is_loopback, write_keypair
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.foveation import METHODS, make_method
 from hmdrt.optics import get_profile
@@ -166,7 +168,7 @@ def cmd_driver(args: argparse.Namespace) -> int:
     from drivers.host import DriverHost
 
     duration = _duration(args)
-    host = DriverHost(args.url, args.bus)
+    host = DriverHost(args.url, args.bus, curve=_client_keys(args))
     c = host.run(_stop_on_signals(), duration)
     print(
         f"{args.url}: {c.samples} samples ({c.invalid} invalid), {c.dropped} dropped, {c.malformed} malformed, "
@@ -203,7 +205,15 @@ def cmd_record(args: argparse.Namespace) -> int:
     from replay.recorder import Recorder
 
     duration = _duration(args)
-    recorder = Recorder(args.bus, args.out, bind=not args.connect, device=args.device)
+    keys, context = _client_keys(args), None
+    if keys is not None:
+        if not args.connect:
+            raise ConfigError("--server-key and --client-key are for --connect (a bound recorder has no CURVE)")
+        context = zmq.Context()  # the recorder makes its own socket: a context whose sockets are CURVE clients
+        keys.set_defaults(context)
+    elif not args.connect and not is_loopback(args.bus):
+        raise ConfigError(f"record binds loopback only, not {args.bus} (a bound recorder has no CURVE)")
+    recorder = Recorder(args.bus, args.out, bind=not args.connect, device=args.device, context=context)
     print(f"recording {recorder.endpoint} to {args.out}", flush=True)
     c = recorder.run(_stop_on_signals(), duration)
     print(
@@ -226,6 +236,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         duration_s=_duration(args),
         virtual_time=True if args.virtual_time else None,
     )
+    report_path = args.report or config.output.report
+    if report_path:
+        check_writable(Path(report_path).parent)
     stop = _stop_on_signals()  # before the start-up, so a SIGTERM during it still ends with a report
     reloads = threading.Event()
     signal.signal(signal.SIGHUP, lambda *_: reloads.set())
@@ -246,15 +259,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         report = compositor.run()
     finally:
         compositor.close()
-    path = args.report or config.output.report
-    if path:
-        _write_json(path, report)
+    if report_path:
+        _write_json(report_path, report)
     gaze = report["latency_ms"]["gaze_to_photon"]
     print(
         f"{report['vsyncs']} VSyncs: {report['presented']} frames shown ({report['late']} late), "
         f"{report['re_presented']} repeated, {report['dropped']} dropped; miss rate {report['miss_rate']:.1%}; "
         f"frame p99 {report['frame_ms']['p99']} ms; gaze-to-photon p99 {gaze['p99']} ms"
-        + (f"; report {path}" if path else "")
+        + (f"; report {report_path}" if report_path else "")
     )
     return 0
 
@@ -263,7 +275,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     """Ask a running compositor for its status."""
     from hmdrt.compositor.endpoints import request
 
-    reply = request(args.control, {"cmd": "stats" if args.report else "status"}, args.timeout)
+    reply = request(args.control, {"cmd": "stats" if args.report else "status"}, args.timeout, _client_keys(args))
     if not reply.get("ok"):
         raise HmdrtError(f"the compositor refused: {reply.get('error')}")
     reply.pop("ok")
@@ -276,8 +288,36 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"{reply['method']} on {reply['scene']} at {reply['profile']} ({reply['vsync_hz']:g} Hz): "
         f"{shown['new']} on time, {shown['late']} late, {shown['repeat']} repeated; "
         f"devices {', '.join(sorted(set(chain(*reply['devices'].values())))) or 'none'}; pacing {json.dumps(pacing)}"
+        + _access(reply.get("security", {}))
     )
     return 0
+
+
+def _access(security: dict) -> str:
+    if not security.get("curve"):
+        return "; access: loopback"
+    return f"; access: CURVE, {security['admitted']} handshakes admitted, {security['refused']} refused"
+
+
+def cmd_keys(args: argparse.Namespace) -> int:
+    """Write a CURVE keypair for the [security] section or a client's --server-key / --client-key."""
+    public, secret = write_keypair(args.dir, args.name, args.force)
+    print(f"{public}: public key (share it); {secret}: secret key (mode 0600, keep it)")
+    return 0
+
+
+def _client_keys(args: argparse.Namespace) -> ClientKeys | None:
+    return ClientKeys.from_options(args.server_key, args.client_key)
+
+
+def _key_options(parser: argparse.ArgumentParser) -> None:
+    """--server-key and --client-key: connect as a CURVE client to a compositor with [security]."""
+    parser.add_argument(
+        "--server-key", metavar="PUBLIC_KEY_FILE", help="the compositor's public key (NAME.key): connect with CURVE"
+    )
+    parser.add_argument(
+        "--client-key", metavar="SECRET_KEY_FILE", help="this client's secret key (NAME.key_secret), on its allow-list"
+    )
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -289,8 +329,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     config = load_eval_config(args.config, frames=args.frames, warmup_frames=args.warmup_frames)
     out = Path(args.out)
-    write_atomic(out / ".hmdrt-eval-check", b"")  # an unwritable output folder fails now, not after the run
-    (out / ".hmdrt-eval-check").unlink()
+    check_writable(out)
     evaluation = evaluate(config)
     written = write_results(evaluation, config, out, with_plots=not args.no_plots)
     print(table(evaluation))
@@ -336,6 +375,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     driver.add_argument("--bus", default=INGEST, help=f"the compositor's ingest endpoint (default {INGEST})")
     driver.add_argument("--duration", type=float, help=UNTIL)
+    _key_options(driver)
     driver.set_defaults(run=cmd_driver)
     emulate = sub.add_parser("emulate", help="serve an emulated eye or head tracker for drivers to connect to")
     emulate.add_argument("device", choices=EMULATORS, help="tracker protocol (razor, hatire: serial head trackers)")
@@ -363,6 +403,7 @@ def build_parser() -> argparse.ArgumentParser:
     status.add_argument("--json", action="store_true", help="print the status as JSON")
     status.add_argument("--report", action="store_true", help="print the run report so far (JSON)")
     status.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for an answer (default 2)")
+    _key_options(status)
     status.set_defaults(run=cmd_status)
     evaluation = sub.add_parser("eval", help="measure error against run time of methods over scenes and traces")
     evaluation.add_argument("config", help="eval config (.toml), e.g. configs/eval/quick.toml")
@@ -377,7 +418,13 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("--connect", action="store_true", help="connect to a publisher at --bus instead of binding")
     record.add_argument("--device", help="the device to record (default: the first one heard)")
     record.add_argument("--duration", type=float, help=UNTIL)
+    _key_options(record)
     record.set_defaults(run=cmd_record)
+    keys = sub.add_parser("keys", help="write a CURVE keypair: NAME.key (public) and NAME.key_secret (secret)")
+    keys.add_argument("name", help="the key's name, e.g. compositor or the client's")
+    keys.add_argument("--dir", default=".", help="folder to write the two files to (default: here)")
+    keys.add_argument("--force", action="store_true", help="replace an existing keypair of that name")
+    keys.set_defaults(run=cmd_keys)
     return parser
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import tomllib
 from pathlib import Path
 from typing import TypeVar
@@ -12,17 +13,51 @@ from hmdrt.errors import ConfigError
 
 T = TypeVar("T")
 
+# Configs, profiles and scene descriptions are a few KB; a larger file is refused before more is read
+# (a size from stat alone would let /dev/zero or a FIFO through).
+MAX_TOML_BYTES = 4 * 1024 * 1024
+
+
+def read_capped(path: Path, limit: int) -> bytes | None:
+    """The bytes of a file, or None when it holds more than `limit`; OSError when it cannot be read. Read in
+    steps from the size stat gives, so a file that stat cannot size (a device, a FIFO) or that is still growing
+    costs at most limit + 1 bytes, and a small file no more than its size."""
+    chunks, total = [], 0
+    with path.open("rb") as f:
+        step = min(os.fstat(f.fileno()).st_size, limit) + 1
+        while chunk := f.read(step):
+            chunks.append(chunk)
+            total += len(chunk)
+            if total > limit:
+                return None
+            step = min(1 << 20, limit + 1 - total)
+    return b"".join(chunks)
+
+
+def parse_toml(data: bytes) -> dict:
+    """The tables of a TOML document; ValueError when it is not UTF-8, not TOML, or nested too deeply."""
+    try:
+        return tomllib.loads(data.decode("utf-8"))
+    except RecursionError:  # tomllib recurses once per level of nested arrays and inline tables
+        raise ValueError("arrays or inline tables nested too deeply") from None
+
 
 def read_toml(path: str | Path) -> dict:
-    """The tables of a TOML file; a missing, unreadable or invalid file is a ConfigError."""
+    """The tables of a TOML file; a missing, unreadable, oversized or invalid file is a ConfigError."""
     path = Path(path)
     try:
-        return tomllib.loads(path.read_text())
+        data = read_capped(path, MAX_TOML_BYTES)
     except FileNotFoundError:
         raise ConfigError(f"config not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
         raise ConfigError(f"cannot read config {path}: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
+    if data is None:
+        raise ConfigError(f"config {path} is larger than {MAX_TOML_BYTES} bytes")
+    try:
+        return parse_toml(data)
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"cannot read config {path}: {exc}") from None
+    except ValueError as exc:  # tomllib.TOMLDecodeError, or nested too deeply
         raise ConfigError(f"{path} is not valid TOML: {exc}") from None
 
 

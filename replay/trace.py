@@ -70,24 +70,31 @@ def open_capped(path: Path) -> io.BufferedIOBase:
         size = path.stat().st_size
     except FileNotFoundError:
         raise ConfigError(f"trace not found: {path}") from None
+    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path (replay://a%00b.jsonl)
+        raise ConfigError(f"cannot read trace {path}: {exc}") from None
     if size > MAX_FILE_BYTES:
         raise ConfigError(f"trace {path} is {size} bytes; the limit is {MAX_FILE_BYTES}")
-    raw = path.open("rb")
-    return gzip.GzipFile(fileobj=raw) if path.suffix == ".gz" else raw
+    return gzip.GzipFile(path, "rb") if path.suffix == ".gz" else path.open("rb")  # GzipFile(path) closes the file
 
 
 def capped_lines(stream: io.BufferedIOBase) -> Iterator[bytes | None]:
-    """Lines of at most MAX_LINE_BYTES; None stands for an over-long line (skipped to its end)."""
+    """Lines of at most MAX_LINE_BYTES; None stands for an over-long line (skipped to its end). More than
+    MAX_FILE_BYTES in all (a gzip file that inflates past it) is a ConfigError."""
+    total = 0
     while True:
         line = stream.readline(MAX_LINE_BYTES + 1)
+        total += len(line)
         if not line:
             return
         if len(line) > MAX_LINE_BYTES and not line.endswith(b"\n"):
-            while (rest := stream.readline(MAX_LINE_BYTES)) and not rest.endswith(b"\n"):
-                pass
-            yield None
-        else:
-            yield line
+            line = None  # skip to the line's end
+            while total <= MAX_FILE_BYTES and (rest := stream.readline(MAX_LINE_BYTES)):
+                total += len(rest)
+                if rest.endswith(b"\n"):
+                    break
+        if total > MAX_FILE_BYTES:
+            raise ConfigError(f"trace {getattr(stream, 'name', '')} holds more than {MAX_FILE_BYTES} bytes")
+        yield line
 
 
 def read_trace(path: str | Path) -> TraceReading:
@@ -99,7 +106,7 @@ def read_trace(path: str | Path) -> TraceReading:
             first = next(lines, None)
             try:
                 header = _header_decoder.decode(first or b"")
-            except msgspec.DecodeError:
+            except (msgspec.DecodeError, RecursionError):  # RecursionError: nested deeper than msgspec follows
                 header = None
             if header is None or header.format != FORMAT:
                 raise ConfigError(f"{path} is not an {FORMAT} file (its first line must be the header)")
@@ -112,7 +119,7 @@ def read_trace(path: str | Path) -> TraceReading:
                     continue
                 try:
                     reading.samples.append(_decoder.decode(line))
-                except msgspec.DecodeError:
+                except (msgspec.DecodeError, RecursionError):
                     reading.malformed += 1
     except (OSError, EOFError, gzip.BadGzipFile) as exc:
         raise ConfigError(f"cannot read trace {path}: {exc}") from None

@@ -6,6 +6,7 @@ import csv
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -374,3 +375,15 @@ def test_jod_scores_foveated_output_against_the_truth_when_the_eval_extra_is_ins
     assert main(["eval", str(config), "--out", str(tmp_path / "out"), "--no-plots"]) == 0
     rows = json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
     assert all(0 < r["jod"] <= 10 for r in rows)
+
+
+def test_a_sweep_of_more_than_max_cells_is_refused_before_any_cell_is_built(tmp_path):
+    config = tmp_path / "big.toml"
+    values = ", ".join(str(v) for v in range(100))
+    config.write_text(
+        f'[[methods]]\nname = "rrm"\nsweep = {{ fovea_deg = [{values}], group_w = [{values}], block = [1, 2] }}\n'
+    )
+    started = time.monotonic()
+    with pytest.raises(ConfigError, match="its sweep makes 20000 cells, more than 10000"):
+        load_eval_config(config)
+    assert time.monotonic() - started < 5

@@ -279,7 +279,9 @@ def test_a_renderer_slower_than_the_period_drops_to_every_other_vsync_and_repeat
     assert report["timewarp_ms"]["p50"] is not None
 
     images_of = {r.frame_id: images for r, images in shown if r.shown != "repeat"}
-    repeats = [(r, images) for r, images in shown if r.shown == "repeat"]
+    # a busy machine may skip a warp that would not end before the next VSync: such repeats are counted, unwarped
+    repeats = [(r, images) for r, images in shown if r.shown == "repeat" and not r.warp_skipped]
+    assert len(repeats) >= 5 and sum(r.warp_skipped for r, _ in shown) == report["timewarp_skipped"]
     assert all(r.warp_pose is not None and r.present_ms > 0 for r, _ in repeats)
     for r, _ in repeats:  # warped to a head pose at least as new as the one rendered, never from the future
         assert r.pose.t_host <= r.warp_pose.t_host <= r.actual_present_ns

@@ -185,7 +185,7 @@ class PupilEmulator(NetworkEmulator):
             frames[0].decode("utf-8")
             if not isinstance(msgspec.msgpack.decode(frames[1]), dict):
                 raise msgspec.DecodeError("payload is not a map")
-        except (UnicodeDecodeError, msgspec.DecodeError):
+        except (UnicodeDecodeError, msgspec.DecodeError, RecursionError):
             self.malformed += 1
             return UNKNOWN
         self._backbone.send_multipart(frames)

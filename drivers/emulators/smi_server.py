@@ -236,8 +236,8 @@ class SmiEmulator(NetworkEmulator):
             ]
             values = {name: (eyes[0][name], eyes[1][name]) for name in PER_EYE}
             values.update(TU=t_us, TS=t_us // 1000, SC=sample.index)
+            self._log_sent(t_us * 1000)  # before the send: a client may read it (and stop) before send returns
             self._send(self._format.format_line(SplSample("b", values)), self._stream_to)
-            self._log_sent(t_us * 1000)
 
     @staticmethod
     def _pixel(camera: EyeCamera, gaze: np.ndarray) -> np.ndarray | None:

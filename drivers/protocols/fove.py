@@ -157,6 +157,8 @@ def decode(payload: bytes) -> Record:
         return _decoder.decode(payload)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         raise FrameError(str(exc)) from None
+    except RecursionError:  # values skipped while looking for "type", nested deeper than msgspec follows
+        raise FrameError("payload nested too deeply") from None
 
 
 class FrameReader:

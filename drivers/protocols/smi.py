@@ -30,7 +30,9 @@ RED_FORMATS = (  # formats of the real RED captures (section 7, items 1 and 3)
     "%ET %TS %SX %SY %EX %EY %EZ",
 )
 
-_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+# one way to match each number: "\d+\.?\d*" splits a run of digits in n ways, and a long run that then
+# fails to match took seconds (quadratic backtracking)
+_NUMBER = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
 _INT = r"\d+"
 _EYE = "[lrb]"
 _MNEMONIC = re.compile(r"ET_[A-Z]{3}")

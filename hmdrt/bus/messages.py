@@ -20,6 +20,7 @@ import numpy as np
 
 SCHEMA_VERSION = 1
 MAX_PAYLOAD_BYTES = 64 * 1024
+MAX_TOPIC_BYTES = 256  # "status." and a device name; refused before the topic is decoded
 
 Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
 Vec3 = tuple[Finite, Finite, Finite]
@@ -67,7 +68,7 @@ class Status(_Message, tag="status"):
     """A driver's health, published about once a second."""
 
     device: str
-    state: str  # connecting | connected | lost | closed
+    state: str  # connecting | connected | lost | crashed | closed
     t_host: TimeNs
     samples: Count = 0  # published samples (valid and invalid)
     invalid: Count = 0  # published with valid = false
@@ -123,14 +124,19 @@ def decode(frames: list[bytes]) -> tuple[str, str, Message]:
     raw_topic, payload = frames
     if len(payload) > MAX_PAYLOAD_BYTES:
         raise MalformedMessage(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD_BYTES}")
+    if len(raw_topic) > MAX_TOPIC_BYTES:
+        raise MalformedMessage(f"topic of {len(raw_topic)} bytes exceeds {MAX_TOPIC_BYTES}")
     try:
         kind, _, device = raw_topic.decode("ascii").partition(".")
         fields = msgspec.msgpack.decode(payload)
-        if not isinstance(fields, dict) or fields.pop("v", None) != SCHEMA_VERSION:
+        version = fields.pop("v", None) if isinstance(fields, dict) else None
+        if type(version) is not int or version != SCHEMA_VERSION:  # True and 1.0 are not version 1
             raise MalformedMessage("missing or unknown schema version")
         message = msgspec.convert(fields, Message)
     except (UnicodeDecodeError, msgspec.DecodeError, msgspec.ValidationError) as exc:
         raise MalformedMessage(str(exc)) from None
+    except RecursionError:  # msgspec's guard against nesting deeper than the interpreter's recursion limit
+        raise MalformedMessage("payload nested too deeply") from None
     expected = "status" if isinstance(message, Status) else message.__struct_config__.tag
     if kind != expected or not device:
         raise MalformedMessage(f"topic {raw_topic!r} does not match a {expected} message")

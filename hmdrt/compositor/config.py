@@ -14,6 +14,7 @@ import msgspec
 
 from hmdrt.bus import CONTROL, INGEST, TELEMETRY
 from hmdrt.configfile import convert, read_toml
+from hmdrt.errors import ConfigError
 from hmdrt.foveation import method_spec
 
 Ms = Annotated[float, msgspec.Meta(ge=0.0, le=10_000.0)]
@@ -46,6 +47,13 @@ class Bus(_Section):
     control: str = CONTROL
 
 
+class Security(_Section):
+    """CURVE on all three sockets, needed to bind anything but loopback (README "Access"); key files of `hmdrt keys`."""
+
+    server_key: str  # the compositor's secret key file, NAME.key_secret
+    allowed_clients: Annotated[list[str], msgspec.Meta(min_length=1)]  # public key files (NAME.key) of the clients
+
+
 class Pacing(_Section):
     margin_ms: Ms = 2.0  # fixed margin before the VSync (runtime_anchors.md: 1-2 ms)
     present_to_display_ms: Annotated[float, msgspec.Meta(ge=-1.0, le=1000.0)] = -1.0  # -1: half the period
@@ -59,6 +67,19 @@ class Prediction(_Section):
     horizon_ms: Ms = 50.0  # gaze and pose are extrapolated at most this far past the newest sample
     gaze_device: str = ""  # "": the device with the newest gaze
     pose_device: str = ""
+
+
+class Fallback(_Section):
+    """When the gaze device goes silent (hmdrt.compositor.fallback)."""
+
+    stale_ms: Annotated[float, msgspec.Meta(gt=0.0, le=60_000.0)] = 250.0  # silent this long: an outage
+    widen_deg_per_s: Annotated[float, msgspec.Meta(ge=0.0, le=1000.0)] = 20.0  # then the fovea widens this fast
+    max_widen_deg: Annotated[float, msgspec.Meta(ge=0.0, le=90.0)] = 20.0
+    centre_after_ms: Annotated[float, msgspec.Meta(gt=0.0, le=600_000.0)] = 2000.0  # then the screen centre
+
+    def __post_init__(self) -> None:
+        if self.centre_after_ms < self.stale_ms:
+            raise ValueError(f"centre_after_ms ({self.centre_after_ms}) must not be below stale_ms ({self.stale_ms})")
 
 
 class Controller(_Section):
@@ -92,9 +113,11 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     method: Method = Method()
     drivers: list[Driver] = []
     bus: Bus = Bus()
+    security: Security | None = None  # None: every socket binds loopback, local clients are trusted
     pacing: Pacing = Pacing()
     prediction: Prediction = Prediction()
     controller: Controller = Controller()
+    fallback: Fallback = Fallback()
     output: Output = Output()
     run: Run = Run()
     source: str = ""  # the file it was read from (set on load)
@@ -125,7 +148,9 @@ def load_config(path: str | Path | None = None, **overrides) -> RunConfig:
     if path is not None:
         data = read_toml(path)
         base = Path(path).resolve().parent
-    data.setdefault("run", {}).update({k: v for k, v in overrides.items() if v is not None})
+    if not isinstance(data.setdefault("run", {}), dict):
+        raise ConfigError(f"{path}: [run] must be a table, got {type(data['run']).__name__}")
+    data["run"].update({k: v for k, v in overrides.items() if v is not None})
     config = convert(data, RunConfig, path)
     drivers = [Driver(_relative(d.url, base)) for d in config.drivers]
     output = config.output
@@ -134,4 +159,8 @@ def load_config(path: str | Path | None = None, **overrides) -> RunConfig:
         report=str(base / output.report) if output.report else "",
         frames_dir=str(base / output.frames_dir) if output.frames_dir else "",
     )
+    if config.security is not None:
+        keys = config.security
+        security = Security(str(base / keys.server_key), [str(base / p) for p in keys.allowed_clients])
+        config = msgspec.structs.replace(config, security=security)
     return msgspec.structs.replace(config, drivers=drivers, output=output, source=str(path or ""))

@@ -69,6 +69,7 @@ class ControllerConfig:
     miss_step: float = 0.1  # smallest drop on a miss over the allowed rate
     up_step: float = 0.05  # one rise
     widen_step_deg: float = 0.5  # the widening rounds up to a multiple of this (0: exact)
+    adjust_level: bool = True  # False: the level stays at 1 and only the widening acts (no controller configured)
 
     def __post_init__(self) -> None:
         checks = {
@@ -205,11 +206,18 @@ class BudgetController:
         return not self._spans or self._level <= 0.0
 
     def update(
-        self, frame_id: int, render_ns: int, budget_ns: int, missed: bool, gaze_speed_deg_s: float | None = None
+        self,
+        frame_id: int,
+        render_ns: int,
+        budget_ns: int,
+        missed: bool,
+        gaze_speed_deg_s: float | None = None,
+        extra_widen_deg: float = 0.0,
     ) -> dict[str, float] | None:
         """Take one presented frame's render time against its budget; the knob values applied from the
         next frame on, or None when they stay. gaze_speed_deg_s None (or not finite): unknown, no widening
-        for speed. The trajectory lists every level change and refusal (frame, level, knobs, reason)."""
+        for speed; extra_widen_deg widens the fovea further (a silent tracker, hmdrt.compositor.fallback).
+        The trajectory lists every level change and refusal (frame, level, knobs, reason)."""
         if not self._spans:
             return None
         if budget_ns <= 0:
@@ -219,7 +227,7 @@ class BudgetController:
         self._since_change += 1
         step, reason = self._decide(missed)
         level = min(max(self._level + step, 0.0), 1.0)
-        widen = self._widening(gaze_speed_deg_s)
+        widen = self._widening(gaze_speed_deg_s, extra_widen_deg)
         values = self._values(level, widen)
         if values == self._refused:
             return None  # neither the level nor the widening is taken while the method refuses its knobs
@@ -243,7 +251,7 @@ class BudgetController:
     def _decide(self, missed: bool) -> tuple[float, str]:
         """The level step this frame calls for and why (0 and "" for none)."""
         c = self.config
-        if self._since_change < c.settle_frames:
+        if not c.adjust_level or self._since_change < c.settle_frames:
             return 0.0, ""
         recent = _mean(islice(reversed(self._ratios), c.settle_frames))
         over = c.gain * (recent - 0.5 * (1.0 + c.raise_below))
@@ -259,11 +267,11 @@ class BudgetController:
                 return c.up_step, f"under target: render {calm:.2f} x target"
         return 0.0, ""
 
-    def _widening(self, gaze_speed_deg_s: float | None) -> float:
-        """The foveal widening for this gaze speed, grown at once and shrunk after settle_frames."""
+    def _widening(self, gaze_speed_deg_s: float | None, extra_deg: float = 0.0) -> float:
+        """The foveal widening for this gaze speed (and extra_deg), grown at once and shrunk after settle_frames."""
         c = self.config
         speed = gaze_speed_deg_s if gaze_speed_deg_s is not None and math.isfinite(gaze_speed_deg_s) else 0.0
-        want = max(speed, 0.0) * c.widen_latency_ms / 1000.0 + c.accuracy_deg
+        want = max(speed, 0.0) * c.widen_latency_ms / 1000.0 + c.accuracy_deg + max(extra_deg, 0.0)
         if c.widen_step_deg:
             want = math.ceil(want / c.widen_step_deg - 1e-9) * c.widen_step_deg
         self._since_grow += 1

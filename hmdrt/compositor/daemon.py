@@ -27,11 +27,13 @@ import zmq
 
 from drivers.base import MONOTONIC, Clock
 from hmdrt import __version__
+from hmdrt.bus.security import Guard, ServerKeys, check_binds
 from hmdrt.compositor.clock import VirtualClock, VsyncClock
 from hmdrt.compositor.config import RunConfig, load_config
 from hmdrt.compositor.controller import BudgetController, ControllerConfig
 from hmdrt.compositor.display import Display, Frame
 from hmdrt.compositor.endpoints import ControlServer, Ingest, Telemetry
+from hmdrt.compositor.fallback import Outages
 from hmdrt.compositor.pacer import FrameTiming, Pacer
 from hmdrt.compositor.samples import GazeEstimate, SampleStore
 from hmdrt.compositor.session import Session
@@ -59,11 +61,17 @@ class Compositor:
         virtual = config.run.virtual_time
         self.clock = clock or (VirtualClock(0) if virtual else MONOTONIC)
         self._paced = not virtual  # virtual time schedules each frame over the period before its VSync
+        # loopback only, or CURVE with [security]: checked, and the keys read, before any start-up work
+        security = config.security
+        check_binds({f"bus.{k}": v for k, v in msgspec.structs.asdict(config.bus).items()}, security is not None)
+        self._server_keys = ServerKeys.load(security.server_key, security.allowed_clients) if security else None
         self._kernel_threads = self._kernel_thread_count(config)
         self.session = Session(config)
         self.store = SampleStore(horizon_ns=int(config.prediction.horizon_ms * 1e6))
         self.report = RunReport(self.session.profile.refresh_hz, config.run.warmup_s)
         self.controller = self._make_controller()
+        self.outages = Outages(config.fallback)
+        self._widen_deg = 0.0  # the fallback's foveal widening, handed to the controller
         self._lock = threading.Lock()  # pacer and report: the render and display threads share them
         self._pending: list[tuple[str, object]] = []  # control changes applied between frames
         self._presents: queue.SimpleQueue = queue.SimpleQueue()  # (frame id, frame ms, missed) for the controller
@@ -75,10 +83,16 @@ class Compositor:
         self.stop = threading.Event()
         self._context = context or zmq.Context.instance()
         try:
-            self.telemetry = Telemetry(self._context, config.bus.telemetry)
-            self.ingest = Ingest(self._context, config.bus.ingest, self.store.add, self.clock)
+            self.guard = Guard(self._context, self._server_keys) if self._server_keys else None  # before any bind
+            self.telemetry = Telemetry(self._context, config.bus.telemetry, self.guard)
+            self.ingest = Ingest(self._context, config.bus.ingest, self.store.add, self.clock, self.guard)
             self.sources = Sources(
-                [d.url for d in config.drivers], self.clock, virtual, self.ingest.address, self.store.add
+                [d.url for d in config.drivers],
+                self.clock,
+                virtual,
+                self.ingest.address,
+                self.store.add,
+                keys=self.guard.own_keys if self.guard else None,
             )
             # compiled kernels, allocated buffers and connected drivers before the VSync clock starts
             self.session.warm_up()
@@ -89,7 +103,7 @@ class Compositor:
             self.display = Display(
                 self.vsync, self.clock, self._warp_target, self._shown, self._dropped, warp_deadline=not virtual
             )
-            self.control = ControlServer(self._context, config.bus.control, self._handle)
+            self.control = ControlServer(self._context, config.bus.control, self._handle, self.guard)
         except (HmdrtError, ValueError):
             self.close()
             raise
@@ -135,9 +149,13 @@ class Compositor:
                 raise ConfigError(f"output.frames_dir: cannot create {folder}: {exc.strerror}") from None
 
     def _make_controller(self) -> BudgetController | None:
+        """The hold-budget controller; without one, a controller that only widens the fovea while the gaze
+        tracker is silent (when the fallback widens at all)."""
         c = self.config.controller
         if c.kind == "none":
-            return None
+            if not self.config.fallback.widen_deg_per_s:
+                return None
+            return BudgetController(self.session.method, ControllerConfig(adjust_level=False))
         settings = ControllerConfig(
             target_miss_rate=c.target_miss_rate,
             headroom=c.headroom,
@@ -149,10 +167,15 @@ class Compositor:
     # --- sampling -------------------------------------------------------------------------------------------------
 
     def _estimates(self, t_display: int, now: int):
+        """Gaze and pose for the display time; while the gaze device is silent, the fallback's gaze (the last
+        good one, widened in _tune, then none: the screen centre)."""
         p = self.config.prediction
         gaze = self.store.gaze_at(t_display, now, p.gaze_device or None)
         pose = self.store.pose_at(t_display, now, p.pose_device or None)
-        return gaze, pose
+        device = p.gaze_device or (gaze.device if gaze is not None else None)
+        fallback = self.outages.judge(self.store.last_received(device) if device else None, now)
+        self._widen_deg = fallback.widen_deg
+        return (None if fallback.centre else gaze), pose
 
     @staticmethod
     def _use(estimate) -> SampleUse | None:
@@ -240,6 +263,7 @@ class Compositor:
                 self.vsync.period_ns - self.pacer.margin_ns,
                 missed,
                 None if gaze is None else gaze.speed_deg_s,
+                self._widen_deg,
             )
 
     def _apply_pending(self) -> None:
@@ -413,12 +437,14 @@ class Compositor:
             self._pending.append(("reload", self.config.source))
 
     def _reload(self, source: str) -> None:
-        """Apply a re-read config's method, controller, prediction, pacing and output; a change of scene,
-        display, drivers or bus needs a restart and is reported as such."""
+        """Apply a re-read config's method, controller, prediction, fallback, pacing and output; a change of scene,
+        display, drivers, bus or security needs a restart and is reported as such."""
         try:
             config = load_config(source)
             restart = [
-                k for k in ("scene", "display", "drivers", "bus") if getattr(config, k) != getattr(self.config, k)
+                k
+                for k in ("scene", "display", "drivers", "bus", "security")
+                if getattr(config, k) != getattr(self.config, k)
             ]
             pacing = self._pacing(config)
             self._frames_dir(config)
@@ -432,11 +458,13 @@ class Compositor:
             display=self.config.display,
             drivers=self.config.drivers,
             bus=self.config.bus,
+            security=self.config.security,
             run=self.config.run,
         )
         with self._lock:
             self.pacer.configure(**pacing)
         self.store.horizon_ns = int(config.prediction.horizon_ms * 1e6)
+        self.outages.config = config.fallback
         self.controller = self._make_controller()
         message = f"reloaded {source}" + (f"; restart to change {', '.join(restart)}" if restart else "")
         self.telemetry.publish("log", {"level": "warning" if restart else "info", "message": message})
@@ -459,7 +487,15 @@ class Compositor:
                 "telemetry": self.telemetry.address,
                 "control": self.control.address,
             },
+            "security": self.security(),
         }
+
+    def security(self) -> dict:
+        """Whether CURVE guards the bus and, if so, the handshakes it admitted and refused (clients without the
+        keys are refused at the handshake, so their requests and samples never arrive)."""
+        if self.guard is None:
+            return {"curve": False}
+        return {"curve": True, **self.guard.counts(), "commands_refused": self.control.unauthorised}
 
     def drivers(self) -> dict[str, dict]:
         out = {}
@@ -487,9 +523,12 @@ class Compositor:
                 virtual_time=self.config.run.virtual_time,
                 seed=self.config.run.seed,
                 ingest_malformed=self.ingest.malformed,
+                outages=self.outages.to_dict(),
+                devices_refused=self.store.devices_refused,
                 frames_not_written=self.writes_skipped + self.writes_failed,
                 config=self.config.source,
                 hmdrt=__version__,
+                security=self.security(),
             )
         if self.controller is not None:
             report["controller"] = {
@@ -502,7 +541,7 @@ class Compositor:
 
     def close(self) -> None:
         self.stop.set()
-        for part in ("sources", "control", "ingest", "telemetry"):
-            if hasattr(self, part):
+        for part in ("sources", "control", "ingest", "telemetry", "guard"):  # the guard last: it answers the others
+            if getattr(self, part, None) is not None:
                 getattr(self, part).close()
         self.session.close()

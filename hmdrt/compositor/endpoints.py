@@ -6,6 +6,10 @@ Every queue is bounded: the ingest's receive high-water mark drops the oldest-wa
 the compositor falls behind (ZeroMQ counts nothing, so the drivers' own sequence numbers reveal the
 gap), malformed messages are counted, and control requests over 64 KiB or unreadable get an error
 reply rather than a crash. Endpoints ending in ":*" bind a free port; `address` says which.
+
+With a Guard (hmdrt.bus.security) every socket is a CURVE server that admits only allowed client keys,
+and the control socket answers the commands that change the compositor (MUTATING) only for a client
+that authenticated; without one the sockets bind loopback only and a local client is trusted.
 """
 
 from __future__ import annotations
@@ -17,15 +21,19 @@ import msgspec
 import zmq
 
 from hmdrt.bus.messages import MAX_PAYLOAD_BYTES, MalformedMessage, Status, decode, pack
+from hmdrt.bus.security import ClientKeys, Guard
 from hmdrt.errors import ConfigError
 
 POLL_MS = 50
 INGEST_HWM = 10_000  # messages: several seconds of every driver at its full rate
+MUTATING = ("set", "shutdown", "snapshot")  # control commands that change the compositor or write a file
 
 
-def _bind(context: zmq.Context, kind: int, endpoint: str) -> tuple[zmq.Socket, str]:
+def _bind(context: zmq.Context, kind: int, endpoint: str, guard: Guard | None = None) -> tuple[zmq.Socket, str]:
     sock = context.socket(kind)
     sock.setsockopt(zmq.LINGER, 0)
+    if guard is not None:
+        guard.serve(sock)
     try:
         sock.bind(endpoint)
     except zmq.ZMQError as exc:
@@ -37,8 +45,15 @@ def _bind(context: zmq.Context, kind: int, endpoint: str) -> tuple[zmq.Socket, s
 class Ingest:
     """Receives drivers' gaze, pose and status messages on a thread and hands samples to `sink`."""
 
-    def __init__(self, context: zmq.Context, endpoint: str, sink: Callable[[str, object, int], None], clock):
-        self._sock, self.address = _bind(context, zmq.SUB, endpoint)
+    def __init__(
+        self,
+        context: zmq.Context,
+        endpoint: str,
+        sink: Callable[[str, object, int], None],
+        clock,
+        guard: Guard | None = None,
+    ):
+        self._sock, self.address = _bind(context, zmq.SUB, endpoint, guard)
         self._sock.setsockopt(zmq.RCVHWM, INGEST_HWM)
         self._sock.setsockopt(zmq.MAXMSGSIZE, 16 * MAX_PAYLOAD_BYTES)
         self._sock.setsockopt(zmq.SUBSCRIBE, b"")
@@ -78,8 +93,8 @@ class Ingest:
 class Telemetry:
     """Publishes frame records and stats; a subscriber that cannot keep up loses messages, not the compositor."""
 
-    def __init__(self, context: zmq.Context, endpoint: str):
-        self._sock, self.address = _bind(context, zmq.PUB, endpoint)
+    def __init__(self, context: zmq.Context, endpoint: str, guard: Guard | None = None):
+        self._sock, self.address = _bind(context, zmq.PUB, endpoint, guard)
         self._sock.setsockopt(zmq.SNDHWM, 1000)
         self._lock = threading.Lock()
 
@@ -95,33 +110,49 @@ class Telemetry:
 
 
 class ControlServer:
-    """Answers control requests ({"cmd": ...} msgpack maps) with handler(request) -> reply map."""
+    """Answers control requests ({"cmd": ...} msgpack maps) with handler(request) -> reply map; with a guard,
+    a MUTATING command from a client without a CURVE identity is refused and counted."""
 
-    def __init__(self, context: zmq.Context, endpoint: str, handler: Callable[[dict], dict]):
-        self._sock, self.address = _bind(context, zmq.REP, endpoint)
+    def __init__(
+        self, context: zmq.Context, endpoint: str, handler: Callable[[dict], dict], guard: Guard | None = None
+    ):
+        self._sock, self.address = _bind(context, zmq.REP, endpoint, guard)
         self._handler = handler
+        self._require_identity = guard is not None
         self.bad_requests = 0
+        self.unauthorised = 0  # MUTATING commands refused for want of an identity
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="control", daemon=True)
         self._thread.start()
 
-    def _reply(self, frames: list[bytes]) -> dict:
+    @staticmethod
+    def identity(frame: zmq.Frame) -> str:
+        """The CURVE client key a request came with ("" for a client that did not authenticate)."""
+        try:
+            return frame.get("User-Id")
+        except zmq.ZMQError:
+            return ""
+
+    def _reply(self, frames: list[zmq.Frame]) -> dict:
         if len(frames) != 1 or len(frames[0]) > MAX_PAYLOAD_BYTES:
             self.bad_requests += 1
             return {"ok": False, "error": f"a request is one msgpack map of at most {MAX_PAYLOAD_BYTES} bytes"}
         try:
-            request = msgspec.msgpack.decode(frames[0])
-        except msgspec.DecodeError:
+            request = msgspec.msgpack.decode(frames[0].buffer)
+        except (msgspec.DecodeError, RecursionError):  # msgspec's guard against nesting deeper than Python's
             request = None
         if not isinstance(request, dict) or not isinstance(request.get("cmd"), str):
             self.bad_requests += 1
             return {"ok": False, "error": 'a request is a msgpack map with a "cmd" string'}
+        if self._require_identity and request["cmd"] in MUTATING and not self.identity(frames[0]):
+            self.unauthorised += 1
+            return {"ok": False, "error": f"{request['cmd']} needs an authenticated (CURVE) client"}
         return self._handler(request)
 
     def _run(self) -> None:
         while not self._stop.is_set():
             if self._sock.poll(POLL_MS):
-                reply = self._reply(self._sock.recv_multipart())
+                reply = self._reply(self._sock.recv_multipart(copy=False))
                 self._sock.send(msgspec.msgpack.encode(reply))
 
     def close(self) -> None:
@@ -130,20 +161,24 @@ class ControlServer:
         self._sock.close()
 
 
-def request(endpoint: str, command: dict, timeout_s: float = 2.0) -> dict:
-    """Send one control request to a running compositor and return its reply (ConfigError if none)."""
+def request(endpoint: str, command: dict, timeout_s: float = 2.0, keys: ClientKeys | None = None) -> dict:
+    """Send one control request to a running compositor and return its reply (ConfigError if none); with keys,
+    as a CURVE client (a compositor with [security] answers no other)."""
     context = zmq.Context.instance()
     sock = context.socket(zmq.REQ)
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.RCVTIMEO, int(timeout_s * 1000))
     sock.setsockopt(zmq.MAXMSGSIZE, 16 * MAX_PAYLOAD_BYTES)
+    if keys is not None:
+        keys.apply(sock)
     try:
         sock.connect(endpoint)
         sock.send(msgspec.msgpack.encode(command))
         return msgspec.msgpack.decode(sock.recv())
     except zmq.Again:
-        raise ConfigError(f"no hmdrt compositor answered at {endpoint} within {timeout_s:g} s") from None
-    except (zmq.ZMQError, msgspec.DecodeError) as exc:
+        hint = "" if keys else " (one with [security] answers only clients with --server-key and --client-key)"
+        raise ConfigError(f"no hmdrt compositor answered at {endpoint} within {timeout_s:g} s{hint}") from None
+    except (zmq.ZMQError, msgspec.DecodeError, RecursionError) as exc:
         raise ConfigError(f"control request to {endpoint} failed: {exc}") from None
     finally:
         sock.close()

@@ -20,6 +20,7 @@ from hmdrt.bus.messages import Gaze, Pose, usable
 from hmdrt.spatial import quat_conjugate, quat_from_rotvec, quat_multiply, quat_slerp, quat_to_rotvec
 
 KINDS = ("gaze", "pose")
+MAX_DEVICES = 64  # devices tracked at once; samples naming another device are refused and counted
 Vec = tuple[float, ...]
 
 
@@ -71,6 +72,7 @@ class DeviceCounts:
     malformed: int = 0  # dropped: NaN, infinite or misshapen values in a valid sample, or not a gaze or pose
     evicted: int = 0  # kept, later removed to stay within the history and size bounds
     last_invalid_t_host: int | None = None  # capture time of the newest invalid sample kept
+    last_received_ns: int | None = None  # when the newest kept sample arrived (host clock): is the device alive
 
     @property
     def dropped(self) -> int:
@@ -112,7 +114,8 @@ class _Pick(NamedTuple):
 class SampleStore:
     """Gaze and pose samples per device, added from an ingest thread and looked up from the frame loop.
 
-    Per device and kind it keeps at most max_per_device samples spanning at most history_ns. Predictions
+    Per device and kind it keeps at most max_per_device samples spanning at most history_ns, for at most
+    MAX_DEVICES devices (so at most 2 x MAX_DEVICES x max_per_device samples, whatever arrives). Predictions
     extrapolate at most horizon_ns past the newest sample, from a velocity fitted to up to fit_samples
     consecutive usable samples within fit_window_ns of it.
     """
@@ -135,6 +138,7 @@ class SampleStore:
         self._lock = threading.Lock()
         self._tracks: dict[str, dict[str, _Track]] = {kind: {} for kind in KINDS}
         self._counts: dict[str, DeviceCounts] = {}
+        self.devices_refused = 0  # samples of a device beyond MAX_DEVICES: memory stays bounded
 
     @property
     def devices(self) -> dict[str, list[str]]:
@@ -151,6 +155,12 @@ class SampleStore:
                 out[device] = replace(c, stored=stored)
             return out
 
+    def last_received(self, device: str) -> int | None:
+        """When the newest sample kept from `device` arrived (None: none yet)."""
+        with self._lock:
+            counts = self._counts.get(device)
+            return None if counts is None else counts.last_received_ns
+
     def add(self, device: str, sample: Gaze | Pose, received_ns: int) -> bool:
         """Keep a sample received at received_ns (host clock); whether it was kept. Invalid samples are kept
         (to mark blinks) and counted; malformed, too old, too far ahead and duplicate ones are counted and dropped.
@@ -159,6 +169,9 @@ class SampleStore:
         with self._lock:
             counts = self._counts.get(device)
             if counts is None:
+                if len(self._counts) >= MAX_DEVICES:
+                    self.devices_refused += 1
+                    return False
                 counts = self._counts[device] = DeviceCounts()
             counts.samples += 1
             if admitted is None:
@@ -186,6 +199,8 @@ class SampleStore:
                 counts.out_of_order += 1
             ts.insert(at, t_host)
             entries.insert(at, _Entry(received_ns, ok, sample))
+            if counts.last_received_ns is None or received_ns > counts.last_received_ns:
+                counts.last_received_ns = received_ns
             if not ok:
                 counts.invalid += 1
                 if counts.last_invalid_t_host is None or t_host > counts.last_invalid_t_host:

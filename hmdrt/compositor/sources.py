@@ -15,13 +15,20 @@ from collections.abc import Callable
 from drivers import open_driver
 from drivers.base import Clock, DeviceLost, Driver
 from drivers.host import DriverHost
+from hmdrt.bus.security import ClientKeys
 
 MAX_READS = 64  # batches per driver per poll (a read returns at most a few thousand samples)
 
 
 class Sources:
     def __init__(
-        self, urls: list[str], clock: Clock, virtual: bool, ingest: str, sink: Callable[[str, object, int], None]
+        self,
+        urls: list[str],
+        clock: Clock,
+        virtual: bool,
+        ingest: str,
+        sink: Callable[[str, object, int], None],
+        keys: ClientKeys | None = None,  # CURVE keys of a secured ingest
     ):
         self._clock = clock
         self._sink = sink
@@ -35,7 +42,7 @@ class Sources:
                 driver.open()
                 self.polled.append(driver)
             else:
-                self.hosts.append(DriverHost(url, ingest, subscriber_wait_s=0.5))
+                self.hosts.append(DriverHost(url, ingest, subscriber_wait_s=0.5, curve=keys))
         for host in self.hosts:
             thread = threading.Thread(target=host.run, args=(self._stop,), name=f"driver-{host.driver.device}")
             thread.daemon = True

@@ -5,6 +5,7 @@ sweeps; every cell of their product is rendered and scored. Paths are relative t
 from __future__ import annotations
 
 import itertools
+import math
 import os
 from pathlib import Path
 from typing import Annotated, Literal
@@ -18,6 +19,7 @@ from hmdrt.foveation import method_params, method_spec
 from hmdrt.spatial import parse_gaze
 
 Scalar = str | int | float | bool
+MAX_CELLS = 10_000  # method cells of one sweep: checked before any is built
 
 
 class _Table(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -56,6 +58,11 @@ class MethodSweep(_Table):
     sweep: dict[str, list[Scalar]] = {}
     label: str = ""
     scenes: list[str] = []  # only on these of the config's scenes ([]: on all)
+
+    def __post_init__(self) -> None:
+        count = math.prod(len(values) for values in self.sweep.values())
+        if count > MAX_CELLS:
+            raise ValueError(f"method {self.name!r}: its sweep makes {count} cells, more than {MAX_CELLS}")
 
     def cells(self) -> list[tuple[str, str]]:
         """(spec, label) of each cell."""

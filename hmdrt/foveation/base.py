@@ -11,6 +11,7 @@ its parameters in one _configure(params), which its constructor calls too, and k
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
@@ -42,8 +43,8 @@ class FrameRequest:
     gaze_depth_m: float | None = None
 
     def __post_init__(self) -> None:
-        g = np.asarray(self.gaze, dtype=np.float64)
-        if g.shape != (3,) or not np.all(np.isfinite(g)) or not np.any(g):
+        g = self.gaze
+        if np.shape(g) != (3,) or not all(map(math.isfinite, g)) or not any(g):  # per frame: no array temporaries
             raise ValueError(f"gaze must be a finite, non-zero 3-vector (head frame), got {self.gaze!r}")
 
 

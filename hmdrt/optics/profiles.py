@@ -9,12 +9,12 @@ measurements of the headset, not manufacturer specifications.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Annotated
 
 import msgspec
 
+from hmdrt.configfile import MAX_TOML_BYTES, parse_toml, read_capped
 from hmdrt.errors import ConfigError
 
 Pixels = Annotated[int, msgspec.Meta(ge=1, le=16384)]
@@ -104,11 +104,14 @@ def get_profile(name_or_path: str) -> HmdProfile:
             f"unknown profile {name_or_path!r}; built-in profiles: {', '.join(PROFILES)}, or a .toml file"
         )
     try:
-        data = tomllib.loads(path.read_text())
-        return msgspec.convert(data, HmdProfile)
-    except OSError as exc:
-        raise ConfigError(f"cannot read profile {path}: {exc.strerror}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"profile {path} is not valid TOML: {exc}") from None
+        data = read_capped(path, MAX_TOML_BYTES)
+    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
+        raise ConfigError(f"cannot read profile {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    if data is None:
+        raise ConfigError(f"profile {path} is larger than {MAX_TOML_BYTES} bytes")
+    try:
+        return msgspec.convert(parse_toml(data), HmdProfile)
     except msgspec.ValidationError as exc:
         raise ConfigError(f"profile {path}: {exc}") from None
+    except ValueError as exc:  # not UTF-8, not TOML, or nested too deeply
+        raise ConfigError(f"profile {path} is not valid TOML: {exc}") from None

@@ -4,7 +4,8 @@ with their materials and textures (diffuse colour and map, OBJ Ks/Ns, glTF base 
 from __future__ import annotations
 
 import io
-import tomllib
+import os
+import stat
 from pathlib import Path
 from typing import Annotated
 
@@ -14,6 +15,7 @@ import trimesh
 from PIL import Image as PILImage
 from PIL import UnidentifiedImageError
 
+from hmdrt.configfile import MAX_TOML_BYTES, parse_toml, read_capped
 from hmdrt.errors import SceneError
 from hmdrt.scene import shapes
 from hmdrt.scene.model import Checker, Colour, Finite, Image, Light, Material, Mesh, PointLight, Radiance, Scene, Vec3
@@ -79,23 +81,48 @@ class SceneFile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     lights: list[Light] = []
 
 
-def _read_bytes(path: Path, what: str) -> bytes:
+def _read_bytes(path: Path, what: str, limit: int = MAX_FILE_BYTES) -> bytes:
     try:
-        size = path.stat().st_size
-        if size > MAX_FILE_BYTES:
-            raise SceneError(f"{what} {path} is {size} bytes; the limit is {MAX_FILE_BYTES}")
-        return path.read_bytes()
+        info = path.stat()
+        if not stat.S_ISREG(info.st_mode):  # a device or FIFO has no size to check, and may never end
+            raise SceneError(f"{what} {path} is not a regular file")
+        data = None if info.st_size > limit else read_capped(path, limit)  # capped: the file may have grown
     except FileNotFoundError:
         raise SceneError(f"{what} not found: {path}") from None
-    except OSError as exc:
-        raise SceneError(f"cannot read {what} {path}: {exc.strerror}") from None
+    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
+        raise SceneError(f"cannot read {what} {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    if data is None:
+        raise SceneError(f"{what} {path} is larger than the limit of {limit} bytes")
+    return data
 
 
-def _image_to_linear(image) -> np.ndarray:
-    """A PIL image as linear float32 (h, w, 3), decoding sRGB."""
+class _CappedResolver(trimesh.resolvers.FilePathResolver):
+    """trimesh's resolver of the files a mesh file names (OBJ materials and textures, glTF buffers and
+    images), reading each under the same size cap as the mesh file itself."""
+
+    def get(self, name: str) -> bytes:
+        for candidate in (name.strip(), name.strip().lstrip("/"), os.path.split(name)[-1]):
+            try:
+                path = self.absolute(candidate)
+            except ValueError:
+                continue  # outside the mesh file's folder
+            if path.exists():
+                return _read_bytes(path, "file named by a mesh file")
+        raise FileNotFoundError(name)
+
+    def namespaced(self, namespace: str) -> _CappedResolver:
+        return _CappedResolver(os.path.join(self.parent, namespace), allow_anywhere=self.allow_anywhere)
+
+
+def _image_to_linear(image, source: Path) -> np.ndarray:
+    """A PIL image (of a file, or one a mesh file holds) as linear float32 (h, w, 3), decoding sRGB."""
     if image.width * image.height > MAX_TEXTURE_PIXELS:
         raise SceneError(f"texture of {image.width}x{image.height} pixels exceeds the limit of {MAX_TEXTURE_PIXELS}")
-    srgb = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
+    try:
+        rgb = image.convert("RGB")  # PIL decodes the pixels only now
+    except (OSError, SyntaxError, ValueError) as exc:  # truncated or corrupt image data
+        raise SceneError(f"cannot decode a texture image of {source}: {exc}") from None
+    srgb = np.asarray(rgb, dtype=np.float32) / 255.0
     return np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
@@ -104,12 +131,13 @@ def load_image(path: Path) -> np.ndarray:
     data = _read_bytes(path, "texture image")
     try:
         with PILImage.open(io.BytesIO(data)) as img:
-            return _image_to_linear(img)
-    except (UnidentifiedImageError, OSError) as exc:
+            return _image_to_linear(img, path)
+    # ValueError: a bad header field (PNG's IHDR, PPM's numbers, TIFF's dimensions)
+    except (UnidentifiedImageError, OSError, ValueError, PILImage.DecompressionBombError) as exc:
         raise SceneError(f"cannot decode texture image {path}: {exc}") from None
 
 
-def _file_material(visual, key: str, images: dict[str, np.ndarray], seen: dict[int, str]) -> Material:
+def _file_material(visual, key: Path, images: dict[str, np.ndarray], seen: dict[int, str]) -> Material:
     """Our material for a trimesh visual: diffuse colour and map, OBJ Ks/Ns, glTF emission."""
     mat = getattr(visual, "material", None)
     if mat is None:  # ColorVisuals: one main colour, stored as sRGB bytes
@@ -131,7 +159,7 @@ def _file_material(visual, key: str, images: dict[str, np.ndarray], seen: dict[i
     if image is not None and getattr(visual, "uv", None) is not None:
         if id(image) not in seen:
             seen[id(image)] = f"{key}#{len(seen)}"
-            images[seen[id(image)]] = _image_to_linear(image)
+            images[seen[id(image)]] = _image_to_linear(image, key)
         texture = Image(image=seen[id(image)])
     return Material(diffuse=diffuse, specular=specular, shininess=shininess, emission=emission, texture=texture)
 
@@ -146,32 +174,49 @@ def load_mesh_file(
             trimesh.util.wrap_as_stream(data),
             file_type=path.suffix[1:].lower(),
             force="scene",
-            resolver=trimesh.resolvers.FilePathResolver(path),
+            resolver=_CappedResolver(path),
         )
     except Exception as exc:  # trimesh raises many types for malformed files
         raise SceneError(f"cannot load mesh file {path}: {exc}") from None
     meshes, materials, images, seen = [], {}, {}, {}
-    for node in loaded.graph.nodes_geometry:
-        transform, geom_name = loaded.graph[node]
-        geom = loaded.geometry[geom_name]
-        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
-            continue
-        name = f"{path.name}/{node}"
-        if material is None:
-            materials[name] = _file_material(geom.visual, str(path), images, seen)
-        uv = getattr(geom.visual, "uv", None)
-        mesh = Mesh(
-            name,
-            np.asarray(geom.vertices, dtype=np.float64),
-            np.asarray(geom.faces),
-            material or name,
-            np.asarray(geom.vertex_normals, dtype=np.float64),
-            None if uv is None or len(uv) != len(geom.vertices) else np.asarray(uv, dtype=np.float64),
-        )
-        meshes.append(mesh.transformed(np.asarray(transform, dtype=np.float64)))
+    try:  # trimesh computes normals, UVs and transforms lazily: a malformed file can fail here too
+        for node in loaded.graph.nodes_geometry:
+            transform, geom_name = loaded.graph[node]
+            geom = loaded.geometry[geom_name]
+            if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+                continue
+            name = f"{path.name}/{node}"
+            if material is None:
+                materials[name] = _file_material(geom.visual, path, images, seen)
+            uv = getattr(geom.visual, "uv", None)
+            mesh = Mesh(
+                name,
+                np.asarray(geom.vertices, dtype=np.float64),
+                np.asarray(geom.faces, dtype=np.int64),
+                material or name,
+                np.asarray(geom.vertex_normals, dtype=np.float64),
+                None if uv is None or len(uv) != len(geom.vertices) else np.asarray(uv, dtype=np.float64),
+            )
+            meshes.append(_checked(mesh.transformed(np.asarray(transform, dtype=np.float64)), path))
+    except SceneError:
+        raise
+    except Exception as exc:
+        raise SceneError(f"cannot load mesh file {path}: {exc}") from None
     if not meshes:
         raise SceneError(f"mesh file {path} holds no triangles")
     return meshes, materials, images
+
+
+def _checked(mesh: Mesh, path: Path) -> Mesh:
+    """The mesh, if its arrays have the shapes the tracer needs, finite values and faces that index vertices."""
+    v, f, n, uv = mesh.vertices, mesh.faces, mesh.normals, mesh.uv
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or (n is not None and n.shape != v.shape):
+        raise SceneError(f"mesh file {path}: {mesh.name} is not a triangle mesh")
+    if f.min() < 0 or f.max() >= len(v):
+        raise SceneError(f"mesh file {path}: {mesh.name} has faces that index no vertex")
+    if not all(np.isfinite(a).all() for a in (v, n, uv) if a is not None):
+        raise SceneError(f"mesh file {path}: {mesh.name} has non-finite vertices, normals or UVs")
+    return mesh
 
 
 def _object_meshes(spec, base: Path, scene: Scene) -> list[Mesh]:
@@ -194,11 +239,11 @@ def _object_meshes(spec, base: Path, scene: Scene) -> list[Mesh]:
 def load_scene_file(path: Path) -> Scene:
     """Build a Scene from a TOML scene description; paths inside it are relative to the file."""
     try:
-        spec = msgspec.convert(tomllib.loads(_read_bytes(path, "scene file").decode("utf-8")), SceneFile)
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise SceneError(f"scene file {path} is not valid TOML: {exc}") from None
+        spec = msgspec.convert(parse_toml(_read_bytes(path, "scene file", MAX_TOML_BYTES)), SceneFile)
     except msgspec.ValidationError as exc:
         raise SceneError(f"scene file {path}: {exc}") from None
+    except ValueError as exc:  # not UTF-8, not TOML, or nested too deeply
+        raise SceneError(f"scene file {path} is not valid TOML: {exc}") from None
     cam = spec.camera
     start = (
         Pose.look_at(cam.position, cam.look_at)
@@ -219,8 +264,9 @@ def load_scene_file(path: Path) -> Scene:
     )
     for name, mat in spec.materials.items():
         if isinstance(mat.texture, Image):
+            image = load_image(path.parent / mat.texture.image)  # first: SceneError for a path resolve() refuses
             key = str((path.parent / mat.texture.image).resolve())
-            scene.images[key] = load_image(path.parent / mat.texture.image)
+            scene.images[key] = image
             scene.materials[name] = msgspec.structs.replace(
                 mat, texture=msgspec.structs.replace(mat.texture, image=key)
             )

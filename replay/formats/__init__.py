@@ -13,7 +13,7 @@ import csv
 import gzip
 import math
 from collections.abc import Callable, Iterator
-from decimal import Decimal, InvalidOperation
+from decimal import Decimal
 from pathlib import Path
 
 from hmdrt.bus.messages import Gaze
@@ -66,12 +66,12 @@ def number(text: str) -> float:
 def time_ns(text: str, unit_ns: int) -> int:
     """A time cell in units of unit_ns as integer nanoseconds, exact for decimal text (ValueError if not a time)."""
     try:
-        value = Decimal(text.strip())
-    except InvalidOperation:
+        value = Decimal(text.strip()) * unit_ns
+    except ArithmeticError:  # InvalidOperation: not a number; Overflow: an exponent past the decimal context's
         raise ValueError(f"not a time: {text!r}") from None
-    if not value.is_finite() or abs(value * unit_ns) > MAX_TIME_NS:
+    if not value.is_finite() or abs(value) > MAX_TIME_NS:
         raise ValueError(f"time out of range: {text!r}")
-    return int((value * unit_ns).to_integral_value())
+    return int(value.to_integral_value())
 
 
 def unit(x: float, y: float, z: float) -> Vec3 | None:
