@@ -78,7 +78,9 @@ def main() -> None:
 
     if "default" in only:
         print(f"configs/default.toml, {args.duration:g} s real time")
-        describe("default", run(load_config(CONFIGS / "default.toml", duration_s=args.duration)))
+        config = load_config(CONFIGS / "default.toml", duration_s=args.duration)
+        describe("default", run(config))
+        describe("default, controller off", run(with_controller(config, "none")))
     if "controller" in only:
         config = load_config(CONFIGS / "bench" / "controller.toml", duration_s=args.controller_duration)
         print(f"configs/bench/controller.toml, {args.controller_duration:g} s real time each")
