@@ -302,3 +302,16 @@ def test_a_driver_name_that_is_not_printable_ascii_is_a_config_error():
 
     with pytest.raises(ConfigError, match="name= must be printable ASCII"):
         open_driver("synthetic://?name=caf%C3%A9")
+
+
+def test_a_report_snapshot_is_not_changed_by_later_records():
+    """summary() copies the report under the lock and works out percentiles after releasing it."""
+    from hmdrt.telemetry.report import RunReport
+
+    report = RunReport(30.0)
+    snapshot = report.snapshot()
+    report.frame_ms.append(12.0)
+    report.shown["new"] += 1
+    report.stages_ms["trace"] = 3.0
+    assert snapshot.frame_ms == [] and snapshot.shown["new"] == 0 and snapshot.stages_ms == {}
+    assert snapshot.to_dict()["frames"] == 0 and report.frames == 1

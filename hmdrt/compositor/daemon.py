@@ -511,25 +511,28 @@ class Compositor:
         return out
 
     def summary(self) -> dict:
+        """The run report so far. Only a copy of the counts is taken under the lock that the render and display
+        threads share; the percentiles, over every frame so far, are worked out after it is released."""
         with self._lock:
-            report = self.report.to_dict(
-                method=self.session.method.name,
-                method_spec=self.session.spec,
-                profile=self.session.profile.name,
-                scene=self.session.scene.name,
-                drivers=self.drivers(),
-                samples={device: {**vars(c), "dropped": c.dropped} for device, c in self.store.counts().items()},
-                pacing=self.pacer.info(),
-                virtual_time=self.config.run.virtual_time,
-                seed=self.config.run.seed,
-                ingest_malformed=self.ingest.malformed,
-                outages=self.outages.to_dict(),
-                devices_refused=self.store.devices_refused,
-                frames_not_written=self.writes_skipped + self.writes_failed,
-                config=self.config.source,
-                hmdrt=__version__,
-                security=self.security(),
-            )
+            snapshot, pacing = self.report.snapshot(), self.pacer.info()
+        report = snapshot.to_dict(
+            method=self.session.method.name,
+            method_spec=self.session.spec,
+            profile=self.session.profile.name,
+            scene=self.session.scene.name,
+            drivers=self.drivers(),
+            samples={device: {**vars(c), "dropped": c.dropped} for device, c in self.store.counts().items()},
+            pacing=pacing,
+            virtual_time=self.config.run.virtual_time,
+            seed=self.config.run.seed,
+            ingest_malformed=self.ingest.malformed,
+            outages=self.outages.to_dict(),
+            devices_refused=self.store.devices_refused,
+            frames_not_written=self.writes_skipped + self.writes_failed,
+            config=self.config.source,
+            hmdrt=__version__,
+            security=self.security(),
+        )
         if self.controller is not None:
             report["controller"] = {
                 "kind": self.config.controller.kind,

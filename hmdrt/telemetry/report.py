@@ -11,6 +11,7 @@ newer sample existed to be late about.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -90,7 +91,8 @@ def percentiles(values: list[float], keys: tuple[int, ...] = (50, 95, 99)) -> di
     if not values:
         return {**{f"p{k}": None for k in keys}, "max": None}
     arr = np.asarray(values, dtype=np.float64)
-    return {**{f"p{k}": round(float(np.percentile(arr, k)), 3) for k in keys}, "max": round(float(arr.max()), 3)}
+    qs = np.percentile(arr, keys)  # one partition for all of them: the stats topic does this every second
+    return {**{f"p{k}": round(float(q), 3) for k, q in zip(keys, qs, strict=True)}, "max": round(float(arr.max()), 3)}
 
 
 class RunReport:
@@ -151,6 +153,16 @@ class RunReport:
         self.rays += record.rays
         for stage, ms in record.stages_ms.items():
             self.stages_ms[stage] = self.stages_ms.get(stage, 0.0) + ms
+
+    def snapshot(self) -> RunReport:
+        """A copy whose counts and lists later records do not change: cheap to take under a lock, then
+        summarised (to_dict) outside it."""
+        out = copy.copy(self)
+        for name in ("settled", "shown", "held", "stages_ms"):
+            setattr(out, name, dict(getattr(self, name)))
+        for name in ("frame_ms", "overhead_ms", "warp_ms", "gaze_ms", "pose_ms"):
+            setattr(out, name, list(getattr(self, name)))
+        return out
 
     @property
     def frames(self) -> int:
