@@ -25,7 +25,7 @@ from hmdrt.foveation import METHODS, make_method
 from hmdrt.optics import get_profile
 from hmdrt.present.encode import linear_to_srgb8, write_png
 from hmdrt.scene import load_scene
-from hmdrt.sequence import FrameInput, SequenceCounts, render_frames, sequence_inputs
+from hmdrt.sequence import render_frames, sequence_inputs
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
 
@@ -41,11 +41,6 @@ class _Parser(argparse.ArgumentParser):
 
 def _write_json(path: str | Path, record: dict) -> None:
     write_atomic(path, (json.dumps(record, indent=2) + "\n").encode())
-
-
-def _inputs(args: argparse.Namespace, start, period_ns: int) -> tuple[list[FrameInput], SequenceCounts | None]:
-    """The frames to render: one still frame, a still sequence, the built-in path, or a trace."""
-    return sequence_inputs(start, period_ns, args.frames, trace=args.trace, gaze=args.gaze, seed=args.seed)
 
 
 def _record(stats: FrameStats, ms: float, width: int, height: int, method: str, scene: str) -> dict:
@@ -94,7 +89,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     sequence = args.frames is not None or args.trace is not None
     t0 = time.perf_counter()
     scene = load_scene(args.scene)
-    inputs, counts = _inputs(args, scene.start, profile.period_ns)
+    inputs, counts = sequence_inputs(
+        scene.start, profile.period_ns, args.frames, trace=args.trace, gaze=args.gaze, seed=args.seed
+    )
     eyes = ("left", "right") if args.eye == "both" else (args.eye,)
     records, out = [], Path(args.out)
     with Whitted(scene, threads=args.threads) as tracer:

@@ -26,7 +26,7 @@ from hmdrt.errors import ConfigError
 from replay import load_trace
 
 from .helpers import wait_for
-from .test_runtime import TRACE, Background, compositor, readline, write_config
+from .test_runtime import TRACE, Background, compositor, readline, start_run, write_config
 
 MS = 1_000_000
 
@@ -209,12 +209,7 @@ def test_a_gaze_flood_from_many_devices_stays_within_the_stated_memory_bound(tmp
 def test_under_cpu_contention_frames_stay_in_order_and_sigterm_still_writes_a_complete_report(tmp_path):
     config, out = write_config(tmp_path / "busy.toml"), tmp_path / "report.json"
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 2)]
-    process = subprocess.Popen(
-        [sys.executable, "-m", "hmdrt", "run", str(config), "--report", str(out)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    process = start_run(config, out)
     try:
         assert readline(process, 120).startswith("hmdrt run")
         time.sleep(3.0)

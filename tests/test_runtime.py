@@ -388,14 +388,19 @@ def readline(process: subprocess.Popen, timeout_s: float) -> str:
     return process.stdout.readline()
 
 
-def test_sigterm_mid_run_writes_a_complete_report_and_exits_0(tmp_path):
-    config, out = write_config(tmp_path / "run.toml"), tmp_path / "out" / "report.json"
-    process = subprocess.Popen(
-        [sys.executable, "-m", "hmdrt", "run", str(config), "--report", str(out)],
+def start_run(config: Path, report: Path) -> subprocess.Popen:
+    """`hmdrt run CONFIG --report REPORT` in its own process, its output piped as text."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "hmdrt", "run", str(config), "--report", str(report)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
+
+
+def test_sigterm_mid_run_writes_a_complete_report_and_exits_0(tmp_path):
+    config, out = write_config(tmp_path / "run.toml"), tmp_path / "out" / "report.json"
+    process = start_run(config, out)
     try:
         line = readline(process, 60)
         assert line.startswith(f"hmdrt run {config}: rrm on whitted at sim-cpu (30 Hz)"), line

@@ -45,6 +45,11 @@ class Trace(_Table):
                 raise ValueError(str(exc)) from None
 
     @property
+    def source(self) -> str | None:
+        """The trace as sequence_inputs takes it: a path, "builtin", or None for the fixed gaze."""
+        return self.path or ("builtin" if self.builtin else None)
+
+    @property
     def label(self) -> str:
         return self.name or (f"gaze {self.gaze}" if self.gaze else Path(self.path).stem if self.path else "builtin")
 

@@ -114,7 +114,7 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
                         scene.start,
                         profile.period_ns,
                         config.frames,
-                        trace=trace.path or ("builtin" if trace.builtin else None),
+                        trace=trace.source,
                         gaze=trace.gaze or "0,0",
                         seed=config.seed,
                     )
