@@ -158,7 +158,22 @@ def test_tiles_on_the_thread_pool_give_the_same_hits_as_one_call():
     cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(96, 96), scene.start)
     dirs = cam.directions(pixel_centres(96, 96))
     origins = np.tile(cam.position.astype(np.float32), (len(dirs), 1))
-    with Tracer(geometry, threads=1, tile_rays=1 << 30) as one, Tracer(geometry, threads=2, tile_rays=1024) as many:
+    with (
+        Tracer(geometry, threads=1, tile_rays=1 << 30) as one,
+        Tracer(geometry, threads=2, tile_rays=1024, min_tile_rays=1024) as many,
+    ):
+        assert len(many.tiles(len(dirs))) == 9  # shared by this thread and the pool thread
         a, b = one.intersect(origins, dirs), many.intersect(origins, dirs)
+        far = np.full(len(dirs), float(np.median(a.t[a.prim >= 0])), np.float32)
+        blocked_one, blocked_many = one.occluded(origins, dirs, far), many.occluded(origins, dirs, far)
     np.testing.assert_array_equal(a.prim, b.prim)
     np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(blocked_one, blocked_many)
+    assert 0 < blocked_one.sum() < len(dirs)
+
+
+def test_a_batch_under_two_minimum_tiles_stays_on_the_calling_thread():
+    with Tracer(pack(bunny()).geometry, threads=2, min_tile_rays=4096) as tracer:
+        assert tracer.tiles(8191) == [slice(0, 4096), slice(4096, 8191)]
+        assert tracer.tiles(4096) == [slice(0, 4096)]
+        assert tracer.tiles(100_000)[0] == slice(0, 1 << 15)

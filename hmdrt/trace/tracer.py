@@ -1,9 +1,12 @@
 """The one owner of Embree (through embreex): builds the scene once and traces batches of rays in
-tiles on a thread pool; embreex releases the GIL, so tiles run in parallel."""
+tiles on a thread pool; embreex releases the GIL, so tiles run in parallel. The calling thread traces
+tiles too, and a batch smaller than two tiles never leaves it: handing work to a pool thread costs about
+0.1-0.3 ms here, as much as tracing a few thousand rays (bench/trace_throughput.py --rays)."""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -14,6 +17,7 @@ from embreex.mesh_construction import TriangleMesh
 from hmdrt.scene.pack import Geometry
 
 EMBREE_MISS_T = 1e37  # tfar that embreex reports for rays that hit nothing
+MIN_TILE = 8192  # rays: smaller batches are traced on the calling thread alone
 
 
 class Hits(NamedTuple):
@@ -35,21 +39,38 @@ def _check_rays(origins: np.ndarray, directions: np.ndarray) -> None:
 class Tracer:
     """Embree scene over one Geometry; intersect() and occluded() take float32 (n, 3) rays."""
 
-    def __init__(self, geometry: Geometry, threads: int | None = None, tile_rays: int = 1 << 15):
+    def __init__(
+        self, geometry: Geometry, threads: int | None = None, tile_rays: int = 1 << 15, min_tile_rays: int = MIN_TILE
+    ):
         self.threads = threads or os.cpu_count() or 1
         self.tile_rays = tile_rays
+        self.min_tile_rays = min_tile_rays
         self.triangles = len(geometry.faces)
         self._scene = rtcore_scene.EmbreeScene()
         if self.triangles:
             TriangleMesh(self._scene, geometry.vertices, geometry.faces)
             # commit now: embreex commits lazily on the first run(), which must not race across threads
             self._scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
-        self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="hmdrt-trace")
+        self._pool = ThreadPoolExecutor(max(self.threads - 1, 1), thread_name_prefix="hmdrt-trace")
 
     def tiles(self, n: int) -> list[slice]:
-        """How n rays are split into tiles for the thread pool."""
-        step = max(1024, min(self.tile_rays, -(-n // self.threads)))
+        """How n rays are split into tiles: one per thread where that gives tiles of min_tile_rays to tile_rays rays."""
+        step = max(self.min_tile_rays, min(self.tile_rays, -(-n // self.threads)))
         return [slice(i, min(i + step, n)) for i in range(0, n, step)]
+
+    def _each_tile(self, tile: Callable[[slice], None], n: int) -> None:
+        """tile(s) for every tile of n rays, taken in turn by this thread and up to threads - 1 pool threads."""
+        tiles = self.tiles(n)
+        queue = iter(tiles)  # shared: each thread takes the next tile when it is free (next() holds the GIL)
+
+        def drain() -> None:
+            for s in queue:
+                tile(s)
+
+        helpers = [self._pool.submit(drain) for _ in range(min(self.threads, len(tiles)) - 1)]
+        drain()
+        for helper in helpers:
+            helper.result()
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = EMBREE_MISS_T) -> Hits:
         """First hit along each ray within (0, tfar]."""
@@ -76,7 +97,7 @@ class Tracer:
             hits.u[s] = r["u"]
             hits.v[s] = r["v"]
 
-        list(self._pool.map(tile, self.tiles(n)))
+        self._each_tile(tile, n)
         return hits
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
@@ -93,7 +114,7 @@ class Tracer:
             dists = float(tfar) if scalar_far else far[s].copy()
             out[s] = self._scene.run(origins[s], directions[s], dists=dists, query="OCCLUDED") != -1
 
-        list(self._pool.map(tile, self.tiles(n)))
+        self._each_tile(tile, n)
         return out
 
     def close(self) -> None:
