@@ -114,7 +114,7 @@ def bezier_controls(p: Kim21Params) -> np.ndarray:
     return np.array([0.0, m1, p.e_f, p.tau_0, p.tau_0, p.tau_f, p.e_f, m2, p.e_np, p.tau_f, p.tau_np, p.tau_np])
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _bezier_y_at_x(x0, x1, x2, y0, y1, y2, e):
     """y of the quadratic Bezier at the parameter where x(t) = e; the linear case when a = 0."""
     a = x0 - 2.0 * x1 + x2
@@ -133,7 +133,7 @@ def _bezier_y_at_x(x0, x1, x2, y0, y1, y2, e):
     return u * u * y0 + 2.0 * u * t * y1 + t * t * y2
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def tau_fov(e, ctrl):
     """kim2021's tau_fov(e): y1(x1^-1(e)) on [0, e_f], y2(x2^-1(e)) on (e_f, e_np], tau_np beyond."""
     if e <= ctrl[2]:
@@ -143,7 +143,7 @@ def tau_fov(e, ctrl):
     return ctrl[11]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def tau_fov_array(e, ctrl):
     out = np.empty(e.shape[0])
     for i in range(e.shape[0]):
@@ -159,7 +159,7 @@ def alpha_of_eccentricity(ecc: np.ndarray, p: Kim21Params) -> np.ndarray:
 MITCHELL = (1.36, 1.02, 2.04)  # kim2021 section 3: the contrast threshold vector per tau
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _contrast_fails(color, a, b, c, d, tau):
     """Mitchell's contrast (max - min) / (max + min) of rows a, b, c, d of color (n, 3), per channel,
     against tau x (1.36, 1.02, 2.04)."""
@@ -171,7 +171,7 @@ def _contrast_fails(color, a, b, c, d, tau):
     return False
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _pair_contrast_fails(color_a, i, color_b, j, tau):
     """Mitchell's contrast between pixel i of color_a and pixel j of color_b."""
     for ch in range(3):
@@ -182,7 +182,7 @@ def _pair_contrast_fails(color_a, i, color_b, j, tau):
     return False
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _discordant(i, j, obj, ns, shadow, tex, normal_cos):
     """Which of (object id, normal, shadow count, texture) differ between pixels i and j."""
     dot = ns[i, 0] * ns[j, 0] + ns[i, 1] * ns[j, 1] + ns[i, 2] * ns[j, 2]
@@ -190,7 +190,7 @@ def _discordant(i, j, obj, ns, shadow, tex, normal_cos):
     return obj[i] != obj[j], both_hit and dot < normal_cos, shadow[i] != shadow[j], tex[i] != tex[j]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _tau_sel(i, neighbours, p_attr, s_attr, thresholds, normal_cos):
     """Step one: the minimum threshold over geometry attributes on which pixel i disagrees with any
     neighbour; thresholds[0] (tau_col) when none does."""
@@ -210,7 +210,7 @@ def _tau_sel(i, neighbours, p_attr, s_attr, thresholds, normal_cos):
     return tau
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _inspect(
     color,
     ecc,
@@ -260,7 +260,7 @@ def _inspect(
                 samples[i] += counts[band]
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _subpixel_samples(sub_mask, samples, first, counts_by_pixel, width, seed_key, xy, keys):
     """Stratified jittered positions of the extra samples, subpixel by subpixel (section 4.6.2)."""
     for i in nb.prange(sub_mask.shape[0]):
@@ -284,7 +284,7 @@ def _subpixel_samples(sub_mask, samples, first, counts_by_pixel, width, seed_key
                 j += 1
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _resolve(color_ref, sub_mask, first, counts_by_pixel, extra, width, out):
     """Each pixel is the mean of its four subpixels: the mean of a problematic subpixel's samples, or
     the colour interpolated from the four surrounding pixel centres at the subpixel's centre."""
@@ -314,7 +314,7 @@ def _resolve(color_ref, sub_mask, first, counts_by_pixel, extra, width, out):
         out[i, 0], out[i, 1], out[i, 2] = 0.25 * r, 0.25 * g, 0.25 * b
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _reuse(
     cur_cam,
     prev_cam,

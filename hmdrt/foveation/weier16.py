@@ -95,7 +95,7 @@ def support_grid(width: int, height: int, sw: int, sh: int) -> tuple[np.ndarray,
     return (np.arange(sw) + 0.5) * width / sw, (np.arange(sh) + 0.5) * height / sh
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _resampling_info(
     mesh, zinv, prev_color, prev_normal, prev_cam_pos, full_w, full_h, eps_depth, eps_lum, eps_edge, out
 ):
@@ -145,7 +145,7 @@ def _resampling_info(
             out[y, x] = mark
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _cache_update(
     pixels,
     sample_rgb,
@@ -197,7 +197,7 @@ def _cache_update(
         has_color[y, x] = True
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _merge(support, has_color, color):
     """Pixels without colour take the bilinearly upsampled support image."""
     h, w = has_color.shape
@@ -209,7 +209,7 @@ def _merge(support, has_color, color):
                 color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _post(pixels, resampled, sample_light, sample_albedo, reconstructed, state, radius, taps, seed, color):
     """weier2016 section 3.5: a resampled pixel borrows the accumulated light buffer of the closest
     reconstructed pixel among `taps` random taps in a window sized by the nearest reconstructed pixel

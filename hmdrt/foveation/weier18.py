@@ -73,7 +73,7 @@ class Weier18Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         return DofPreset(self.pupil_mm or base.pupil_mm, self.retina or base.retina)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _taa(pixels, width, cur, prev, depth, rgb, ecc, r0, r1, p_min, pyramid, alpha_min, tol, out):
     """Blend each traced sample with the previous frame's pyramid around its back-projection."""
     data, offsets, widths, heights = pyramid

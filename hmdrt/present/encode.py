@@ -16,7 +16,7 @@ from PIL import Image
 from hmdrt.errors import HmdrtError
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _encode(flat, out):
     for i in nb.prange(flat.shape[0]):
         x = flat[i]

@@ -36,7 +36,7 @@ class Timewarped(NamedTuple):
     outside: float  # in [0, 1]; 0 when every pixel was looked up inside the rendered image
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _unit_depth_ray(cam, x, y):
     """The world view ray through pixel (x, y) scaled to unit depth along the camera's axis: cam.rotation
     times (tan x, tan y, -1), which is affine in x and y, unlike the unit ray."""
@@ -46,7 +46,7 @@ def _unit_depth_ray(cam, x, y):
     return dx * s, dy * s, dz * s
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _warp_rows(image, target, rendered, out, y0, y1):
     """Warp rows [y0, y1) of `out`; returns how many of their pixels fell outside the rendered image."""
     h, w = image.shape[0], image.shape[1]
@@ -68,7 +68,7 @@ def _warp_rows(image, target, rendered, out, y0, y1):
     return outside
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _warp(image, target, rendered, out, rows_per_block):
     h = image.shape[0]
     blocks = (h + rows_per_block - 1) // rows_per_block

@@ -96,7 +96,7 @@ class LightBuffer(NamedTuple):
         return cls(np.zeros((n, 3), np.float32), np.zeros((n, 3), np.float32))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, stop):
     depth, a_ng, a_ns, a_obj, a_shadow, a_tex, a_kr, a_kt = attrs
     hits, ng, ns, obj, material = surf.hit, surf.normal_geometric, surf.normal_shading, surf.object_id, surf.material
@@ -116,7 +116,7 @@ def _store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, st
         a_kt[r] = kt[i] if hit else 0.0
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def store_kernel(attrs, rows, t, surf, textured, shadow_count, kr, kt):
     """attrs[rows[i]] = attributes of hit i, for every i with rows[i] >= 0."""
     n = rows.shape[0]

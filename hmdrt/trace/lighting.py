@@ -73,7 +73,7 @@ def light_plan(lights: Lights, scene: Scene) -> LightPlan:
     )
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _spawn(origins, directions, far, j, position, ng, offset, i, tx, ty, tz, shorten):
     """Ray j from hit i towards (tx, ty, tz), starting on the side of the geometric normal."""
     off = offset[i]
@@ -88,7 +88,7 @@ def _spawn(origins, directions, far, j, position, ng, offset, i, tx, ty, tz, sho
     far[j] = dist * shorten if dist > 0.0 else -1.0
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _inactive(origins, directions, far, j):
     origins[j, 0] = origins[j, 1] = origins[j, 2] = 0.0
     directions[j, 0] = directions[j, 1] = 0.0
@@ -96,7 +96,7 @@ def _inactive(origins, directions, far, j):
     far[j] = -1.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
     l_pos, a_corner, a_u, a_v, a_normal, a_samples = (
         lights.point_position,
@@ -152,7 +152,7 @@ def _light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
             o_far[j] = ao_dist
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def light_rays_kernel(lights, plan, surf, keys, point, area, ao):
     """Fill the point-light, area-light and AO batches; hit i owns a fixed block of each."""
     n = surf.hit.shape[0]
@@ -160,7 +160,7 @@ def light_rays_kernel(lights, plan, surf, keys, point, area, ao):
         _light_rays_block(lights, plan, surf, keys, point, area, ao, b * BLOCK, min(n, (b + 1) * BLOCK))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _lit(ns, albedo, i, wlocal, ks, shininess, view, light, e):
     """Lambert + Phong (rgb) at hit i for a viewer along -view, light arriving from unit direction
     `light` with irradiance scale e (rgb, 1/r^2 included); vectors are 3-tuples."""
@@ -179,7 +179,7 @@ def _lit(ns, albedo, i, wlocal, ks, shininess, view, light, e):
     return e[0] * (w * albedo[i, 0] + spec), e[1] * (w * albedo[i, 1] + spec), e[2] * (w * albedo[i, 2] + spec)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count, stochastic, start, stop):
     l_int, a_normal, a_size, a_rad, a_samples = (
         lights.point_intensity,
@@ -260,7 +260,7 @@ def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shad
         shadow_count[i] = shadowed
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def shade_kernel(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count, stochastic):
     """Local radiance (n, 3) at each hit (background on misses), each hit's count of shadowed light
     samples, and the irradiance its area lights and ambient occlusion contribute (stochastic (n, 3)):

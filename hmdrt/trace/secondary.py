@@ -41,7 +41,7 @@ class Rays(NamedTuple):
         )
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, start, stop):
     refl, trans, ior = mats.reflectance, mats.transmittance, mats.ior
     hits, ns, entering, material = surf.hit, surf.normal_shading, surf.entering, surf.material
@@ -62,7 +62,7 @@ def _interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, start, s
             counts[i] = int(kr * peak > MIN_THROUGHPUT) + int(kt * peak > MIN_THROUGHPUT)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def interaction_kernel(mats, surf, rays, spawn, kr_out, kt_out, counts):
     """Weights of the reflected and refracted rays at every hit, and how many children each spawns."""
     n = surf.hit.shape[0]
@@ -70,7 +70,7 @@ def interaction_kernel(mats, surf, rays, spawn, kr_out, kt_out, counts):
         _interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, b * BLOCK, min(n, (b + 1) * BLOCK))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _child(out, j, surf, parent, i, direction, side, weight, key, principal):
     """Child ray j of hit i: leaves from the `side` (+1 out, -1 through) of the surface along `direction`."""
     off = surf.offset[i] * side
@@ -83,7 +83,7 @@ def _child(out, j, surf, parent, i, direction, side, weight, key, principal):
     out.principal[j] = principal
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, start, stop):
     ior, ng, ns, entering, material = mats.ior, surf.normal_geometric, surf.normal_shading, surf.entering, surf.material
     dirs, thr, keys = rays.directions, rays.throughput, rays.key
@@ -115,7 +115,7 @@ def _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, start, stop)
             _child(out, j, surf, rays, i, (tx, ty, tz), -1.0, kt, key, not principal_is_reflection)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def spawn_kernel(mats, surf, rays, kr_in, kt_in, first, depth, out):
     """Write the children of every hit at out[first[i]:] (reflection first, then refraction)."""
     n = surf.hit.shape[0]
@@ -123,7 +123,7 @@ def spawn_kernel(mats, surf, rays, kr_in, kt_in, first, depth, out):
         _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, b * BLOCK, min(n, (b + 1) * BLOCK))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def accumulate_kernel(radiance, rays, local):
     """radiance[owner] += throughput * local, serially (several rays may share an owner)."""
     for i in range(rays.owner.shape[0]):

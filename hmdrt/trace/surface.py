@@ -49,7 +49,7 @@ class Surface(NamedTuple):
         )
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
     faces, verts, fnorm, vnorm, uvs = geo.faces, geo.vertices, geo.face_normals, geo.vertex_normals, geo.uv
     extent, tri_object, obj_mat, obj_smooth, obj_uv = (
@@ -107,7 +107,7 @@ def _surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
     texture_block(mats, material, texcoord, hit, albedo, start, stop)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def surface_kernel(geo, mats, directions, prim, bu, bv, out):
     """Fill `out` (a Surface) from the hits (prim, bu, bv) of rays with the given directions."""
     n = prim.shape[0]

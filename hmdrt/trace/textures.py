@@ -13,7 +13,7 @@ from hmdrt.scene.noise import fbm
 from hmdrt.scene.pack import TEX_CHECKER, TEX_IMAGE, TEX_NOISE, Materials
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _bilinear(texels, base, h, w, u, v, out, i):
     x = (u - math.floor(u)) * w - 0.5
     y = (1.0 - (v - math.floor(v))) * h - 0.5  # UV origin is the bottom-left of the image
@@ -32,7 +32,7 @@ def _bilinear(texels, base, h, w, u, v, out, i):
                 out[i, c] += wgt * texels[idx, c]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def texture_block(mats, material, coords, active, albedo, start, stop):
     """albedo[i] = diffuse x texture of material[i] at coords[i], for active i in [start, stop)."""
     diffuse, kinds, scales = mats.diffuse, mats.tex_kind, mats.tex_scale

@@ -55,7 +55,7 @@ def focal_lengths(d_o_m: float, t_m: float = DEPTH_INACCURACY_M) -> tuple[float,
     return d_n, d_f, f(d_n), f(d_f)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _image_distance(f, g):
     """V(F, G) = F G / (G - F): where a lens of focal length F images an object at G (G > F); F at G = inf."""
     if math.isinf(g):
@@ -63,7 +63,7 @@ def _image_distance(f, g):
     return f * g / (g - f)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def circle_of_confusion(g_mm, d_n, d_f, f_n, f_f, k, e):
     """Equation (3): signed CoC of an object at distance g (mm); 0 inside [d_n, d_f], > 0 near, < 0 far.
 
@@ -80,7 +80,7 @@ def circle_of_confusion(g_mm, d_n, d_f, f_n, f_f, k, e):
     return (vg - _image_distance(f, d)) * (k * vg) * e
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _coc_map(depth_m, d_n, d_f, f_n, f_f, k, e, out):
     h, w = depth_m.shape
     for y in nb.prange(h):
@@ -119,7 +119,7 @@ def gaze_depth(
     return float(np.median(samples))
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _far_gauss(src, coc, central, horizontal, out):
     """One pass of the separable far-field Gaussian (sigma = |CoC| / 2) in central vision, taking only
     far-field neighbours: the focused and near fields do not bleed into the blurred background."""
@@ -146,7 +146,7 @@ def _far_gauss(src, coc, central, horizontal, out):
             out[y, x, 0], out[y, x, 1], out[y, x, 2] = r / wsum, g / wsum, b / wsum
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _near_h(color, coc, radius, out):
     """Horizontal near-field pass: each pixel averages the near-field pixels (CoC > 0) of its row whose
     blur disc reaches it, and records the largest such reach (0 when none does)."""
@@ -165,7 +165,7 @@ def _near_h(color, coc, radius, out):
             out[y, x, 3] = reach
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _near_v(hpass, radius, out):
     """Vertical near-field pass: the average over the rows whose reach covers this pixel, and the
     coverage: those rows over the disc's full diameter (1 inside a near object, falling off at its edge)."""
@@ -186,7 +186,7 @@ def _near_v(hpass, radius, out):
                 out[y, x, 0] = out[y, x, 1] = out[y, x, 2] = out[y, x, 3] = 0.0
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _combine(color, coc, far_central, ecc, r0, r1, pyramid, near, ramp, out):
     """Far field: the central Gaussian, the pyramid blur in the periphery, blended across [r0, r1); the
     sharp image is interpolated towards it by |CoC|; the near field is alpha-blended over."""

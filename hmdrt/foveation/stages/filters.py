@@ -16,7 +16,7 @@ import numpy as np
 from hmdrt.foveation.stages.pyramid import Pyramid, quincunx_rgbd
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _enhance(color, ecc, r0, r1, strength, degrees_per_level, pyramid, out):
     data, offsets, widths, heights = pyramid
     h, w = ecc.shape

@@ -45,7 +45,7 @@ class Pyramid(NamedTuple):
         return self.data[o : o + self.widths[k] * self.heights[k]].reshape(self.heights[k], self.widths[k], CHANNELS)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _pull_level(data, o_fine, wf, hf, o_coarse, wc, hc):
     for y in nb.prange(hc):
         for x in range(wc):
@@ -65,7 +65,7 @@ def _pull_level(data, o_fine, wf, hf, o_coarse, wc, hc):
             data[j, 3] = min(1.0, wsum)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def level_bilinear(data, o, w, h, x, y, c):
     """Channel c of a level at continuous texel coordinates (x, y), clamped at the border."""
     fx, fy = x - 0.5, y - 0.5
@@ -78,7 +78,7 @@ def level_bilinear(data, o, w, h, x, y, c):
     return top * (1.0 - ay) + bottom * ay
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _push_level(data, o_fine, wf, hf, o_coarse, wc, hc):
     for y in nb.prange(hf):
         for x in range(wf):
@@ -102,7 +102,7 @@ def pull_push(pyramid: Pyramid) -> None:
         _push_level(d, o[k], w[k], h[k], o[k + 1], w[k + 1], h[k + 1])
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _level_rgbd(data, o, w, h, x, y):
     """Colour and depth of a level at continuous texel coordinates (x, y), bilinear, clamped."""
     fx, fy = x - 0.5, y - 0.5
@@ -120,7 +120,7 @@ def _level_rgbd(data, o, w, h, x, y):
     )
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def sample_rgbd(data, offsets, widths, heights, level, x, y):
     """Colour and depth at full-resolution pixel coordinates (x, y) on a (fractional) level, trilinearly."""
     top = len(offsets) - 1
@@ -143,7 +143,7 @@ def sample_rgbd(data, offsets, widths, heights, level, x, y):
 QUINCUNX = ((0.0, 0.0), (-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def quincunx_rgbd(data, offsets, widths, heights, level, x, y, k):
     """Colour and depth of the k-th quincunx tap around full-resolution (x, y) on `level` (offsets in
     that level's texels)."""

@@ -33,7 +33,7 @@ def camera_arrays(camera: EyeCamera) -> CameraArrays:
     return CameraArrays(np.asarray(camera.position, np.float64), np.asarray(camera.rotation, np.float64), frustum)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def ray_direction(cam, x, y):
     """World unit direction of the view ray through continuous pixel (x, y)."""
     f = cam.frustum
@@ -49,7 +49,7 @@ def ray_direction(cam, x, y):
     )
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def project(cam, px, py, pz):
     """Continuous pixel coordinates and distance from the camera of world point p; x is NaN behind it."""
     dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
@@ -66,7 +66,7 @@ def project(cam, px, py, pz):
     return x, y, dist
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def world_point(cam, x, y, depth):
     """The point at hit distance `depth` along the view ray of pixel (x, y); FAR for a miss."""
     dx, dy, dz = ray_direction(cam, x, y)
@@ -74,7 +74,7 @@ def world_point(cam, x, y, depth):
     return cam.position[0] + d * dx, cam.position[1] + d * dy, cam.position[2] + d * dz
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _backproject(cur, depth, prev, out_xy, out_dist):
     h, w = depth.shape
     for y in nb.prange(h):
@@ -96,7 +96,7 @@ def backproject(current: EyeCamera, depth: np.ndarray, previous: EyeCamera) -> t
     return xy, dist
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def nearest_index(x, y, w, h):
     """Row-major index of the pixel containing continuous (x, y), or -1 outside the image or NaN."""
     if not (x >= 0.0 and y >= 0.0 and x < w and y < h):
@@ -104,7 +104,7 @@ def nearest_index(x, y, w, h):
     return int(y) * w + int(x)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def bilinear3(image, x, y):
     """The three channels of image (h, w, 3) at continuous (x, y), clamped at the border."""
     h, w = image.shape[0], image.shape[1]
@@ -130,7 +130,7 @@ VERTEX_ATTRS = 6  # in: previous pixel x z, y z and z (z: previous view depth), 
 # in the world on a planar facet, so perspective-correct interpolation recovers x and y exactly
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def project_view(cam, px, py, pz):
     """Continuous pixel coordinates and view depth (along -Z, positive in front) of world point p."""
     dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
@@ -144,7 +144,7 @@ def project_view(cam, px, py, pz):
     return (lx / z - f[0]) / (f[1] - f[0]) * f[4], (f[2] - ly / z) / (f[2] - f[3]) * f[5], z
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _mesh_vertices(prev, grid_x, grid_y, depth, cur, screen, attr):
     hs, ws = depth.shape
     for j in nb.prange(hs):
@@ -156,7 +156,7 @@ def _mesh_vertices(prev, grid_x, grid_y, depth, cur, screen, attr):
             attr[j, i, 3], attr[j, i, 4], attr[j, i, 5] = px, py, pz
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _triangle(j, i, t):
     """Grid vertices (row, column) of triangle t (0 or 1) of grid cell (j, i)."""
     if t == 0:
@@ -164,7 +164,7 @@ def _triangle(j, i, t):
     return (j, i), (j + 1, i + 1), (j + 1, i)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _row_range(screen, a, b, c, height):
     """Rows [r0, r1) whose pixel centres the triangle can cover; empty when culled by the near plane."""
     if screen[a[0], a[1], 2] <= NEAR or screen[b[0], b[1], 2] <= NEAR or screen[c[0], c[1], 2] <= NEAR:
@@ -175,7 +175,7 @@ def _row_range(screen, a, b, c, height):
     return r0, max(r0, r1)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _raster_triangle(screen, attr, a, b, c, y0, y1, width, out_attr, out_zinv):
     """Rasterise triangle (a, b, c) of grid vertices into rows [y0, y1) with a 1/z depth test."""
     ax, ay, az = screen[a[0], a[1], 0], screen[a[0], a[1], 1], screen[a[0], a[1], 2]
@@ -220,7 +220,7 @@ def _raster_triangle(screen, attr, a, b, c, y0, y1, width, out_attr, out_zinv):
             wb += dwb_dx
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _triangle_rows(screen, height, rows):
     hs, ws = screen.shape[0], screen.shape[1]
     for j in range(hs - 1):
@@ -230,7 +230,7 @@ def _triangle_rows(screen, height, rows):
                 rows[(j * (ws - 1) + i) * 2 + t] = _row_range(screen, a, b, c, height)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _bin_triangles(rows, band_rows, bands):
     """Triangle indices per band of rows (a counting sort): start offsets (bands + 1) and the list."""
     counts = np.zeros(bands + 1, np.int64)
@@ -251,7 +251,7 @@ def _bin_triangles(rows, band_rows, bands):
     return starts, members
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _raster_mesh(screen, attr, width, height, band_rows, starts, members, out_attr, out_zinv):
     ws = screen.shape[1]
     for band in nb.prange(starts.shape[0] - 1):
@@ -301,7 +301,7 @@ def reproject_mesh(
     return out_attr, out_zinv
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _gather(mesh, zinv, cur, color, state, samples, seed, out_color, out_state, out_dist):
     h, w = zinv.shape
     ph, pw = color.shape[0], color.shape[1]

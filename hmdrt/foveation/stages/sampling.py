@@ -55,7 +55,7 @@ def foveal_config(frc: str, r0: float | None, r1: float | None, p_min: float | N
     return cfg
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def foveal_probability(e, r0, r1, p_min):
     """weier2016's p(q) at eccentricity e (degrees): 1 below r0, linear to p_min at r1, p_min beyond."""
     if e < r0:
@@ -65,7 +65,7 @@ def foveal_probability(e, r0, r1, p_min):
     return 1.0 - (1.0 - p_min) * (e - r0) / (r1 - r0)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _bernoulli_mask(ecc, r0, r1, p_min, seed, frame, out):
     h, w = ecc.shape
     for y in nb.prange(h):
@@ -168,7 +168,7 @@ def sampling_tables(camera: EyeCamera, cfg: Foveal, seed: int = 0) -> SamplingTa
     return SamplingTables(s_in, s_out, samples, ppd)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _table_mask(ecc, r0, r1, s_in, s_out, gx, gy, out):
     h, w = ecc.shape
     ry, rx = s_in.shape[0] // 2, s_in.shape[1] // 2

@@ -24,7 +24,7 @@ from hmdrt.foveation.stages.reproject import (
 from hmdrt.optics.camera import EyeCamera
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def k_of_age(dt, k_min, k_max, t_max):
     """weier2016's k_t(dt) = min(exp(x0 + (dt - 1) / (t_max - 1) (x1 - x0)), k_max), x0 = ln k_min, x1 = ln k_max.
 
@@ -39,7 +39,7 @@ def k_of_age(dt, k_min, k_max, t_max):
     return min(math.exp(x0 + (dt - 1.0) / (t_max - 1.0) * (x1 - x0)), k_max)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def running_estimate(rho_prev, k):
     """weier2016 equation (1)'s blending weight and the new accumulated count, given the count so far.
 
@@ -96,7 +96,7 @@ class History:
         )
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _smooth(cur_cam, depth, color, alpha, slots, positions, rotations, frusta, ring_depth, ring_color, rel_depth, out):
     h, w = depth.shape
     for y in nb.prange(h):
