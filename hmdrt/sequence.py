@@ -17,7 +17,7 @@ from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import EYES, FrameRequest, Method
 from hmdrt.foveation.stages.gaze import vergence_depth
 from hmdrt.optics import EyeCamera, HmdProfile
-from hmdrt.spatial import Pose, gaze_direction, parse_gaze, quat_multiply, quat_to_matrix
+from hmdrt.spatial import Pose, gaze_direction, parse_gaze, quat_multiply, quat_to_matrix, unit
 from hmdrt.telemetry.stats import FrameStats
 from replay import load_trace
 from replay.trace import Gaze, TraceReading, usable
@@ -50,9 +50,8 @@ class SequenceCounts:
 def compose_pose(start: Pose, relative: PoseSample) -> Pose:
     """A head pose relative to where a trace started, placed at the scene's start pose."""
     rot = quat_to_matrix(start.orientation)
-    q = np.asarray(relative.orientation, dtype=np.float64)
-    orientation = quat_multiply(start.orientation, q / np.linalg.norm(q))
-    return Pose(start.position + rot @ np.asarray(relative.position), orientation)
+    orientation = quat_multiply(start.orientation, unit(relative.orientation))
+    return Pose(start.position + rot @ np.asarray(relative.position, dtype=np.float64), orientation)
 
 
 def _eye_gaze(sample: Gaze) -> dict[str, np.ndarray]:
@@ -139,7 +138,8 @@ def builtin_path(frames: int, period_ns: int, start: Pose, seed: int = 0) -> lis
 
 
 def eye_cameras(profile: HmdProfile, pose: Pose, eyes: tuple[str, ...]) -> dict[str, EyeCamera]:
-    return {eye: EyeCamera.for_eye(profile, pose, eye) for eye in eyes}
+    rotation = pose.rotation()
+    return {eye: EyeCamera.for_eye(profile, pose, eye, rotation) for eye in eyes}
 
 
 def frame_requests(inp: FrameInput, cameras: dict[str, EyeCamera], seed: int) -> list[FrameRequest]:

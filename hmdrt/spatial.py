@@ -14,9 +14,16 @@ from numpy.typing import ArrayLike
 from hmdrt.errors import ConfigError
 
 
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+def unit(v: ArrayLike) -> tuple[float, ...]:
+    """v / |v| as a tuple of floats: for 3- and 4-vectors plain Python is several times faster than numpy."""
+    v = tuple(map(float, v))
+    n = math.hypot(*v)
+    return tuple(c / n for c in v)
+
+
+def quat_to_matrix(q: ArrayLike) -> np.ndarray:
     """Rotation matrix (3, 3) float64 of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    w, x, y, z = unit(q)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -35,7 +42,7 @@ def quat_from_yaw_pitch(yaw_deg: float, pitch_deg: float) -> np.ndarray:
     return quat_multiply(q_yaw, q_pitch)
 
 
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def quat_multiply(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     """Hamilton product a * b of two (w, x, y, z) quaternions."""
     aw, ax, ay, az = a
     bw, bx, by, bz = b
@@ -57,17 +64,16 @@ def quat_conjugate(q: ArrayLike) -> np.ndarray:
 
 def quat_slerp(a: ArrayLike, b: ArrayLike, u: float) -> np.ndarray:
     """Unit quaternion a fraction u of the way from a to b along the shorter arc (u may lie outside 0..1)."""
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    dot = float(a @ b)
+    a, b = tuple(map(float, a)), tuple(map(float, b))
+    dot = sum(p * q for p, q in zip(a, b, strict=True))
     if dot < 0.0:  # q and -q are the same rotation; take the shorter way round
-        b, dot = -b, -dot
+        b, dot = tuple(-q for q in b), -dot
     if dot > 0.9995:
-        q = a + u * (b - a)
+        ka, kb = 1.0 - u, u
     else:
         theta = math.acos(dot)
-        q = (math.sin((1.0 - u) * theta) * a + math.sin(u * theta) * b) / math.sin(theta)
-    return q / np.linalg.norm(q)
+        ka, kb = (math.sin((1.0 - u) * theta) / math.sin(theta), math.sin(u * theta) / math.sin(theta))
+    return np.array(unit([ka * p + kb * q for p, q in zip(a, b, strict=True)]))
 
 
 def quat_to_rotvec(q: ArrayLike) -> np.ndarray:

@@ -13,6 +13,7 @@ msgpack map of the message's fields plus the schema version v.
 
 from __future__ import annotations
 
+import math
 from typing import Annotated
 
 import msgspec
@@ -96,7 +97,7 @@ def usable(sample: Gaze | Pose) -> bool:
     """Whether a sample can drive a frame: valid, with unit gaze directions or a unit quaternion."""
     if not sample.valid:
         return False
-    unit = lambda v: v is not None and abs(float(np.linalg.norm(v)) - 1.0) <= 1e-3  # noqa: E731
+    unit = lambda v: v is not None and abs(math.hypot(*v) - 1.0) <= 1e-3  # noqa: E731
     if isinstance(sample, Pose):
         return unit(sample.orientation)
     eyes = [v for v in (sample.C, sample.L, sample.R) if v is not None]

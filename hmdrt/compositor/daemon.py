@@ -168,7 +168,7 @@ class Compositor:
 
     def _estimates(self, t_display: int, now: int):
         """Gaze and pose for the display time; while the gaze device is silent, the fallback's gaze (the last
-        good one, widened in _tune, then none: the screen centre)."""
+        good one, widened by the controller, then none: the screen centre)."""
         p = self.config.prediction
         gaze = self.store.gaze_at(t_display, now, p.gaze_device or None)
         pose = self.store.pose_at(t_display, now, p.pose_device or None)
@@ -195,8 +195,10 @@ class Compositor:
     # --- one frame ------------------------------------------------------------------------------------------------
 
     def _render(self, timing: FrameTiming, woke: int) -> Frame:
+        """One frame's work from its wake-up: estimates, the controller's step, the method's render."""
         t0 = time.perf_counter_ns()
         gaze, pose = self._estimates(timing.predicted_display_ns, woke)
+        self._tune(None if gaze is None else gaze.speed_deg_s)
         stats = FrameStats()
         start = self.clock.now_ns()
         delay = int(self.config.pacing.render_delay_ms * 1e6)
@@ -245,9 +247,10 @@ class Compositor:
             self.report.drop(t_vsync)
         self._presents.put((frame.timing.frame_id, frame.frame_ms, True))
 
-    def _tune(self) -> None:
+    def _tune(self, gaze_speed_deg_s: float | None) -> None:
         """Feed the controller the frames shown or dropped since the last call: their work on the wall clock
-        (also in virtual time) against one period less the margin, the budget of the display's own rate."""
+        (also in virtual time) against one period less the margin, the budget of the display's own rate; it
+        widens the fovea for the gaze speed of the frame about to be rendered."""
         while True:
             try:
                 frame_id, frame_ms, missed = self._presents.get_nowait()
@@ -255,14 +258,12 @@ class Compositor:
                 return
             if self.controller is None:
                 continue
-            now = self.clock.now_ns()
-            gaze = self.store.gaze_at(now, now, self.config.prediction.gaze_device or None)
             self.controller.update(
                 frame_id,
                 int(frame_ms * 1e6),
                 self.vsync.period_ns - self.pacer.margin_ns,
                 missed,
-                None if gaze is None else gaze.speed_deg_s,
+                gaze_speed_deg_s,
                 self._widen_deg,
             )
 
@@ -303,8 +304,7 @@ class Compositor:
             frame = self._render(timing, self.clock.now_ns())
             self.display.submit(frame)
             with self._lock:
-                self.pacer.mark_render(timing.frame_id, frame.render_start_ns, frame.render_end_ns)
-            self._tune()
+                self.pacer.mark_render(timing.frame_id, frame.actual_wake_ns, frame.render_end_ns)
 
     def _display_loop(self) -> None:
         frames, duration_s = self._limits()
@@ -339,7 +339,6 @@ class Compositor:
             self.display.submit(frame)
             self.clock.advance_to(t_vsync)
             self.display.latch(index)
-            self._tune()
             index += 1
 
     def _writer(self) -> None:

@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from hmdrt.bus.messages import Gaze, Pose, usable
-from hmdrt.spatial import quat_conjugate, quat_from_rotvec, quat_multiply, quat_slerp, quat_to_rotvec
+from hmdrt.spatial import quat_conjugate, quat_from_rotvec, quat_multiply, quat_slerp, quat_to_rotvec, unit
 
 KINDS = ("gaze", "pose")
 MAX_DEVICES = 64  # devices tracked at once; samples naming another device are refused and counted
@@ -89,6 +89,7 @@ class _Entry(NamedTuple):
     received_ns: int
     ok: bool  # usable()
     sample: Gaze | Pose
+    unit: tuple | None  # usable samples' unit vectors, worked out on arrival: (left, right) gaze or the quaternion
 
 
 class _Track:
@@ -102,13 +103,17 @@ class _Track:
 
 
 class _Pick(NamedTuple):
-    """The samples a lookup needs, chosen under the lock: mode is "interpolate" (a, b), "predict" (newest
+    """The entries a lookup needs, chosen under the lock: mode is "interpolate" (a, b), "predict" (newest
     first, then the earlier ones to fit a velocity to) or "held" (the last usable sample before an invalid one).
     """
 
     mode: str
-    samples: list
+    entries: list[_Entry]
     invalid_since: int | None = None
+
+    @property
+    def samples(self) -> list:
+        return [e.sample for e in self.entries]
 
 
 class SampleStore:
@@ -177,7 +182,7 @@ class SampleStore:
             if admitted is None:
                 counts.malformed += 1
                 return False
-            kind, t_host, ok = admitted
+            kind, t_host, ok, units = admitted
             if t_host > received_ns + self.history_ns:
                 counts.ahead += 1
                 return False
@@ -198,7 +203,7 @@ class SampleStore:
             if at < len(ts):
                 counts.out_of_order += 1
             ts.insert(at, t_host)
-            entries.insert(at, _Entry(received_ns, ok, sample))
+            entries.insert(at, _Entry(received_ns, ok, sample, units))
             if counts.last_received_ns is None or received_ns > counts.last_received_ns:
                 counts.last_received_ns = received_ns
             if not ok:
@@ -214,11 +219,12 @@ class SampleStore:
         if found is None:
             return None
         name, pick = found
-        newest = pick.samples[-1] if pick.mode == "interpolate" else pick.samples[0]
-        eyes = [_eye_directions(s) for s in pick.samples]
+        samples = pick.samples
+        newest = samples[-1] if pick.mode == "interpolate" else samples[0]
+        eyes = [e.unit for e in pick.entries]
         speed, predicted, clamped, depth = 0.0, 0, False, newest.depth_m
         if pick.mode == "interpolate":
-            a, b = pick.samples
+            a, b = samples
             u = (t_ns - a.t_host) / (b.t_host - a.t_host)
             left, right = (_nlerp(eyes[0][e], eyes[1][e], u) for e in (0, 1))
             speed = max(_angle(eyes[0][e], eyes[1][e]) for e in (0, 1)) / ((b.t_host - a.t_host) * 1e-9)
@@ -226,7 +232,7 @@ class SampleStore:
                 depth = a.depth_m + u * (b.depth_m - a.depth_m)
         elif pick.mode == "predict":
             predicted, clamped = self._extrapolation(t_ns, newest.t_host)
-            dts = [(s.t_host - newest.t_host) * 1e-9 for s in pick.samples[1:]]
+            dts = [(s.t_host - newest.t_host) * 1e-9 for s in samples[1:]]
             turned = []
             for e in (0, 1):
                 g0 = eyes[0][e]
@@ -257,24 +263,25 @@ class SampleStore:
         if found is None:
             return None
         name, pick = found
-        newest = pick.samples[-1] if pick.mode == "interpolate" else pick.samples[0]
-        positions = [s.position for s in pick.samples]
-        quats = [_unit(s.orientation) for s in pick.samples]
+        samples = pick.samples
+        newest = samples[-1] if pick.mode == "interpolate" else samples[0]
+        positions = [s.position for s in samples]
+        quats = [e.unit for e in pick.entries]
         predicted, clamped = 0, False
         if pick.mode == "interpolate":
-            a, b = pick.samples
+            a, b = samples
             u = (t_ns - a.t_host) / (b.t_host - a.t_host)
             position = _lerp(positions[0], positions[1], u)
             orientation = quat_slerp(quats[0], quats[1], u)
         elif pick.mode == "predict":
             predicted, clamped = self._extrapolation(t_ns, newest.t_host)
             h = predicted * 1e-9
-            dts = [(s.t_host - newest.t_host) * 1e-9 for s in pick.samples[1:]]
+            dts = [(s.t_host - newest.t_host) * 1e-9 for s in samples[1:]]
             inverse = quat_conjugate(quats[0])
             spin = _rate(dts, [quat_to_rotvec(quat_multiply(q, inverse)) for q in quats[1:]])
             velocity = _rate(dts, [_sub(p, positions[0]) for p in positions[1:]])
             position = _advance(positions[0], velocity, h)
-            orientation = _unit(quat_multiply(quat_from_rotvec([c * h for c in spin]), quats[0]))
+            orientation = unit(quat_multiply(quat_from_rotvec([c * h for c in spin]), quats[0]))
         else:
             position, orientation = positions[0], quats[0]
         return PoseEstimate(
@@ -339,25 +346,25 @@ class SampleStore:
                 if entries[i].received_ns <= now:
                     since = ts[i]
                 i -= 1
-            return None if i < 0 else _Pick("held", [entries[i].sample], since)
+            return None if i < 0 else _Pick("held", [entries[i]], since)
         j = end
         while j < len(ts) and ts[j] <= now and entries[j].received_ns > now:
             j += 1
         if j < len(ts) and ts[j] <= now and entries[j].ok:
-            return _Pick("interpolate", [entries[i].sample, entries[j].sample])
-        fit = [entries[i].sample]
+            return _Pick("interpolate", [entries[i], entries[j]])
+        fit = [entries[i]]
         k = i - 1
         while k >= 0 and len(fit) < self.fit_samples and ts[i] - ts[k] <= self.fit_window_ns:
             if entries[k].received_ns <= now:
                 if not entries[k].ok:
                     break  # velocity from before a blink says nothing about the gaze after it
-                fit.append(entries[k].sample)
+                fit.append(entries[k])
             k -= 1
         return _Pick("predict", fit)
 
 
-def _admit(sample: Gaze | Pose, received_ns: int) -> tuple[str, int, bool] | None:
-    """(kind, t_host, usable) of a gaze or pose sample; None when it is malformed."""
+def _admit(sample: Gaze | Pose, received_ns: int) -> tuple[str, int, bool, tuple | None] | None:
+    """(kind, t_host, usable, unit vectors of a usable one) of a gaze or pose sample; None when it is malformed."""
     kind = "gaze" if isinstance(sample, Gaze) else "pose" if isinstance(sample, Pose) else None
     try:
         t_host = operator.index(sample.t_host)
@@ -366,7 +373,9 @@ def _admit(sample: Gaze | Pose, received_ns: int) -> tuple[str, int, bool] | Non
             return None
     except (AttributeError, TypeError, ValueError):
         return None
-    return kind, t_host, bool(sample.valid) and usable(sample)
+    if not (sample.valid and usable(sample)):
+        return kind, t_host, False, None
+    return kind, t_host, True, _eye_directions(sample) if kind == "gaze" else unit(sample.orientation)
 
 
 def _well_formed(sample: Gaze | Pose) -> bool:
@@ -384,7 +393,7 @@ def _eye_directions(sample: Gaze) -> tuple[Vec, Vec]:
     """Unit (left, right) gaze: each eye's own direction, else the combined one, else the other eye's."""
     left = next(v for v in (sample.L, sample.C, sample.R) if v is not None)
     right = next(v for v in (sample.R, sample.C, sample.L) if v is not None)
-    return _unit(left), _unit(right)
+    return unit(left), unit(right)
 
 
 # Small-vector arithmetic on tuples: for 3- and 4-vectors plain Python is several times faster than numpy.
@@ -392,11 +401,6 @@ def _eye_directions(sample: Gaze) -> tuple[Vec, Vec]:
 
 def _norm(v: Vec) -> float:
     return math.hypot(*v)
-
-
-def _unit(v: Vec) -> Vec:
-    n = math.hypot(*v)
-    return tuple(c / n for c in v)
 
 
 def _dot(a: Vec, b: Vec) -> float:
@@ -450,7 +454,7 @@ def _turn(d: Vec, spin: Vec, h: float) -> Vec:
     k = tuple(c / rate for c in spin)
     cos, sin = math.cos(rate * h), math.sin(rate * h)
     along = _dot(k, d) * (1.0 - cos)
-    return _unit(tuple(x * cos + y * sin + z * along for x, y, z in zip(d, _cross(k, d), k, strict=True)))
+    return unit(tuple(x * cos + y * sin + z * along for x, y, z in zip(d, _cross(k, d), k, strict=True)))
 
 
 def _rate(dts: list[float], offsets: list[Vec]) -> Vec:

@@ -7,6 +7,7 @@ a pixel's view ray and the gaze ray (weier2016 section 3.1; kim2021 section 4.1)
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -31,13 +32,13 @@ def _eye_directions(xy, tan_l, tan_r, tan_u, tan_d, width, height, rot, out):
 
 
 # starting the thread pool costs tens of microseconds, more than a few gaze samples take to convert
-_eye_directions_parallel = nb.njit(parallel=True, cache=True)(_eye_directions)
-_eye_directions_serial = nb.njit(cache=True)(_eye_directions)
+_eye_directions_parallel = nb.njit(parallel=True, cache=True, nogil=True)(_eye_directions)
+_eye_directions_serial = nb.njit(cache=True, nogil=True)(_eye_directions)
 PARALLEL_MIN = 4096
 OFF_IMAGE_TAN = 1e6  # gaze_pixel's point of regard for a gaze that never meets the image plane, in tangent units
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _eccentricity(xy, tan_l, tan_r, tan_u, tan_d, width, height, gaze, out):
     sx = (tan_r - tan_l) / width
     sy = (tan_u - tan_d) / height
@@ -53,7 +54,7 @@ def _eccentricity(xy, tan_l, tan_r, tan_u, tan_d, width, height, gaze, out):
         out[i] = math.degrees(math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), dot))
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _pixel_centres(width, row0, rows, out):
     for r in nb.prange(rows):
         for x in range(width):
@@ -67,6 +68,15 @@ def pixel_centres(width: int, height: int, rows: slice | None = None) -> np.ndar
     xy = np.empty((max(r1 - r0, 0) * width, 2), dtype=np.float32)
     _pixel_centres(width, r0, max(r1 - r0, 0), xy)
     return xy
+
+
+@functools.lru_cache(maxsize=64)
+def _eye_frustum(profile: HmdProfile, eye: str) -> tuple[float, float, float, float, float]:
+    """Tangents (left, right, up, down) of one eye's frustum and its offset from the head (m) along +X."""
+    fov = profile.eye_fov(eye)
+    t, r = math.tan, math.radians
+    offset = (-0.5 if eye == "left" else 0.5) * profile.ipd_mm * 1e-3
+    return t(r(fov.left)), t(r(fov.right)), t(r(fov.up)), t(r(fov.down)), offset
 
 
 @dataclass(frozen=True)
@@ -83,23 +93,15 @@ class EyeCamera:
     rotation: np.ndarray  # (3, 3) float64, world-from-eye
 
     @classmethod
-    def for_eye(cls, profile: HmdProfile, head: Pose, eye: str = "left") -> EyeCamera:
-        """The camera of one eye of `profile` worn at head pose `head` (eye offset by IPD / 2)."""
-        fov = profile.eye_fov(eye)
-        rot = head.rotation()
-        offset = (-0.5 if eye == "left" else 0.5) * profile.ipd_mm * 1e-3
-        t = math.tan
-        r = math.radians
-        return cls(
-            profile.width,
-            profile.height,
-            t(r(fov.left)),
-            t(r(fov.right)),
-            t(r(fov.up)),
-            t(r(fov.down)),
-            np.asarray(head.position, dtype=np.float64) + rot[:, 0] * offset,
-            rot,
-        )
+    def for_eye(
+        cls, profile: HmdProfile, head: Pose, eye: str = "left", rotation: np.ndarray | None = None
+    ) -> EyeCamera:
+        """The camera of one eye of `profile` worn at head pose `head` (eye offset by IPD / 2); `rotation`:
+        head.rotation() when the caller has it already (both eyes share it)."""
+        rot = head.rotation() if rotation is None else rotation
+        tan_left, tan_right, tan_up, tan_down, offset = _eye_frustum(profile, eye)
+        position = np.asarray(head.position, dtype=np.float64) + rot[:, 0] * offset
+        return cls(profile.width, profile.height, tan_left, tan_right, tan_up, tan_down, position, rot)
 
     def _frustum(self) -> tuple:
         return self.tan_left, self.tan_right, self.tan_up, self.tan_down, float(self.width), float(self.height)
