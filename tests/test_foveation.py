@@ -5,6 +5,7 @@ import pytest
 
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import METHODS, FrameRequest, make_method
+from hmdrt.foveation.base import EYES
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.quality import band_psnr
 from hmdrt.scene import load_scene
@@ -150,6 +151,22 @@ def test_sequences_reproduce_bit_for_bit(spec):
     b = run(spec, "interior", lambda s: inputs)
     for (ia, _), (ib, _) in zip(a, b, strict=True):
         np.testing.assert_array_equal(ia[0], ib[0])
+
+
+@pytest.mark.parametrize("spec", sorted(METHODS))
+@pytest.mark.parametrize("scene_name", ["whitted", "interior"])
+def test_an_image_once_returned_is_never_written_again(spec, scene_name):
+    """The compositor hands a method's images to the display and the frame writer without copying them."""
+    scene = load_scene(scene_name)
+    inputs = builtin_path(4, PROFILE.period_ns, scene.start, seed=2)
+    with Whitted(scene) as tracer:
+        method = make_method(spec, tracer)
+        kept = [
+            (image, image.copy()) for _, images, _ in render_frames(method, PROFILE, inputs, EYES) for image in images
+        ]
+    assert len({id(image) for image, _ in kept}) == len(kept)
+    for image, copy in kept:
+        np.testing.assert_array_equal(image, copy)
 
 
 def test_each_eye_keeps_its_own_history():

@@ -6,7 +6,7 @@ import pytest
 
 import drivers.base
 from hmdrt.compositor.clock import MonotonicClock, VirtualClock, VsyncClock
-from hmdrt.compositor.pacer import HISTORY, FrameTiming, Pacer
+from hmdrt.compositor.pacer import HISTORY, FrameTiming, Pacer, replay_frame
 
 PERIOD = 11_111_111  # 90 Hz
 MS = 1_000_000
@@ -24,15 +24,7 @@ class Display:
         self.log: list[tuple[FrameTiming, int, bool, dict]] = []
 
     def frame(self, render_ns: int) -> bool:
-        t = self.pacer.predict(self.clock.now_ns())
-        self.clock.advance_to(t.wake_ns)  # raises if the pacer scheduled a wake-up in the past
-        end = t.wake_ns + render_ns
-        self.pacer.mark_render(t.frame_id, t.wake_ns, end)
-        actual = (
-            t.desired_present_ns if end <= t.desired_present_ns else self.vsync.vsync(self.vsync.index_at_or_after(end))
-        )
-        missed = self.pacer.presented(t.frame_id, actual)
-        self.clock.advance_to(end)
+        t, actual, missed = replay_frame(self.pacer, self.clock, render_ns)
         self.log.append((t, actual, missed, self.pacer.info()))
         return missed
 
@@ -268,3 +260,14 @@ def test_configure_changes_margin_and_offset_between_frames_and_keeps_what_was_l
     assert t.desired_present_ns - t.wake_ns == after["budget_ns"]
     with pytest.raises(ValueError, match="margin_ns"):
         d.pacer.configure(margin_ns=PERIOD)
+
+
+@pytest.mark.parametrize("window", [9, 99])
+def test_planning_for_the_largest_of_the_last_w_render_times_misses_about_one_frame_in_w_plus_1(window):
+    """Independent render times: a frame is the largest of itself and the W before it one time in W + 1."""
+    rng = random.Random(3)
+    pacer = Pacer(VsyncClock(PERIOD, 0), margin_ns=0, tail_quantile=1.0, tail_window=window)
+    clock = VirtualClock(0)
+    frames = 20_000
+    misses = sum(replay_frame(pacer, clock, int(rng.uniform(0.2, 0.6) * PERIOD))[2] for _ in range(frames))
+    assert 0.7 / (window + 1) < misses / frames < 1.1 / (window + 1)

@@ -16,7 +16,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from hmdrt.compositor.clock import VsyncClock
+from hmdrt.compositor.clock import VirtualClock, VsyncClock
 
 ALPHA = 0.8  # IIR weight on the old render estimate (u_pacing_app.c, anchors: "IIR alpha 0.8")
 MISS_THRESHOLD_NS = 500_000  # later than this past the desired present is a miss (u_pacing_compositor.c)
@@ -236,8 +236,11 @@ class Pacer:
         """The render time the wake-up plans for: the filtered mean, or the tail quantile when that is larger."""
         if self._tail_quantile is None or not self._recent:
             return self._render_ns
-        ordered = sorted(self._recent)
-        tail = ordered[min(len(ordered) - 1, math.ceil(self._tail_quantile * len(ordered)) - 1)]
+        if self._tail_quantile >= 1.0:
+            tail = max(self._recent)
+        else:
+            ordered = sorted(self._recent)
+            tail = ordered[min(len(ordered) - 1, math.ceil(self._tail_quantile * len(ordered)) - 1)]
         return max(self._render_ns, tail)
 
     def _mean_budget_ns(self) -> int:
@@ -265,3 +268,18 @@ class Pacer:
                 f"or older than the last {HISTORY} frames)"
             )
         return frame
+
+
+def replay_frame(pacer: Pacer, clock: VirtualClock, render_ns: int) -> tuple[FrameTiming, int, bool]:
+    """One frame of a renderer on a virtual clock: wake when the pacer says, render for render_ns, present at the
+    first VSync at or after the end; (timing, actual present, missed). The pacing tests and bench/pacing.py
+    (measured render times replayed) run the pacer through this."""
+    t = pacer.predict(clock.now_ns())
+    clock.advance_to(t.wake_ns)  # raises if the pacer scheduled a wake-up in the past
+    end = t.wake_ns + render_ns
+    pacer.mark_render(t.frame_id, t.wake_ns, end)
+    vsync = pacer._vsync
+    actual = t.desired_present_ns if end <= t.desired_present_ns else vsync.vsync(vsync.index_at_or_after(end))
+    missed = pacer.presented(t.frame_id, actual)
+    clock.advance_to(end)
+    return t, actual, missed

@@ -78,7 +78,7 @@ class Session:
     def render(
         self, frame_id: int, gaze, pose, seed: int, stats: FrameStats, delay_ns: int = 0
     ) -> tuple[list[np.ndarray], dict, int]:
-        """Copies of the eyes' images for a gaze and head-pose estimate (None: straight ahead, the scene's
+        """The eyes' images for a gaze and head-pose estimate (None: straight ahead, the scene's
         start pose), the eye cameras they were rendered with, and the nanoseconds the method's render took
         (with delay_ns of sleep added: a slower renderer, for tests and benchmarks)."""
         head = self.scene.start if pose is None else compose_pose(self.scene.start, pose)
@@ -95,7 +95,7 @@ class Session:
             with stats.stage("render_delay"):
                 time.sleep(delay_ns / 1e9)
         took = time.perf_counter_ns() - start
-        return [image.copy() for image in images], cameras, took
+        return images, cameras, took
 
     def close(self) -> None:
         self.tracer.close()

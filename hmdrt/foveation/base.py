@@ -85,7 +85,8 @@ class Method(Protocol):
     params: msgspec.Struct  # the parameters the next frame is rendered with
 
     def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
-        """Linear RGB image (height, width, 3) float32 of this eye's frame."""
+        """Linear RGB image (height, width, 3) float32 of this eye's frame; the caller's to keep: the method
+        never writes to an image it has returned (the compositor shows and saves them without a copy)."""
         ...
 
     def set_params(self, params: msgspec.Struct) -> None:
