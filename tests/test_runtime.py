@@ -626,3 +626,18 @@ def test_a_frame_that_cannot_be_written_is_reported_without_a_traceback(tmp_path
     r = hmdrt("run", str(path), "--frames", "5", "--virtual-time")
     assert "Traceback" not in r.stderr, r.stderr
     assert "cannot write" in r.stdout + r.stderr
+
+
+def test_the_warm_up_compiles_the_kernels_a_frame_may_choose_by_batch_size():
+    """A kernel compiled mid-run holds the GIL for a fraction of a second: every thread stalls, frames miss
+    and the gaze shown ages (a fresh process, so that no earlier test has compiled them)."""
+    code = (
+        "from hmdrt.compositor.config import load_config; from hmdrt.compositor.session import Session\n"
+        "from hmdrt.optics import camera\n"
+        "s = Session(load_config('configs/default.toml')); s.warm_up(); s.close()\n"
+        "print(len(camera._eye_directions_serial.signatures), len(camera._eye_directions_parallel.signatures))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    serial, parallel = (int(n) for n in out.stdout.split())
+    assert serial >= 1 and parallel >= 1

@@ -62,6 +62,7 @@ class Session:
             self.method = method
         camera = next(iter(cameras.values()))
         timewarp(images[0], camera, camera)
+        camera.directions(np.full((1, 2), 0.5, np.float32))  # batches under PARALLEL_MIN rays take a serial kernel
 
     def set_method(self, spec: str) -> None:
         """Use method `spec` from the next frame: retuned in place when only its parameters change."""
