@@ -3,6 +3,8 @@ until something holds."""
 
 from __future__ import annotations
 
+import socket
+import threading
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -14,6 +16,7 @@ from numpy.typing import ArrayLike
 
 from drivers.base import DeviceLost, Driver, Sample
 from drivers.emulators.base import Emulator
+from drivers.protocols import fove
 from hmdrt.bus.messages import Gaze
 from hmdrt.foveation import FrameRequest, make_method
 from hmdrt.optics import EyeCamera, get_profile
@@ -123,3 +126,50 @@ def gaze_trace(
     ]
     write_trace(path, samples, device="test")
     return str(path)
+
+
+# protocols.md section 7: a binocular gaze datum
+SECTION7_GAZE = {
+    "topic": "gaze.3d.01.",
+    "confidence": 0.97,
+    "norm_pos": [0.5, 0.5],
+    "timestamp": 535741.7153,
+    "gaze_point_3d": [0.0, 0.0, 500.0],
+    "gaze_normals_3d": {"0": [0.06, 0.0, 0.998], "1": [-0.06, 0.0, 0.998]},
+    "eye_centers_3d": {"0": [-30.0, 0.0, -20.0], "1": [30.0, 0.0, -20.0]},
+    "base_data": [],
+}
+
+
+class ScriptedFoveServer:
+    """A FOVE server written with the codec over a real socket: hello, wait for subscribe, send `script`."""
+
+    def __init__(self, script: list[bytes]):
+        self.script = script
+        self.subscribe: fove.Record | None = None
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.url = f"fove://127.0.0.1:{self._listener.getsockname()[1]}?timeout=5"
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+
+    def _serve(self) -> None:
+        conn, _ = self._listener.accept()
+        with conn:
+            conn.settimeout(5.0)
+            conn.sendall(fove.encode(fove.Hello(fove.API_VERSION, int(fove.Capability(0b11011)))))
+            reader, payloads = fove.FrameReader(), []
+            while not payloads:
+                payloads = reader.feed(conn.recv(4096))
+            self.subscribe = fove.decode(payloads[0])
+            for chunk in self.script:
+                conn.sendall(chunk)
+            self._done.wait(10.0)
+
+    def __enter__(self) -> ScriptedFoveServer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._done.set()
+        self._thread.join(5.0)
+        self._listener.close()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import socket
 import struct
-import threading
 import time
 
 import msgspec
@@ -21,7 +20,7 @@ from hmdrt.errors import ConfigError
 from hmdrt.spatial import quat_from_yaw_pitch, quat_to_matrix
 from replay.synthetic import SyntheticConfig, SyntheticSource
 
-from .helpers import assert_lost_when_stopped, at_least, collect, wait_for
+from .helpers import ScriptedFoveServer, assert_lost_when_stopped, at_least, collect, wait_for
 
 AHEAD = (0.0, 0.0, 1.0)  # FOVE's forward, and its gaze on lost tracking
 
@@ -48,40 +47,6 @@ def pose(pose_id: int) -> fove.Pose:
 def url(emulator: FoveEmulator) -> str:
     host, port = emulator.address
     return f"fove://{host}:{port}"
-
-
-class ScriptedServer:
-    """A FOVE server written with the codec over a real socket: hello, wait for subscribe, send `script`."""
-
-    def __init__(self, script: list[bytes]):
-        self.script = script
-        self.subscribe: fove.Record | None = None
-        self._listener = socket.create_server(("127.0.0.1", 0))
-        self.url = f"fove://127.0.0.1:{self._listener.getsockname()[1]}?timeout=5"
-        self._done = threading.Event()
-        self._thread = threading.Thread(target=self._serve, daemon=True)
-
-    def _serve(self) -> None:
-        conn, _ = self._listener.accept()
-        with conn:
-            conn.settimeout(5.0)
-            conn.sendall(fove.encode(fove.Hello(fove.API_VERSION, int(fove.Capability(0b11011)))))
-            reader, payloads = fove.FrameReader(), []
-            while not payloads:
-                payloads = reader.feed(conn.recv(4096))
-            self.subscribe = fove.decode(payloads[0])
-            for chunk in self.script:
-                conn.sendall(chunk)
-            self._done.wait(10.0)
-
-    def __enter__(self) -> ScriptedServer:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._done.set()
-        self._thread.join(5.0)
-        self._listener.close()
 
 
 def test_frames_round_trip_in_any_chunking():
@@ -255,7 +220,7 @@ def test_result_codes_and_eye_states_set_validity():
         (eye(6, states=(0, 1)), False),  # one eye not detected
         (eye(7, gaze=(0.0, 0.0, 0.5)), False),  # not a unit vector
     ]
-    with ScriptedServer([fove.encode(record) for record, _ in cases]) as server:
+    with ScriptedFoveServer([fove.encode(record) for record, _ in cases]) as server:
         driver = FoveDriver(server.url)
         driver.open()
         gaze = collect(driver, at_least(len(cases)))
@@ -270,7 +235,7 @@ def test_result_codes_and_eye_states_set_validity():
 
 def test_frame_id_gaps_count_as_dropped():
     script = [fove.encode(r) for r in (eye(10), eye(11), pose(0), eye(14), pose(3), eye(15))]
-    with ScriptedServer(script) as server:
+    with ScriptedFoveServer(script) as server:
         driver = FoveDriver(server.url)
         driver.open()
         samples = collect(driver, at_least(6))
@@ -288,7 +253,7 @@ def test_malformed_frames_are_counted_and_skipped():
         struct.pack(">I", 0),
         fove.encode(eye(3)),
     ]
-    with ScriptedServer(script) as server:
+    with ScriptedFoveServer(script) as server:
         driver = FoveDriver(server.url)
         driver.open()
         samples = collect(driver, at_least(3))
@@ -300,7 +265,7 @@ def test_malformed_frames_are_counted_and_skipped():
 
 def test_oversize_frame_closes_the_connection():
     script = [fove.encode(eye(1)), struct.pack(">I", 1 << 20) + bytes(100)]
-    with ScriptedServer(script) as server:
+    with ScriptedFoveServer(script) as server:
         driver = FoveDriver(server.url)
         driver.open()
         samples = []

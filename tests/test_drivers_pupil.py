@@ -16,19 +16,8 @@ from drivers.emulators.pupil_server import PupilEmulator
 from drivers.pupil import MalformedDatum, PupilDriver, decode_gaze
 from hmdrt.spatial import gaze_direction
 
-from .helpers import assert_lost_when_stopped, at_least, collect, gaze_trace
+from .helpers import SECTION7_GAZE, assert_lost_when_stopped, at_least, collect, gaze_trace
 
-# protocols.md section 7: a binocular gaze datum
-SECTION7_GAZE = {
-    "topic": "gaze.3d.01.",
-    "confidence": 0.97,
-    "norm_pos": [0.5, 0.5],
-    "timestamp": 535741.7153,
-    "gaze_point_3d": [0.0, 0.0, 500.0],
-    "gaze_normals_3d": {"0": [0.06, 0.0, 0.998], "1": [-0.06, 0.0, 0.998]},
-    "eye_centers_3d": {"0": [-30.0, 0.0, -20.0], "1": [30.0, 0.0, -20.0]},
-    "base_data": [],
-}
 STILL_YAW, STILL_PITCH, STILL_DEPTH = 8.0, -4.0, 0.8
 
 

@@ -56,7 +56,7 @@ from hmdrt.scene.model import Scene
 from replay import load_trace, trace
 from replay.trace import TraceWriter
 
-from .helpers import VirtualClock, at_least, collect
+from .helpers import SECTION7_GAZE, ScriptedFoveServer, VirtualClock, at_least, collect
 
 pytestmark = [  # corrupt input makes PIL and trimesh warn about what they skip; expected here
     pytest.mark.filterwarnings("ignore::UserWarning:PIL"),
@@ -563,34 +563,6 @@ def test_fove_frame_reader_splits_any_stream_or_refuses_an_oversize_header(strea
     assert stream.startswith(framed) and len(stream) - len(framed) < 4 + fove.MAX_FRAME_BYTES
 
 
-class ScriptedFoveServer:
-    """A FOVE server on a loopback port: hello, wait for the subscribe, send `script`, keep the connection open."""
-
-    def __init__(self, script: list[bytes]):
-        self.script = script
-        self._listener = socket.create_server(("127.0.0.1", 0))
-        self.url = f"fove://127.0.0.1:{self._listener.getsockname()[1]}?timeout=5"
-        self._done = threading.Event()
-        self._thread = threading.Thread(target=self._serve, daemon=True)
-        self._thread.start()
-
-    def _serve(self) -> None:
-        conn, _ = self._listener.accept()
-        with conn:
-            conn.settimeout(5.0)
-            conn.sendall(fove.encode(fove.Hello(fove.API_VERSION, int(fove.Capability(0b11011)))))
-            reader, payloads = fove.FrameReader(), []
-            while not payloads:
-                payloads = reader.feed(conn.recv(4096))
-            conn.sendall(b"".join(self.script))
-            self._done.wait(10.0)
-
-    def close(self) -> None:
-        self._done.set()
-        self._thread.join(5.0)
-        self._listener.close()
-
-
 @settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     bad=st.lists(
@@ -608,14 +580,11 @@ def test_fove_driver_counts_each_refused_frame_once_and_publishes_only_bus_ready
     expected_bad = sum(not isinstance(fove_outcome(p), fove.Eye | fove.Pose) for p in bad)
     last = msgspec.structs.replace(FOVE_EYE, id=99, timestamp=99_000)
     script = [struct.pack(">I", len(p)) + p for p in bad] + [fove.encode(last)]
-    server = ScriptedFoveServer(script)
-    try:
+    with ScriptedFoveServer(script) as server:
         driver = FoveDriver(server.url)
         driver.open()
         samples = collect(driver, lambda s: any(x.t_dev == 99_000_000 for x in s))
         driver.close()
-    finally:
-        server.close()
     assert samples[-1].t_dev == 99_000_000
     assert driver.counters.malformed == expected_bad
     for s in samples:
@@ -631,14 +600,11 @@ def test_fove_driver_counts_times_beyond_the_bus_range_as_malformed():
         fove.encode(msgspec.structs.replace(FOVE_POSE, id=1, timestamp=2**62 // 1000 + 1)),
         fove.encode(msgspec.structs.replace(FOVE_EYE, id=2, timestamp=2**62 // 1000)),
     ]
-    server = ScriptedFoveServer(script)
-    try:
+    with ScriptedFoveServer(script) as server:
         driver = FoveDriver(server.url)
         driver.open()
         samples = collect(driver, at_least(1))
         driver.close()
-    finally:
-        server.close()
     assert [s.seq for s in samples] == [2] and driver.counters.malformed == 2
     publishable(samples[0], "fove")
 
@@ -819,16 +785,6 @@ def test_serial_driver_counts_every_garbage_byte_once_over_loop(protocol, garbag
 
 # --- Pupil Core datums: drivers.pupil --------------------------------------------------------------------------
 
-PUPIL_GAZE = {
-    "topic": "gaze.3d.01.",
-    "confidence": 0.97,
-    "norm_pos": [0.5, 0.5],
-    "timestamp": 535741.7153,
-    "gaze_point_3d": [0.0, 0.0, 500.0],
-    "gaze_normals_3d": {"0": [0.06, 0.0, 0.998], "1": [-0.06, 0.0, 0.998]},
-    "eye_centers_3d": {"0": [-30.0, 0.0, -20.0], "1": [30.0, 0.0, -20.0]},
-    "base_data": [],
-}
 PUPIL_TOPICS = st.sampled_from([b"gaze.3d.01.", b"gaze.3d.0.", b"gaze.3d.1.", b"gaze.3d.2.", b"pupil.0.3d", b""])
 PUPIL_NUMBERS = st.one_of(st.floats(), st.floats(-1e9, 1e9), st.integers(-(2**63), 2**63))
 PUPIL_VECTORS = st.one_of(st.lists(PUPIL_NUMBERS, min_size=2, max_size=4), MSGPACK_VALUES)
@@ -846,7 +802,9 @@ def pupil_outcome(topic: bytes, payload: bytes) -> Gaze | None:
 
 
 @fuzz(
-    300, topic=PUPIL_TOPICS, payload=st.one_of(st.binary(max_size=200), mutations(msgspec.msgpack.encode(PUPIL_GAZE)))
+    300,
+    topic=PUPIL_TOPICS,
+    payload=st.one_of(st.binary(max_size=200), mutations(msgspec.msgpack.encode(SECTION7_GAZE))),
 )
 def test_pupil_any_message_is_bus_ready_gaze_or_malformed_datum(topic, payload):
     """Arbitrary and corrupted backbone messages decode to unit, bus-ready gaze or raise MalformedDatum."""
@@ -872,7 +830,7 @@ def test_pupil_any_message_is_bus_ready_gaze_or_malformed_datum(topic, payload):
 def test_pupil_datums_with_wrong_or_extreme_values_are_bus_ready_or_malformed(topic, changes):
     """Datums whose fields hold wrong types, NaN, inf, huge or zero vectors decode to bus-ready gaze or raise
     MalformedDatum."""
-    pupil_outcome(topic, msgspec.msgpack.encode({**PUPIL_GAZE, **changes}))
+    pupil_outcome(topic, msgspec.msgpack.encode({**SECTION7_GAZE, **changes}))
 
 
 def test_pupil_regressions_deep_nesting_and_a_gaze_point_beyond_the_bus_range():
@@ -880,13 +838,13 @@ def test_pupil_regressions_deep_nesting_and_a_gaze_point_beyond_the_bus_range():
     a gaze_point_3d over 1e6 m away gave a depth the bus refuses, so the compositor dropped the whole sample.
     Both are MalformedDatum now, counted once each by the driver."""
     deep = b"\x82\xa3xyz" + b"\x91" * 60_000 + b"\x01" + msgspec.msgpack.encode("confidence") + b"\xcb" + bytes(8)
-    far = msgspec.msgpack.encode({**PUPIL_GAZE, "gaze_point_3d": [1e9, 1e9, 1e9]})
+    far = msgspec.msgpack.encode({**SECTION7_GAZE, "gaze_point_3d": [1e9, 1e9, 1e9]})
     with pytest.raises(MalformedDatum, match="nested too deeply"):
         decode_gaze(b"gaze.3d.01.", deep)
     with pytest.raises(MalformedDatum, match="beyond"):
         decode_gaze(b"gaze.3d.01.", far)
     driver = PupilDriver("pupil://127.0.0.1:50020")
-    good = [b"gaze.3d.01.", msgspec.msgpack.encode(PUPIL_GAZE)]
+    good = [b"gaze.3d.01.", msgspec.msgpack.encode(SECTION7_GAZE)]
     samples = [driver._sample(frames, 0) for frames in ([b"gaze.3d.01.", deep], [b"gaze.3d.01.", far], good, [b"x"])]
     assert [s is not None for s in samples] == [False, False, True, False]
     assert driver.counters.malformed == 3
