@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 import tomllib
 from pathlib import Path
 from typing import TypeVar
@@ -42,17 +43,31 @@ def parse_toml(data: bytes) -> dict:
         raise ValueError("arrays or inline tables nested too deeply") from None
 
 
+def read_limited(
+    path: Path, what: str, limit: int = MAX_TOML_BYTES, error: type[Exception] = ConfigError, regular_only: bool = False
+) -> bytes:
+    """The bytes of file `path` (a `what`: "config", "texture image", ...), at most `limit`; a missing, unreadable
+    or larger file, or with regular_only one that is not a regular file (a device or FIFO that may never end),
+    is one `error` line."""
+    try:
+        info = path.stat()
+        regular = stat.S_ISREG(info.st_mode)
+        if regular_only and not regular:
+            raise error(f"{what} {path} is not a regular file")
+        data = None if regular and info.st_size > limit else read_capped(path, limit)  # capped: it may have grown
+    except FileNotFoundError:
+        raise error(f"{what} not found: {path}") from None
+    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
+        raise error(f"cannot read {what} {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    if data is None:
+        raise error(f"{what} {path} is larger than the limit of {limit} bytes")
+    return data
+
+
 def read_toml(path: str | Path) -> dict:
     """The tables of a TOML file; a missing, unreadable, oversized or invalid file is a ConfigError."""
     path = Path(path)
-    try:
-        data = read_capped(path, MAX_TOML_BYTES)
-    except FileNotFoundError:
-        raise ConfigError(f"config not found: {path}") from None
-    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
-        raise ConfigError(f"cannot read config {path}: {exc}") from None
-    if data is None:
-        raise ConfigError(f"config {path} is larger than {MAX_TOML_BYTES} bytes")
+    data = read_limited(path, "config")
     try:
         return parse_toml(data)
     except UnicodeDecodeError as exc:

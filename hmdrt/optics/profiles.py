@@ -14,7 +14,7 @@ from typing import Annotated
 
 import msgspec
 
-from hmdrt.configfile import MAX_TOML_BYTES, parse_toml, read_capped
+from hmdrt.configfile import parse_toml, read_limited
 from hmdrt.errors import ConfigError
 
 Pixels = Annotated[int, msgspec.Meta(ge=1, le=16384)]
@@ -103,12 +103,7 @@ def get_profile(name_or_path: str) -> HmdProfile:
         raise ConfigError(
             f"unknown profile {name_or_path!r}; built-in profiles: {', '.join(PROFILES)}, or a .toml file"
         )
-    try:
-        data = read_capped(path, MAX_TOML_BYTES)
-    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
-        raise ConfigError(f"cannot read profile {path}: {getattr(exc, 'strerror', None) or exc}") from None
-    if data is None:
-        raise ConfigError(f"profile {path} is larger than {MAX_TOML_BYTES} bytes")
+    data = read_limited(path, "profile")
     try:
         return msgspec.convert(parse_toml(data), HmdProfile)
     except msgspec.ValidationError as exc:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import os
-import stat
 from pathlib import Path
 from typing import Annotated
 
@@ -15,7 +14,7 @@ import trimesh
 from PIL import Image as PILImage
 from PIL import UnidentifiedImageError
 
-from hmdrt.configfile import MAX_TOML_BYTES, parse_toml, read_capped
+from hmdrt.configfile import MAX_TOML_BYTES, parse_toml, read_limited
 from hmdrt.errors import SceneError
 from hmdrt.scene import shapes
 from hmdrt.scene.model import Checker, Colour, Finite, Image, Light, Material, Mesh, PointLight, Radiance, Scene, Vec3
@@ -82,18 +81,7 @@ class SceneFile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 
 def _read_bytes(path: Path, what: str, limit: int = MAX_FILE_BYTES) -> bytes:
-    try:
-        info = path.stat()
-        if not stat.S_ISREG(info.st_mode):  # a device or FIFO has no size to check, and may never end
-            raise SceneError(f"{what} {path} is not a regular file")
-        data = None if info.st_size > limit else read_capped(path, limit)  # capped: the file may have grown
-    except FileNotFoundError:
-        raise SceneError(f"{what} not found: {path}") from None
-    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
-        raise SceneError(f"cannot read {what} {path}: {getattr(exc, 'strerror', None) or exc}") from None
-    if data is None:
-        raise SceneError(f"{what} {path} is larger than the limit of {limit} bytes")
-    return data
+    return read_limited(path, what, limit, SceneError, regular_only=True)
 
 
 class _CappedResolver(trimesh.resolvers.FilePathResolver):
