@@ -267,6 +267,26 @@ def test_real_time_run_keeps_every_vsync_on_the_grid_in_order_and_within_budget(
             assert r["frame_id"] == before["frame_id"]
 
 
+def test_compositor_overhead_counts_the_render_loops_planning_and_hand_over(tmp_path, context):
+    """Overhead is everything but the method's render: a slow plan (pacer.predict) and a slow hand-over (after
+    the frame is built) both show in it, the hand-over in the next frame's."""
+
+    def slowed(f):
+        def slow(*args):
+            time.sleep(0.004)
+            return f(*args)
+
+        return slow
+
+    with compositor(write_config(tmp_path / "run.toml"), context, frames=20) as comp:
+        comp.pacer.predict, comp.pacer.mark_render = slowed(comp.pacer.predict), slowed(comp.pacer.mark_render)
+        run_bounded(comp)
+    new = [r for r in comp.records if r.shown != "repeat"]
+    assert len(new) >= 5
+    assert new[0].overhead_ms >= 4 and all(r.overhead_ms >= 8 for r in new[1:])
+    assert all(r.frame_ms >= r.render_ms + 4 for r in new)
+
+
 def test_a_renderer_slower_than_the_period_drops_to_every_other_vsync_and_repeats_are_timewarped(tmp_path, context):
     config = write_config(tmp_path / "slow.toml", eyes="left", pacing={"render_delay_ms": 45})
     with compositor(config, context, frames=40) as comp:

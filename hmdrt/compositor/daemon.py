@@ -194,8 +194,9 @@ class Compositor:
 
     # --- one frame ------------------------------------------------------------------------------------------------
 
-    def _render(self, timing: FrameTiming, woke: int) -> Frame:
-        """One frame's work from its wake-up: estimates, the controller's step, the method's render."""
+    def _render(self, timing: FrameTiming, woke: int, loop_ns: int = 0) -> Frame:
+        """One frame's work from its wake-up: estimates, the controller's step, the method's render; its
+        frame_ms adds loop_ns, the render loop's own work for it (planning, and handing over the frame before)."""
         t0 = time.perf_counter_ns()
         gaze, pose = self._estimates(timing.predicted_display_ns, woke)
         self._tune(None if gaze is None else gaze.speed_deg_s)
@@ -206,8 +207,7 @@ class Compositor:
             timing.frame_id, gaze, pose, self.config.run.seed, stats, delay
         )
         end = self.clock.now_ns()
-        frame_ns = time.perf_counter_ns() - t0
-        return Frame(
+        frame = Frame(
             timing=timing,
             images=images,
             cameras=cameras,
@@ -220,9 +220,11 @@ class Compositor:
             params=self.session.params(),
             stages_ms=dict(stats.stages_ms),
             rays=sum(stats.rays.values()),
-            frame_ms=frame_ns / 1e6,
+            frame_ms=0.0,
             render_ms=render_ns / 1e6,
         )
+        frame.frame_ms = (loop_ns + time.perf_counter_ns() - t0) / 1e6
+        return frame
 
     def _shown(self, record: FrameRecord, images: list[np.ndarray]) -> None:
         with self._lock:
@@ -292,16 +294,20 @@ class Compositor:
 
     def _render_loop(self) -> None:
         frames, duration_s = self._limits()
+        busy_since = time.perf_counter_ns()  # the loop's own work, outside its waits, counts to the next frame
         while not self._done(frames, duration_s):
             if self.display.backlog >= MAX_AHEAD:  # a stalled display: wait for it rather than run ahead of it
                 self.stop.wait(self.vsync.period_ns / 1e9)
+                busy_since = time.perf_counter_ns()
                 continue
             self._apply_pending()
             with self._lock:
                 timing = self.pacer.predict(self.clock.now_ns())
+            loop_ns = time.perf_counter_ns() - busy_since
             if self.stop.wait(max(timing.wake_ns - self.clock.now_ns(), 0) / 1e9):
                 break
-            frame = self._render(timing, self.clock.now_ns())
+            frame = self._render(timing, self.clock.now_ns(), loop_ns)
+            busy_since = time.perf_counter_ns()
             self.display.submit(frame)
             with self._lock:
                 self.pacer.mark_render(timing.frame_id, frame.actual_wake_ns, frame.render_end_ns)

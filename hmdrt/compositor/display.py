@@ -45,7 +45,7 @@ class Frame:
     params: dict
     stages_ms: dict[str, float]
     rays: int
-    frame_ms: float  # wall-clock work from wake-up to render end
+    frame_ms: float  # the render thread's wall-clock work for it: from wake-up to built, its planning and hand-over
     render_ms: float  # the method's part of it
 
 

@@ -53,8 +53,9 @@ class FrameRecord:
     params: dict = field(default_factory=dict)
     stages_ms: dict[str, float] = field(default_factory=dict)
     rays: int = 0
-    # Work measured on the wall clock, also in virtual time: the frame's work from wake-up to the end of
-    # rendering, the method's own part of it, and the display's work for this VSync (latch, timewarp)
+    # Work measured on the wall clock, also in virtual time: the render thread's work for the frame (from
+    # wake-up to the frame built, and the loop's planning and hand-over), the method's own part of it, and the
+    # display's work for this VSync (latch, timewarp) up to this record
     frame_ms: float = 0.0
     render_ms: float = 0.0
     present_ms: float = 0.0
