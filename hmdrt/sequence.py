@@ -17,7 +17,7 @@ from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import EYES, FrameRequest, Method
 from hmdrt.foveation.stages.gaze import vergence_depth
 from hmdrt.optics import EyeCamera, HmdProfile
-from hmdrt.spatial import Pose, gaze_direction, parse_gaze, quat_multiply, quat_to_matrix, unit
+from hmdrt.spatial import Pose, gaze_direction, parse_gaze, quat_multiply, quat_rotate, unit
 from hmdrt.telemetry.stats import FrameStats
 from replay import load_trace
 from replay.trace import Gaze, TraceReading, usable
@@ -49,9 +49,8 @@ class SequenceCounts:
 
 def compose_pose(start: Pose, relative: PoseSample) -> Pose:
     """A head pose relative to where a trace started, placed at the scene's start pose."""
-    rot = quat_to_matrix(start.orientation)
     orientation = quat_multiply(start.orientation, unit(relative.orientation))
-    return Pose(start.position + rot @ np.asarray(relative.position, dtype=np.float64), orientation)
+    return Pose(start.position + quat_rotate(start.orientation, relative.position), orientation)
 
 
 def _eye_gaze(sample: Gaze) -> dict[str, np.ndarray]:

@@ -33,6 +33,14 @@ def quat_to_matrix(q: ArrayLike) -> np.ndarray:
     )
 
 
+def quat_rotate(q: ArrayLike, v: ArrayLike) -> tuple[float, float, float]:
+    """v rotated by the unit quaternion q (q v q*), as floats: what quat_to_matrix(q) @ v gives, without numpy."""
+    w, x, y, z = unit(q)
+    vx, vy, vz = map(float, v)
+    tx, ty, tz = 2.0 * (y * vz - z * vy), 2.0 * (z * vx - x * vz), 2.0 * (x * vy - y * vx)
+    return (vx + w * tx + y * tz - z * ty, vy + w * ty + z * tx - x * tz, vz + w * tz + x * ty - y * tx)
+
+
 def quat_from_yaw_pitch(yaw_deg: float, pitch_deg: float) -> np.ndarray:
     """Orientation that turns -Z forward by yaw (positive right) then pitch (positive up)."""
     yaw = np.radians(-yaw_deg) / 2  # a right turn is a negative rotation about +Y

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from hmdrt.bus.messages import Gaze, Pose, Status
+from hmdrt.compositor import samples
 from hmdrt.compositor.samples import SampleStore, eye_gaze
 from hmdrt.spatial import gaze_direction, mean_direction, quat_conjugate, quat_from_yaw_pitch, quat_multiply
 
@@ -70,6 +71,38 @@ def test_constant_velocity_gaze_is_predicted_ahead():
     assert yaw_of(est.left) == pytest.approx(0.9, abs=0.01) and yaw_of(est.right) == pytest.approx(0.9, abs=0.01)
     assert est.speed_deg_s == pytest.approx(30.0, abs=0.01)
     assert (est.predicted_ns, est.age_ns, est.source_seq, est.clamped) == (10 * MS, 10 * MS, 20, False)
+
+
+def test_a_lookup_reuses_the_fit_made_on_arrival_only_for_the_same_samples(monkeypatch):
+    """The ingest fits the velocity when a newest sample arrives; a lookup that picks the same samples uses that
+    fit (here a marked one), any other pick fits its own: after an out-of-order arrival, or before the newest."""
+    marked = (((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), 1.0)  # no spin, 1 rad/s
+    monkeypatch.setitem(samples.FITS, "gaze", lambda entries: marked)
+    store = SampleStore()
+    fill(store, [gaze(i, i, yaw=30.0 * i / 1000) for i in (0, 1, 2, 4)])  # 30 deg/s
+    est = store.gaze_at(10 * MS, now_ns=4 * MS)
+    assert est.speed_deg_s == pytest.approx(math.degrees(1.0)) and yaw_of(est.left) == pytest.approx(0.12)
+    assert store.gaze_at(10 * MS, now_ns=4 * MS - 1).speed_deg_s == pytest.approx(30.0, abs=0.01)  # 2 was newest
+    assert store.add("dev", gaze(3, 3, yaw=0.09), 5 * MS)  # late: the newest sample's fit now has another
+    est = store.gaze_at(10 * MS, now_ns=5 * MS)
+    assert est.speed_deg_s == pytest.approx(30.0, abs=0.01) and yaw_of(est.left) == pytest.approx(0.3, abs=0.001)
+
+
+def test_fits_made_on_arrival_predict_as_fits_made_at_lookup():
+    fitted, fresh = SampleStore(), SampleStore()
+    poses = [pose(i, 2 * i, yaw=90.0 * 2 * i / 1000, position=(2 * i / 1000, 0.0, 0.0)) for i in range(11)]
+    gazes = [gaze(i, i, yaw=30.0 * i / 1000 + (i % 3) * 0.01) for i in range(21)]
+    fill(fitted, poses + gazes)
+    fill(fresh, poses + gazes)
+    for kind in ("gaze", "pose"):
+        for track in fresh._tracks[kind].values():
+            track.fit = None
+    a, b = fitted.gaze_at(30 * MS, now_ns=20 * MS), fresh.gaze_at(30 * MS, now_ns=20 * MS)
+    assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right) and a.speed_deg_s == b.speed_deg_s
+    assert a.speed_deg_s > 29  # a prediction, not a held gaze
+    a, b = fitted.pose_at(30 * MS, now_ns=20 * MS), fresh.pose_at(30 * MS, now_ns=20 * MS)
+    assert np.array_equal(a.orientation, b.orientation) and np.array_equal(a.position, b.position)
+    assert a.predicted_ns == 10 * MS
 
 
 def test_prediction_stops_at_the_horizon():

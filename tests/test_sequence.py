@@ -9,8 +9,8 @@ from hmdrt.cli import main
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import METHODS
 from hmdrt.scene import BUILTINS
-from hmdrt.sequence import builtin_path, from_trace
-from hmdrt.spatial import Pose, gaze_direction, quat_from_yaw_pitch, quat_to_matrix
+from hmdrt.sequence import builtin_path, compose_pose, from_trace
+from hmdrt.spatial import Pose, gaze_direction, quat_from_yaw_pitch, quat_rotate, quat_to_matrix, unit
 from replay.trace import Gaze, read_trace, write_trace
 from replay.trace import Pose as PoseSample
 
@@ -214,3 +214,17 @@ def test_every_method_renders_every_builtin_scene(tmp_path, scene, method):
     )
     stats = json.loads((tmp_path / "s.json").read_text())
     assert stats["width"] == 80 and stats["method"] == method and stats["rays"]["primary"] > 0
+
+
+def test_a_relative_pose_is_placed_at_the_start_pose():
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        q, v = rng.normal(size=4), rng.normal(size=3)
+        np.testing.assert_allclose(quat_rotate(q, v), quat_to_matrix(q) @ v, atol=1e-12)
+        start = Pose(rng.normal(size=3), np.array(unit(q)))
+        relative = PoseSample(seq=0, t_host=0, position=tuple(v), orientation=tuple(rng.normal(size=4)))
+        head = compose_pose(start, relative)
+        np.testing.assert_allclose(head.position, start.position + quat_to_matrix(q) @ v, atol=1e-12)
+        np.testing.assert_allclose(
+            quat_to_matrix(head.orientation), quat_to_matrix(q) @ quat_to_matrix(relative.orientation), atol=1e-12
+        )

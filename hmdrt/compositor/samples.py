@@ -3,6 +3,10 @@ and estimates at a display time by interpolating between samples or predicting a
 
 Lookups take `now` and use only samples that had arrived by then and were captured by then, so a frame never
 sees a sample from its future, whatever order the ingest thread delivered them in.
+
+As a filter updates on each measurement and predicts at each query, the ingest thread fits the velocity to a
+new newest sample when it arrives, and a frame's lookup reuses that fit when it picks the same samples: a
+frame then only extrapolates (its Python runs cache-cold, several times slower than the ingest's).
 """
 
 from __future__ import annotations
@@ -93,13 +97,15 @@ class _Entry(NamedTuple):
 
 
 class _Track:
-    """One device's samples of one kind, sorted by capture time; t mirrors the entries' t_host for bisect."""
+    """One device's samples of one kind, sorted by capture time; t mirrors the entries' t_host for bisect;
+    fit is the velocity fitted on arrival to the newest sample, with the entries it was fitted to."""
 
-    __slots__ = ("t", "entries")
+    __slots__ = ("t", "entries", "fit")
 
     def __init__(self) -> None:
         self.t: list[int] = []
         self.entries: list[_Entry] = []
+        self.fit: tuple[list[_Entry], tuple] | None = None
 
 
 class _Pick(NamedTuple):
@@ -110,6 +116,7 @@ class _Pick(NamedTuple):
     mode: str
     entries: list[_Entry]
     invalid_since: int | None = None
+    fitted: tuple | None = None  # the fit made on arrival to these same entries (predict)
 
     @property
     def samples(self) -> list:
@@ -169,36 +176,50 @@ class SampleStore:
     def add(self, device: str, sample: Gaze | Pose, received_ns: int) -> bool:
         """Keep a sample received at received_ns (host clock); whether it was kept. Invalid samples are kept
         (to mark blinks) and counted; malformed, too old, too far ahead and duplicate ones are counted and dropped.
+        A usable sample that is the newest gets the velocity fit a lookup predicting from it would make now.
         """
+        kept = self._keep(device, sample, received_ns)
+        if kept is None:
+            return False
+        kind, track = kept
+        if track is not None:
+            with self._lock:
+                pick = self._choose(track, received_ns, received_ns)
+            if pick is not None and pick.mode == "predict":
+                track.fit = (pick.entries, FITS[kind](pick.entries))
+        return True
+
+    def _keep(self, device: str, sample: Gaze | Pose, received_ns: int) -> tuple[str, _Track | None] | None:
+        """add() under the lock: (kind, the track when the sample is its newest usable one) when kept."""
         admitted = _admit(sample, received_ns)
         with self._lock:
             counts = self._counts.get(device)
             if counts is None:
                 if len(self._counts) >= MAX_DEVICES:
                     self.devices_refused += 1
-                    return False
+                    return None
                 counts = self._counts[device] = DeviceCounts()
             counts.samples += 1
             if admitted is None:
                 counts.malformed += 1
-                return False
+                return None
             kind, t_host, ok, units = admitted
             if t_host > received_ns + self.history_ns:
                 counts.ahead += 1
-                return False
+                return None
             track = self._tracks[kind].get(device)
             if track is None:
                 track = self._tracks[kind][device] = _Track()
             ts, entries = track.t, track.entries
             if ts and t_host < ts[-1] - self.history_ns:
                 counts.too_old += 1
-                return False
+                return None
             at = bisect_right(ts, t_host)
             i = at - 1
             while i >= 0 and ts[i] == t_host:
                 if entries[i].sample.seq == sample.seq:
                     counts.duplicates += 1
-                    return False
+                    return None
                 i -= 1
             if at < len(ts):
                 counts.out_of_order += 1
@@ -210,8 +231,9 @@ class SampleStore:
                 counts.invalid += 1
                 if counts.last_invalid_t_host is None or t_host > counts.last_invalid_t_host:
                     counts.last_invalid_t_host = t_host
+            newest = at == len(ts) - 1
             self._trim(track, counts)
-            return True
+            return kind, track if ok and newest else None
 
     def gaze_at(self, t_ns: int, now_ns: int, device: str | None = None) -> GazeEstimate | None:
         """Gaze at t_ns from what had arrived by now_ns; None when no usable sample at or before t_ns had."""
@@ -232,14 +254,8 @@ class SampleStore:
                 depth = a.depth_m + u * (b.depth_m - a.depth_m)
         elif pick.mode == "predict":
             predicted, clamped = self._extrapolation(t_ns, newest.t_host)
-            dts = [(s.t_host - newest.t_host) * 1e-9 for s in samples[1:]]
-            turned = []
-            for e in (0, 1):
-                g0 = eyes[0][e]
-                spin = _rate(dts, [_arc(g0, g[e]) for g in eyes[1:]])  # rad/s about the rotation vector's axis
-                turned.append(_turn(g0, spin, predicted * 1e-9))
-                speed = max(speed, _norm(spin))
-            left, right = turned
+            spins, speed = pick.fitted or _gaze_fit(pick.entries)
+            left, right = (_turn(eyes[0][e], spins[e], predicted * 1e-9) for e in (0, 1))
         else:
             left, right = eyes[0]
         return GazeEstimate(
@@ -276,10 +292,7 @@ class SampleStore:
         elif pick.mode == "predict":
             predicted, clamped = self._extrapolation(t_ns, newest.t_host)
             h = predicted * 1e-9
-            dts = [(s.t_host - newest.t_host) * 1e-9 for s in samples[1:]]
-            inverse = quat_conjugate(quats[0])
-            spin = _rate(dts, [quat_to_rotvec(quat_multiply(q, inverse)) for q in quats[1:]])
-            velocity = _rate(dts, [_sub(p, positions[0]) for p in positions[1:]])
+            velocity, spin = pick.fitted or _pose_fit(pick.entries)
             position = _advance(positions[0], velocity, h)
             orientation = unit(quat_multiply(quat_from_rotvec([c * h for c in spin]), quats[0]))
         else:
@@ -316,7 +329,12 @@ class SampleStore:
             name = self._freshest(tracks, now) if device is None else device
             track = tracks.get(name) if name is not None else None
             pick = None if track is None else self._choose(track, t, now)
-            return None if pick is None else (name, pick)
+            if pick is None:
+                return None
+            fit = track.fit
+            if pick.mode == "predict" and fit is not None and _same(fit[0], pick.entries):
+                pick = pick._replace(fitted=fit[1])
+            return name, pick
 
     @staticmethod
     def _freshest(tracks: dict[str, _Track], now: int) -> str | None:
@@ -376,6 +394,37 @@ def _admit(sample: Gaze | Pose, received_ns: int) -> tuple[str, int, bool, tuple
     if not (sample.valid and usable(sample)):
         return kind, t_host, False, None
     return kind, t_host, True, _eye_directions(sample) if kind == "gaze" else unit(sample.orientation)
+
+
+def _same(a: list[_Entry], b: list[_Entry]) -> bool:
+    return len(a) == len(b) and all(x is y for x, y in zip(a, b, strict=True))
+
+
+def _dts(entries: list[_Entry]) -> list[float]:
+    """Seconds from the newest (first) entry to each earlier one."""
+    t0 = entries[0].sample.t_host
+    return [(e.sample.t_host - t0) * 1e-9 for e in entries[1:]]
+
+
+def _gaze_fit(entries: list[_Entry]) -> tuple[tuple[Vec, Vec], float]:
+    """Each eye's angular velocity (rad/s rotation vector) through the newest of a predict pick's entries,
+    and the faster eye's speed."""
+    dts = _dts(entries)
+    g0 = entries[0].unit
+    spins = tuple(_rate(dts, [_arc(g0[e], g.unit[e]) for g in entries[1:]]) for e in (0, 1))
+    return spins, max(_norm(spin) for spin in spins)
+
+
+def _pose_fit(entries: list[_Entry]) -> tuple[Vec, Vec]:
+    """Head velocity (m/s) and angular velocity (rad/s rotation vector) through the newest entry."""
+    dts = _dts(entries)
+    p0, inverse = entries[0].sample.position, quat_conjugate(entries[0].unit)
+    velocity = _rate(dts, [_sub(e.sample.position, p0) for e in entries[1:]])
+    spin = _rate(dts, [quat_to_rotvec(quat_multiply(e.unit, inverse)) for e in entries[1:]])
+    return velocity, spin
+
+
+FITS = {"gaze": _gaze_fit, "pose": _pose_fit}
 
 
 def _well_formed(sample: Gaze | Pose) -> bool:
