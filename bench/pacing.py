@@ -30,17 +30,30 @@ from hmdrt.compositor.pacer import Pacer, replay_frame  # noqa: E402
 ANY_PORT = "tcp://127.0.0.1:*"
 
 
+class Timed(Compositor):
+    """The compositor, keeping the work (ns, wake-up to hand-over) of every rendered frame it shows."""
+
+    def __init__(self, *args, **kwargs):
+        self.times: list[int] = []
+        super().__init__(*args, **kwargs)
+
+    def _shown(self, record, images) -> None:
+        if record.shown != "repeat":
+            self.times.append(round(record.frame_ms * 1e6))
+        super()._shown(record, images)
+
+
 def measure(config_path: str, duration_s: float) -> tuple[list[int], int, dict]:
     """Render times (ns, wake-up to hand-over) of the frames a real-time run showed, its period and pacer settings."""
     config = load_config(config_path)
     config = msgspec.structs.replace(
         config, bus=Bus(ANY_PORT, ANY_PORT, ANY_PORT), run=msgspec.structs.replace(config.run, duration_s=duration_s)
     )
-    compositor = Compositor(config)
+    compositor = Timed(config)
     try:
         report = compositor.run()
         settings = compositor._pacing(config)
-        times = [round(ms * 1e6) for ms in compositor.report.frame_ms]
+        times = compositor.times
         period = compositor.vsync.period_ns
     finally:
         compositor.close()

@@ -305,8 +305,9 @@ def test_a_report_snapshot_is_not_changed_by_later_records():
 
     report = RunReport(30.0)
     snapshot = report.snapshot()
-    report.frame_ms.append(12.0)
+    report.frame_ms.add(12.0)
     report.shown["new"] += 1
     report.stages_ms["trace"] = 3.0
-    assert snapshot.frame_ms == [] and snapshot.shown["new"] == 0 and snapshot.stages_ms == {}
+    assert snapshot.frame_ms.n == 0 and snapshot.shown["new"] == 0 and snapshot.stages_ms == {}
+    assert snapshot.frame_ms.percentiles()["p50"] is None and report.frame_ms.percentiles()["p50"] == 12.0
     assert snapshot.to_dict()["frames"] == 0 and report.frames == 1

@@ -6,7 +6,8 @@ present and display; actual wake, render start and end, actual present; margin; 
 hmdrt adds: the method's parameters, stage times and rays, and the gaze and pose samples used with
 their capture times, so gaze-to-photon = present - capture of the gaze sample shown. VSyncs whose
 gaze was held through a blink (or pose through lost tracking) are counted apart, not as latency: no
-newer sample existed to be late about.
+newer sample existed to be late about. The report keeps times in bounded histograms (hmdrt.telemetry.histogram),
+so its memory and the cost of a summary stay the same however long the daemon runs.
 """
 
 from __future__ import annotations
@@ -15,9 +16,9 @@ import copy
 from dataclasses import dataclass, field
 
 import msgspec
-import numpy as np
 
 from hmdrt.bus.messages import numpy_scalar
+from hmdrt.telemetry.histogram import Histogram
 
 SHOWN = ("new", "late", "repeat")
 
@@ -92,15 +93,6 @@ class FrameRecord:
         return out
 
 
-def percentiles(values: list[float], keys: tuple[int, ...] = (50, 95, 99)) -> dict[str, float]:
-    """{p50, p95, p99, max} rounded to microseconds (all None when there are no values)."""
-    if not values:
-        return {**{f"p{k}": None for k in keys}, "max": None}
-    arr = np.asarray(values, dtype=np.float64)
-    qs = np.percentile(arr, keys)  # one partition for all of them: the stats topic does this every second
-    return {**{f"p{k}": round(float(q), 3) for k, q in zip(keys, qs, strict=True)}, "max": round(float(arr.max()), 3)}
-
-
 class RunReport:
     """Accumulates frame records into the run report; cheap per record, so it runs every VSync."""
 
@@ -111,11 +103,11 @@ class RunReport:
         self.shown = dict.fromkeys(SHOWN, 0)
         self.misses = 0
         self.dropped = 0  # rendered frames never shown (a newer one was ready first)
-        self.frame_ms: list[float] = []
-        self.overhead_ms: list[float] = []
-        self.warp_ms: list[float] = []
-        self.gaze_ms: list[float] = []
-        self.pose_ms: list[float] = []
+        self.frame_ms = Histogram()
+        self.overhead_ms = Histogram()
+        self.warp_ms = Histogram()
+        self.gaze_ms = Histogram()
+        self.pose_ms = Histogram()
         self.warps_skipped = 0
         self.held = {"gaze": 0, "pose": 0}  # VSyncs whose sample was held through a blink or lost tracking
         self.stages_ms: dict[str, float] = {}
@@ -142,32 +134,32 @@ class RunReport:
             if use is not None and use.held:
                 self.held[kind] += 1  # no new sample to be late about: not a latency of the pipeline
             elif latency is not None:
-                values.append(latency)
+                values.add(latency)
         if record.shown == "repeat":
             if record.warp_skipped:
                 self.warps_skipped += 1
             else:
-                self.warp_ms.append(record.present_ms)
+                self.warp_ms.add(record.present_ms)
             return
-        self.overhead_ms.append(record.overhead_ms)
+        self.overhead_ms.add(record.overhead_ms)
         if record.frame_id <= self.last_frame_id:
             self.out_of_order += 1
         self.last_frame_id = record.frame_id
         self.misses += record.missed
         self._settled(record.actual_present_ns, record.missed)
-        self.frame_ms.append(record.frame_ms)
+        self.frame_ms.add(record.frame_ms)
         self.rays += record.rays
         for stage, ms in record.stages_ms.items():
             self.stages_ms[stage] = self.stages_ms.get(stage, 0.0) + ms
 
     def snapshot(self) -> RunReport:
-        """A copy whose counts and lists later records do not change: cheap to take under a lock, then
-        summarised (to_dict) outside it."""
+        """A copy whose counts later records do not change: cheap to take under a lock, then summarised
+        (to_dict) outside it."""
         out = copy.copy(self)
         for name in ("settled", "shown", "held", "stages_ms"):
             setattr(out, name, dict(getattr(self, name)))
         for name in ("frame_ms", "overhead_ms", "warp_ms", "gaze_ms", "pose_ms"):
-            setattr(out, name, list(getattr(self, name)))
+            setattr(out, name, getattr(self, name).copy())
         return out
 
     @property
@@ -204,13 +196,13 @@ class RunReport:
             "warmup_s": self.warmup_ns / 1e9,
             "miss_rate_after_warmup": round(self.settled["misses"] / max(self.settled["rendered"], 1), 5),
             "achieved_hz": round(self.frames / span_s, 3) if span_s else 0.0,
-            "frame_ms": percentiles(self.frame_ms),
-            "compositor_overhead_ms": percentiles(self.overhead_ms),
-            "timewarp_ms": percentiles(self.warp_ms),
+            "frame_ms": self.frame_ms.percentiles(),
+            "compositor_overhead_ms": self.overhead_ms.percentiles(),
+            "timewarp_ms": self.warp_ms.percentiles(),
             "timewarp_skipped": self.warps_skipped,
             "latency_ms": {
-                "gaze_to_photon": percentiles(self.gaze_ms),
-                "pose_to_photon": percentiles(self.pose_ms),
+                "gaze_to_photon": self.gaze_ms.percentiles(),
+                "pose_to_photon": self.pose_ms.percentiles(),
                 "held_vsyncs": dict(self.held),
             },
             "stages_ms": {k: round(v / n, 3) for k, v in self.stages_ms.items()},
