@@ -401,6 +401,41 @@ def test_frames_dir_gets_every_nth_vsync_as_shown(tmp_path, context):
         np.testing.assert_array_equal(png, linear_to_srgb8(np.concatenate(shown[k], axis=1)))
 
 
+def test_video_holds_every_nth_vsync_as_shown_at_the_display_rate(tmp_path, context):
+    """H.264 is lossy: each video frame is the shown frame within a few levels, and nearer to it than to the
+    frames shown before and after; an odd height is padded, not resized."""
+    imageio = pytest.importorskip("imageio.v2")
+    config = write_config(
+        tmp_path / "video.toml", display={"resolution": "64x71"}, output={"video": "out/run.mp4", "every": 2}
+    )
+    with compositor(config, context, frames=16, virtual_time=True) as comp:
+        report, _ = run_bounded(comp)
+        shown = [linear_to_srgb8(np.concatenate(images, axis=1)) for r, images in comp.shown if r.vsync % 2 == 0]
+    assert report["frames_not_written"] == 0 and len(shown) == 8
+    with imageio.get_reader(tmp_path / "out" / "run.mp4") as reader:
+        assert reader.get_meta_data()["fps"] == pytest.approx(15.0)
+        frames = [frame for frame in reader.iter_data()]  # list() would take its length, inf for ffmpeg
+    assert len(frames) == 8 and all(f.shape == (72, 128, 3) for f in frames)
+    for i, frame in enumerate(frames):  # an odd height padded by repeating the last row
+        errors = [np.abs(frame[:71].astype(int) - s.astype(int)).mean() for s in shown]
+        assert errors[i] < 15 and errors[i] == min(errors)  # 4-9 levels here; the frames shown next to it 30+
+
+
+def test_video_without_its_extra_is_a_one_line_error(tmp_path, capsys, own_signals, monkeypatch):
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # as if the video extra were not installed
+    path = write_config(tmp_path / "video.toml", output={"video": "run.mp4"})
+    assert main(["run", str(path), "--frames", "3", "--virtual-time"]) == 1
+    assert_one_line_error(capsys.readouterr().err, "output.video needs imageio and imageio-ffmpeg: pip install")
+    assert not (tmp_path / "run.mp4").exists()
+
+
+def test_a_video_in_a_folder_that_is_a_file_is_a_one_line_error(tmp_path, capsys, own_signals):
+    (tmp_path / "out").write_text("not a folder")
+    path = write_config(tmp_path / "video.toml", output={"video": "out/run.mp4"})
+    assert main(["run", str(path), "--frames", "3", "--virtual-time"]) == 1
+    assert_one_line_error(capsys.readouterr().err, "output.video: cannot write")
+
+
 # --- the command line and the control socket ------------------------------------------------------------------
 
 
@@ -536,11 +571,14 @@ def test_reload_applies_the_method_and_reports_what_needs_a_restart(tmp_path, co
         sub = subscribe(context, comp)
         run = Background(comp)
         assert wait_for(lambda: len(comp.records) >= 3, timeout_s=30)
-        write_config(path, method={"options": {"group_w": 2}}, eyes="both")  # a new method, and a new display
+        # a new method, a new display and a video (its rate is the run's)
+        write_config(path, method={"options": {"group_w": 2}}, eyes="both", output={"video": "run.mp4"})
         before = len(comp.records)
         comp.reload()
         [log] = receive(sub, b"log", 1)
-        assert log["level"] == "warning" and log["message"] == f"reloaded {path}; restart to change display"
+        restart = "display, output.video and output.every"
+        assert log["level"] == "warning" and log["message"] == f"reloaded {path}; restart to change {restart}"
+        assert comp.config.output.video == ""
         assert wait_for(lambda: any(r.params["group_w"] == 2 for r in comp.records[before:]), timeout_s=30)
         assert request(comp.control.address, {"cmd": "status"})["method"] == "rrm?group_w=2"
 

@@ -95,7 +95,8 @@ class Controller(_Section):
 class Output(_Section):
     report: str = ""  # run report JSON ("" : none unless --report)
     frames_dir: str = ""  # presented frames as PNG ("" : none)
-    every: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 1  # every Nth presented frame
+    video: str = ""  # presented frames as an H.264 video at refresh / every fps ("": none; the video extra)
+    every: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 1  # every Nth VSync, to frames_dir and video
 
 
 class Run(_Section):
@@ -160,6 +161,7 @@ def load_config(path: str | Path | None = None, **overrides) -> RunConfig:
         output,
         report=str(base / output.report) if output.report else "",
         frames_dir=str(base / output.frames_dir) if output.frames_dir else "",
+        video=str(base / output.video) if output.video else "",
     )
     if config.security is not None:
         keys = config.security

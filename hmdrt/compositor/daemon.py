@@ -16,6 +16,7 @@ import queue
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -42,6 +43,7 @@ from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.foveation import method_params, method_spec
 from hmdrt.optics import EyeCamera
 from hmdrt.present.encode import linear_to_srgb8, write_png
+from hmdrt.present.video import VideoWriter
 from hmdrt.sequence import compose_pose, eye_cameras
 from hmdrt.telemetry.report import FrameRecord, RunReport, SampleUse
 from hmdrt.telemetry.stats import FrameStats
@@ -74,10 +76,12 @@ class Compositor:
         self._widen_deg = 0.0  # the fallback's foveal widening, handed to the controller
         self._lock = threading.Lock()  # pacer and report: the render and display threads share them
         self._pending: list[tuple[str, object]] = []  # control changes applied between frames
-        self._presents: queue.SimpleQueue = queue.SimpleQueue()  # (frame id, frame ms, missed) for the controller
+        # (frame id, frame ms, missed) for the controller: appended by the display thread, taken by the render thread
+        self._presents: deque[tuple[int, float, bool]] = deque()
         self._writes: queue.Queue = queue.Queue(WRITE_QUEUE)
         self.writes_skipped = 0  # frames the writer had no room for
         self.writes_failed = 0  # frames the writer could not write
+        self._video: VideoWriter | None = None
         self._writer_thread = threading.Thread(target=self._writer, name="frame-writer", daemon=True)
         self.shown_images: list[np.ndarray] | None = None
         self.stop = threading.Event()
@@ -100,6 +104,8 @@ class Compositor:
             self.vsync = VsyncClock(self.session.profile.period_ns, self.clock.now_ns() + FIRST_PRESENT_NS)
             self.pacer = Pacer(self.vsync, **self._pacing(config))
             self._frames_dir(config)
+            if config.output.video:
+                self._video = VideoWriter(config.output.video, self.session.profile.refresh_hz / config.output.every)
             self.display = Display(
                 self.vsync, self.clock, self._warp_target, self._shown, self._dropped, warp_deadline=not virtual
             )
@@ -231,12 +237,12 @@ class Compositor:
             if record.shown != "repeat":
                 if self._paced:
                     self.pacer.presented(record.frame_id, record.actual_present_ns)
-                self._presents.put((record.frame_id, record.frame_ms, record.missed))
+                self._presents.append((record.frame_id, record.frame_ms, record.missed))
             self.report.add(record)
         self.shown_images = images
         self.telemetry.publish("frame", record.to_dict())
         out = self.config.output
-        if out.frames_dir and record.vsync % out.every == 0:
+        if (out.frames_dir or self._video) and record.vsync % out.every == 0:
             try:
                 self._writes.put_nowait((record.vsync, images))
             except queue.Full:
@@ -247,17 +253,14 @@ class Compositor:
             if self._paced:
                 self.pacer.presented(frame.timing.frame_id, t_vsync)
             self.report.drop(t_vsync)
-        self._presents.put((frame.timing.frame_id, frame.frame_ms, True))
+        self._presents.append((frame.timing.frame_id, frame.frame_ms, True))
 
     def _tune(self, gaze_speed_deg_s: float | None) -> None:
         """Feed the controller the frames shown or dropped since the last call: their work on the wall clock
         (also in virtual time) against one period less the margin, the budget of the display's own rate; it
         widens the fovea for the gaze speed of the frame about to be rendered."""
-        while True:
-            try:
-                frame_id, frame_ms, missed = self._presents.get_nowait()
-            except queue.Empty:
-                return
+        while self._presents:  # only this thread takes from it: not empty stays not empty
+            frame_id, frame_ms, missed = self._presents.popleft()
             if self.controller is None:
                 continue
             self.controller.update(
@@ -348,19 +351,35 @@ class Compositor:
             index += 1
 
     def _writer(self) -> None:
-        """Writes queued frames as PNG; one that cannot be written is counted, the first failure said once."""
+        """Writes queued frames as PNG and to the video; one that cannot be written is counted, the first failure
+        said once."""
         while True:
             item = self._writes.get()
             if item is None:
                 return
             vsync, images = item
-            path = Path(self.config.output.frames_dir) / f"vsync_{vsync:06d}.png"
+            srgb8 = linear_to_srgb8(np.concatenate(images, axis=1))
+            folder = self.config.output.frames_dir
             try:
-                write_png(path, linear_to_srgb8(np.concatenate(images, axis=1)))
+                if folder:
+                    write_png(Path(folder) / f"vsync_{vsync:06d}.png", srgb8)
+                if self._video is not None:
+                    self._video.append(srgb8)
             except HmdrtError as exc:
-                if not self.writes_failed:
-                    print(f"hmdrt: {exc}; later frames that cannot be written are counted", file=sys.stderr)
-                self.writes_failed += 1
+                self._write_failed(exc)
+
+    def _write_failed(self, exc: HmdrtError) -> None:
+        if not self.writes_failed:
+            print(f"hmdrt: {exc}; later frames that cannot be written are counted", file=sys.stderr)
+        self.writes_failed += 1
+
+    def _finish_video(self) -> None:
+        video, self._video = self._video, None
+        if video is not None:
+            try:
+                video.close()
+            except HmdrtError as exc:
+                print(f"hmdrt: {exc}", file=sys.stderr)
 
     def run(self) -> dict:
         """Run until stopped, the frame count or the duration; returns the run report."""
@@ -386,6 +405,7 @@ class Compositor:
             self.stop.set()
             self._writes.put(None)
             self._writer_thread.join()
+            self._finish_video()
         return self.summary()
 
     def _stats_loop(self) -> None:
@@ -451,6 +471,11 @@ class Compositor:
                 for k in ("scene", "display", "drivers", "bus", "security")
                 if getattr(config, k) != getattr(self.config, k)
             ]
+            old, new = self.config.output, config.output
+            if new.video != old.video or (old.video and new.every != old.every):  # the video's rate is fixed
+                restart.append("output.video and output.every")
+                kept = msgspec.structs.replace(new, video=old.video, every=old.every)
+                config = msgspec.structs.replace(config, output=kept)
             pacing = self._pacing(config)
             self._frames_dir(config)
             self.session.set_method(config.method_spec)
@@ -549,6 +574,7 @@ class Compositor:
 
     def close(self) -> None:
         self.stop.set()
+        self._finish_video()
         for part in ("sources", "control", "ingest", "telemetry", "guard"):  # the guard last: it answers the others
             if getattr(self, part, None) is not None:
                 getattr(self, part).close()

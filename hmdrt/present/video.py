@@ -1,0 +1,56 @@
+"""What the display showed, as a video a person can watch at the rate it was shown (`[output] video`).
+
+Written through imageio's ffmpeg plugin (the `video` extra: imageio and imageio-ffmpeg, which brings a static
+ffmpeg) as H.264 in yuv420p, which any player opens. yuv420p needs even sides, so an odd one gets its last
+row or column repeated rather than the frame resized.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from hmdrt.atomic import check_writable
+from hmdrt.errors import ConfigError, HmdrtError
+
+INSTALL = "pip install -e '.[video]'"
+
+
+class VideoWriter:
+    """Appends uint8 sRGB frames of one size to a video file at fps frames per second."""
+
+    def __init__(self, path: str | Path, fps: float):
+        """Checks at once that imageio and its ffmpeg plugin are there and the folder is writable; ConfigError."""
+        try:
+            import imageio.v2 as imageio
+            import imageio_ffmpeg  # noqa: F401  (the plugin imageio needs for these formats)
+        except ImportError:
+            raise ConfigError(f"output.video needs imageio and imageio-ffmpeg: {INSTALL}") from None
+        self.path = Path(path)
+        try:
+            check_writable(self.path.parent)
+            self._writer = imageio.get_writer(
+                self.path, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
+                macro_block_size=1, quality=8,
+            )  # fmt: skip
+        except (HmdrtError, OSError, ValueError, RuntimeError) as exc:
+            raise ConfigError(f"output.video: cannot write {self.path}: {exc}") from None
+        self.frames = 0
+
+    def append(self, srgb8: np.ndarray) -> None:
+        """Add one (h, w, 3) uint8 frame; HmdrtError when ffmpeg refuses it (a full disk, a changed size)."""
+        h, w = srgb8.shape[:2]
+        if h % 2 or w % 2:
+            srgb8 = np.pad(srgb8, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+        try:
+            self._writer.append_data(srgb8)
+        except (OSError, ValueError, RuntimeError) as exc:
+            raise HmdrtError(f"cannot add frame {self.frames} to {self.path}: {exc}") from None
+        self.frames += 1
+
+    def close(self) -> None:
+        try:
+            self._writer.close()
+        except (OSError, ValueError, RuntimeError) as exc:
+            raise HmdrtError(f"cannot finish {self.path}: {exc}") from None
