@@ -63,8 +63,9 @@ def describe(name: str, report: dict) -> None:
     if controller:
         levels = [step["level"] for step in controller["trajectory"]]
         print(
-            f"    controller: {len(levels)} steps, level {levels[0] if levels else 1.0} -> {controller['level']}, "
-            f"at floor {controller['at_floor']}; last knobs {controller['trajectory'][-1] if levels else {}}"
+            f"    controller: {controller['changes']} changes, level {levels[0] if levels else 1.0} -> "
+            f"{controller['level']}, at floor {controller['at_floor']}; "
+            f"last knobs {controller['trajectory'][-1] if levels else {}}"
         )
 
 

@@ -8,6 +8,7 @@ import pytest
 
 from hmdrt.compositor.controller import (
     KNOBS,
+    LOGGED,
     BudgetController,
     ControllerConfig,
     configured_values,
@@ -213,6 +214,17 @@ def test_an_impossible_load_reaches_the_floor_and_then_nothing_changes(tracer):
     assert run.method.params is params and len(run.ctl.trajectory) == entries and len(run.calls) == calls
     assert run.ctl.at_floor and run.ctl.knobs == ("fovea_deg", "group_w")
     assert (params.fovea_deg, params.group_w, params.group_h) == (5.0, 5, 4)
+
+
+def test_the_trajectory_keeps_the_start_and_the_newest_changes_and_counts_them_all(tracer):
+    run = Run(tracer, "rrm", **EXACT)
+    while run.ctl.changes <= LOGGED + 20 and run.frame < 50_000:
+        run.feed(12, 1.25)  # drops
+        run.feed(35, 0.25)  # a rise
+    kept = run.ctl.trajectory
+    assert len(kept) == LOGGED + 1 and kept[0]["reason"] == "start" and run.ctl.changes > LOGGED + 20
+    frames = [e["frame"] for e in kept[1:]]
+    assert frames == sorted(frames) and frames[-1] >= run.frame - 35  # the newest, in order
 
 
 def test_the_drop_aims_at_the_middle_of_the_band_and_is_at_least_min_step(tracer):

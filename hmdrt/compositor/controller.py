@@ -50,6 +50,9 @@ from hmdrt.foveation.weier16 import Weier16Params
 
 SMALL_R0, SMALL_R1, SMALL_P_MIN = FRC_PRESETS["small"]
 RRM_MAX_CYCLE = 20
+# trajectory entries kept after the start, the newest: the `stats` topic sends them every second, and a daemon
+# runs for hours; `changes` counts them all, and every frame record carries the knobs it was rendered with
+LOGGED = 100
 
 
 @dataclass(frozen=True)
@@ -194,6 +197,7 @@ class BudgetController:
         self._refused: dict[str, float] | None = None
         reason = "start" if self._spans else f"{method.name} has no cost knobs: nothing to tune"
         self.trajectory: list[dict] = [self._entry(None, reason)]
+        self.changes = 0  # trajectory entries after the start, also those no longer kept
 
     @property
     def level(self) -> float:
@@ -236,14 +240,14 @@ class BudgetController:
                 self.method.set_params(self._params(values))
             except (msgspec.ValidationError, ConfigError, ValueError) as exc:
                 self._refused = values
-                self.trajectory.append(self._entry(frame_id, f"refused {values}: {exc}"))
+                self._log(frame_id, f"refused {values}: {exc}")
                 return None
             self._applied = values
         else:
             values = None
         if level != self._level:
             self._level, self._since_change = level, 0
-            self.trajectory.append(self._entry(frame_id, reason + (" (floor)" if level <= 0.0 else "")))
+            self._log(frame_id, reason + (" (floor)" if level <= 0.0 else ""))
         elif values is not None:
             self.widenings += 1
         return values
@@ -290,6 +294,13 @@ class BudgetController:
         if values == self._configured:
             return self.base
         return msgspec.convert({**msgspec.structs.asdict(self.base), **values}, type(self.base))
+
+    def _log(self, frame_id: int, reason: str) -> None:
+        """A trajectory entry; beyond LOGGED after the start, the oldest goes."""
+        self.trajectory.append(self._entry(frame_id, reason))
+        self.changes += 1
+        if len(self.trajectory) > LOGGED + 1:
+            del self.trajectory[1]
 
     def _entry(self, frame_id: int | None, reason: str) -> dict:
         return {

@@ -568,7 +568,8 @@ class Compositor:
                 "kind": self.config.controller.kind,
                 "level": self.controller.level,
                 "at_floor": self.controller.at_floor,
-                "trajectory": self.controller.trajectory,
+                "changes": self.controller.changes,
+                "trajectory": list(self.controller.trajectory),
             }
         return report
 
