@@ -8,6 +8,7 @@ run is a pure function of config, trace and seed. Bounds on time are generous: t
 
 from __future__ import annotations
 
+import gc
 import hashlib
 import json
 import math
@@ -265,6 +266,20 @@ def test_real_time_run_keeps_every_vsync_on_the_grid_in_order_and_within_budget(
     for before, r in zip(records, records[1:], strict=False):
         if r["shown"] == "repeat":
             assert r["frame_id"] == before["frame_id"]
+
+
+def test_a_collection_during_the_run_does_not_scan_what_start_up_built(tmp_path, context):
+    """A full collection of the start-up heap stops every thread for ~120 ms; the compositor freezes it."""
+    with compositor(write_config(tmp_path / "run.toml"), context, frames=3, virtual_time=True) as comp:
+        run_bounded(comp)
+        assert gc.get_freeze_count() > 10_000
+        t0 = time.perf_counter()
+        gc.collect()
+        frozen_s = time.perf_counter() - t0
+    assert gc.get_freeze_count() == 0  # closed: a process that goes on collects them again
+    t0 = time.perf_counter()
+    gc.collect()
+    assert frozen_s < (time.perf_counter() - t0) / 5
 
 
 def test_compositor_overhead_counts_the_render_loops_planning_and_hand_over(tmp_path, context):
