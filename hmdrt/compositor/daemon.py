@@ -371,12 +371,9 @@ class Compositor:
                 if self._video is not None:
                     self._video.append(srgb8)
             except HmdrtError as exc:
-                self._write_failed(exc)
-
-    def _write_failed(self, exc: HmdrtError) -> None:
-        if not self.writes_failed:
-            print(f"hmdrt: {exc}; later frames that cannot be written are counted", file=sys.stderr)
-        self.writes_failed += 1
+                if not self.writes_failed:
+                    print(f"hmdrt: {exc}; later frames that cannot be written are counted", file=sys.stderr)
+                self.writes_failed += 1
 
     def _finish_video(self) -> None:
         video, self._video = self._video, None
