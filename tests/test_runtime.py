@@ -429,7 +429,7 @@ def test_video_holds_every_nth_vsync_as_shown_at_the_display_rate(tmp_path, cont
     assert report["frames_not_written"] == 0 and len(shown) == 8
     with imageio.get_reader(tmp_path / "out" / "run.mp4") as reader:
         assert reader.get_meta_data()["fps"] == pytest.approx(15.0)
-        frames = [frame for frame in reader.iter_data()]  # list() would take its length, inf for ffmpeg
+        frames = list(reader.iter_data())  # list(reader) would ask its length: inf for ffmpeg
     assert len(frames) == 8 and all(f.shape == (72, 128, 3) for f in frames)
     for i, frame in enumerate(frames):  # an odd height padded by repeating the last row
         errors = [np.abs(frame[:71].astype(int) - s.astype(int)).mean() for s in shown]
