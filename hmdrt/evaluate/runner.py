@@ -25,6 +25,7 @@ from hmdrt.evaluate.perceptual import JodScorer
 from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.foveation import Method, make_method
 from hmdrt.optics import get_profile
+from hmdrt.optics.camera import eccentricity_map
 from hmdrt.quality import BandScores
 from hmdrt.scene import load_scene
 from hmdrt.sequence import eye_cameras, frame_requests, sequence_inputs
@@ -138,7 +139,7 @@ def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, t
         scored = inp.frame >= config.warmup_frames
         if scored:
             truth = truth_of(request.camera)
-            eccentricity = request.camera.eccentricity(request.gaze)
+            eccentricity = eccentricity_map(request.camera, request.gaze)
             last = {"truth": truth, "gaze_xy": tuple(float(v) for v in request.camera.gaze_pixel(request.gaze))}
         for cell in cells:
             if not scored and cell.method.name in REFERENCES:

@@ -84,9 +84,11 @@ class Method(Protocol):
     stages: ClassVar[tuple[Stage, ...]]
     params: msgspec.Struct  # the parameters the next frame is rendered with
 
-    def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
-        """Linear RGB image (height, width, 3) float32 of this eye's frame; the caller's to keep: the method
-        never writes to an image it has returned (the compositor shows and saves them without a copy)."""
+    def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
+        """Linear RGB image (height, width, 3) float32 of this eye's frame, written into `out` when given (a
+        C-contiguous buffer of that shape) and returned; the caller's to keep: the method never writes to an
+        image it has returned (the compositor shows and saves them without a copy). In steady state a method
+        allocates nothing of the image's size: its buffers persist across frames (tests/test_allocations.py)."""
         ...
 
     def set_params(self, params: msgspec.Struct) -> None:

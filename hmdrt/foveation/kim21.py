@@ -31,7 +31,7 @@ from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import HISTORY, Configurable, FrameRequest, Stage, pixel_keys, plan
 from hmdrt.foveation.stages.reproject import bilinear3, camera_arrays, nearest_index, project, world_point
 from hmdrt.foveation.stages.temporal import History, exponential_smoothing
-from hmdrt.optics.camera import pixel_centres
+from hmdrt.optics.camera import eccentricity_map, pixel_centres
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBuffer
 from hmdrt.trace.integrator import Whitted
@@ -439,7 +439,7 @@ class Kim21(Configurable):
         steps = plan(self.stages, frozenset({HISTORY}) if history else frozenset())
         n = cam.width * cam.height
         with stats.stage("eccentricity"):
-            ecc = cam.eccentricity(request.gaze).reshape(-1)
+            ecc = eccentricity_map(cam, request.gaze).reshape(-1)
             xy = pixel_centres(cam.width, cam.height)
         gbuf = self._gbuffer(state, n)
         with stats.stage("presample"):

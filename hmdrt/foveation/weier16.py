@@ -43,7 +43,7 @@ from hmdrt.foveation.base import (
 from hmdrt.foveation.stages.reproject import FAR, bilinear3, gather_previous, reproject_mesh
 from hmdrt.foveation.stages.sampling import Foveal, bernoulli_mask, foveal_config
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
-from hmdrt.optics.camera import EyeCamera
+from hmdrt.optics.camera import EyeCamera, eccentricity_map
 from hmdrt.rng import uniform
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBufferPool, LightBuffer
@@ -297,7 +297,7 @@ class Weier16(Configurable):
         steps = plan(self.stages, self.features | ({HISTORY} if history else set()))
         gx, gy = support_grid(w, h, sw, sh)
         with stats.stage("sample"):
-            ecc = cam.eccentricity(request.gaze)
+            ecc = eccentricity_map(cam, request.gaze)
             mask = bernoulli_mask(ecc, self.foveal, request.seed, t)
             fovea = ecc < self.foveal.r0
         covered = np.zeros((h, w), bool)

@@ -38,7 +38,7 @@ from hmdrt.foveation.stages.filters import contrast_enhance
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push, quincunx_rgbd
 from hmdrt.foveation.stages.reproject import FAR, camera_arrays, project, world_point
 from hmdrt.foveation.stages.sampling import Foveal, SamplingTables, pixels_per_degree, sampling_tables, table_mask
-from hmdrt.optics.camera import EyeCamera
+from hmdrt.optics.camera import EyeCamera, eccentricity_map
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBufferPool
 from hmdrt.trace.integrator import Whitted
@@ -168,7 +168,7 @@ class Weier18(Configurable):
         state, history = self._state(request)
         steps = plan(self.stages, self.features | ({HISTORY} if history else set()))
         with stats.stage("sample"):
-            ecc = cam.eccentricity(request.gaze)
+            ecc = eccentricity_map(cam, request.gaze)
             por = cam.gaze_pixel(request.gaze)
             pixels = np.flatnonzero(table_mask(ecc, self.foveal, state.tables, por))
             xy = np.empty((len(pixels), 2), np.float32)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numba as nb
@@ -154,3 +156,57 @@ class EyeCamera:
             return np.array([x, y])
         world = self.position + self.rotation @ g
         return self.project(world[None])[0][0]
+
+
+class _EccentricityMaps:
+    """The eccentricity maps of the last few (frustum, gaze) pairs, read-only, recomputed only on a change.
+
+    A map depends only on the eye's frustum, its pixel grid and the head-frame gaze, not on the head pose,
+    so a still gaze reuses it while the head moves. An evicted map's buffer takes the next map of its size.
+    """
+
+    def __init__(self, size: int = 4):
+        self._size = size
+        self._maps: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, camera: EyeCamera, gaze: np.ndarray) -> np.ndarray:
+        key = (camera._frustum(), float(gaze[0]), float(gaze[1]), float(gaze[2]))
+        with self._lock:
+            cached = self._maps.get(key)
+            if cached is not None:
+                self._maps.move_to_end(key)
+                return cached
+            out = None
+            if len(self._maps) >= self._size:
+                _, old = self._maps.popitem(last=False)
+                out = old if old.shape == (camera.height, camera.width) else None
+            if out is None:
+                out = np.empty((camera.height, camera.width), np.float32)
+            out.flags.writeable = True
+            _eccentricity(
+                pixel_grid(camera.width, camera.height),
+                *camera._frustum(),
+                np.asarray(gaze, np.float64),
+                out.reshape(-1),
+            )
+            out.flags.writeable = False
+            self._maps[key] = out
+            return out
+
+
+@functools.lru_cache(maxsize=8)
+def pixel_grid(width: int, height: int) -> np.ndarray:
+    """pixel_centres of a whole image, shared and read-only."""
+    xy = pixel_centres(width, height)
+    xy.flags.writeable = False
+    return xy
+
+
+_ECCENTRICITY_MAPS = _EccentricityMaps()
+
+
+def eccentricity_map(camera: EyeCamera, gaze: np.ndarray) -> np.ndarray:
+    """camera.eccentricity(gaze) as a shared read-only (height, width) map, computed once per change of the
+    frustum or the gaze (weier2016 section 3.1's eccentricity of every pixel)."""
+    return _ECCENTRICITY_MAPS.get(camera, gaze)

@@ -1,0 +1,79 @@
+"""Golden images: every method's frames on the built-in head path, pinned so that speed never silently
+changes results.
+
+Each case renders 8 frames of the left eye at 96x108 (sim-cpu optics, seed 0) along the built-in head path
+(head sway, fixations and saccades), so the temporal stages run on moving views, and compares frames 3 and
+7 with the stored ones. Tolerance: PSNR >= 40 dB over the image (peak 1) and at least 99% of pixels within
+1e-3 in every channel; a kernel that reorders float arithmetic stays well inside it, a changed sample set,
+filter or blend does not. `HMDRT_UPDATE_GOLDEN=1 pytest tests/test_golden.py` rewrites the files after a
+change that is meant to alter the images (say why in the commit).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from hmdrt.foveation import make_method
+from hmdrt.optics import get_profile
+from hmdrt.quality import psnr
+from hmdrt.scene import load_scene
+from hmdrt.sequence import builtin_path, render_frames
+from hmdrt.trace.integrator import Whitted
+from tests.helpers import DATA
+
+GOLDEN = DATA / "golden"
+FRAMES, KEPT = 8, (3, 7)
+CASES = [
+    ("whitted", "full"),
+    ("whitted", "rrm"),
+    ("whitted", "weier16"),
+    ("whitted", "weier18"),
+    ("whitted", "weier18?dof=none"),
+    ("whitted", "kim21"),
+    ("interior", "weier16"),
+    ("interior", "kim21"),
+]
+
+
+def golden_frames(scene: str, spec: str) -> list[np.ndarray]:
+    """Frames KEPT of the case, rendered now."""
+    profile = get_profile("sim-cpu").with_resolution(96, 108)
+    loaded = load_scene(scene)
+    inputs = builtin_path(FRAMES, profile.period_ns, loaded.start)
+    with Whitted(loaded) as tracer:
+        method = make_method(spec, tracer)
+        images = [images[0].copy() for _, images, _ in render_frames(method, profile, inputs, ("left",))]
+    return [images[k] for k in KEPT]
+
+
+def case_file(scene: str, spec: str):
+    return GOLDEN / f"{scene}_{spec.replace('?', '_').replace('=', '-')}.npz"
+
+
+@pytest.mark.parametrize(("scene", "spec"), CASES, ids=[f"{s}-{m}" for s, m in CASES])
+def test_method_matches_its_golden_frames(scene: str, spec: str) -> None:
+    frames = golden_frames(scene, spec)
+    path = case_file(scene, spec)
+    if os.environ.get("HMDRT_UPDATE_GOLDEN"):
+        GOLDEN.mkdir(exist_ok=True)
+        np.savez_compressed(path, **{f"frame_{k}": f for k, f in zip(KEPT, frames, strict=True)})
+    stored = np.load(path)
+    for k, frame in zip(KEPT, frames, strict=True):
+        want = stored[f"frame_{k}"]
+        assert frame.shape == want.shape
+        close = (np.abs(frame - want) <= 1e-3).all(axis=-1).mean()
+        assert psnr(frame, want) >= 40.0, f"frame {k}: {psnr(frame, want):.1f} dB against the golden frame"
+        assert close >= 0.99, f"frame {k}: only {close:.2%} of pixels within 1e-3 of the golden frame"
+
+
+def test_golden_check_catches_a_changed_image() -> None:
+    """The tolerance is tight enough to fail on a small change: a 1% brighter frame or a blurred one."""
+    frame = golden_frames("whitted", "full")[0]
+    brighter = frame * 1.01
+    blurred = (frame + np.roll(frame, 1, axis=1)) / 2
+    for changed in (brighter, blurred):
+        close = (np.abs(changed - frame) <= 1e-3).all(axis=-1).mean()
+        assert close < 0.99 or psnr(changed, frame) < 40.0
