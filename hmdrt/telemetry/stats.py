@@ -2,7 +2,9 @@
 
 A stage appears in stages_ms only once it has run, so stages_run lists exactly what ran. A stage
 entered inside another is recorded as "outer/inner" (inclusive times), so a method's own stages sum
-to its frame time and the tracer's breakdown stays visible under them.
+to its frame time and the tracer's breakdown stays visible under them. A stage may say how many bytes of
+memory it must read and write at the least (`touches`), so that bench/stage_budget.py can set its time
+against a plain copy of those bytes.
 """
 
 from __future__ import annotations
@@ -20,12 +22,16 @@ class FrameStats:
     stages_ms: dict[str, float] = field(default_factory=dict)
     rays: dict[str, int] = field(default_factory=lambda: dict.fromkeys(RAY_KINDS, 0))
     metrics: dict[str, float] = field(default_factory=dict)  # method-specific figures, e.g. sample_fraction
+    touched: dict[str, int] = field(default_factory=dict)  # bytes each stage must read and write, where it says
     _open: list[str] = field(default_factory=list, repr=False)
 
     @contextmanager
-    def stage(self, name: str) -> Iterator[None]:
-        """Time the enclosed work into stages_ms[name], prefixed by any enclosing stages."""
+    def stage(self, name: str, touches: int = 0) -> Iterator[None]:
+        """Time the enclosed work into stages_ms[name], prefixed by any enclosing stages; `touches`: the bytes
+        the work must read and write at the least (summed into touched[name])."""
         key = "/".join([*self._open, name])
+        if touches:
+            self.touched[key] = self.touched.get(key, 0) + touches
         self._open.append(name)
         start = time.perf_counter_ns()
         try:
