@@ -1,6 +1,8 @@
 """The compositor's numbers in real time (issue 5): deadline misses, gaze-to-photon latency and compositor
-overhead for configs/default.toml; misses with the budget controller off and on where the method alone
-cannot hold the rate; and graceful degradation at rift_s, where nothing can.
+overhead for configs/default.toml (both eyes at sim-cpu-640, 640x720 per eye, 30 Hz); misses with the budget
+controller off and on where the method alone cannot hold the rate; and graceful degradation at rift_s, where
+nothing can. Each row states the display it ran and the image buffers the run allocated (a pool of a few
+per eye; more would mean images copied or kept).
 
     python bench/runtime.py [--duration 60] [--controller-duration 30] [--only default,controller,rift_s]
 
@@ -43,9 +45,11 @@ def with_controller(config: RunConfig, kind: str) -> RunConfig:
 def describe(name: str, report: dict) -> None:
     period_ms = 1e3 / report["vsync_hz"]
     gaze, overhead = report["latency_ms"]["gaze_to_photon"], report["compositor_overhead_ms"]
+    d, buffers = report["display"], report["image_buffers"]
     print(
-        f"  {name}: {report['method_spec']} at {report['profile']} {report['vsync_hz']:g} Hz, "
-        f"{report['vsyncs']} VSyncs, achieved {report['achieved_hz']:g} Hz, out of order {report['out_of_order']}"
+        f"  {name}: {report['method_spec']} at {d['profile']} {d['width']}x{d['height']} x {len(d['eyes'])} eyes "
+        f"{d['refresh_hz']:g} Hz, {report['vsyncs']} VSyncs, achieved {report['achieved_hz']:g} Hz, "
+        f"out of order {report['out_of_order']}"
     )
     print(
         f"    misses {report['deadline_misses']} = {report['miss_rate']:.2%} "
@@ -58,6 +62,10 @@ def describe(name: str, report: dict) -> None:
         f"gaze-to-photon ms p50 {gaze['p50']} p99 {gaze['p99']} = {(gaze['p99'] or 0) / period_ms:.2f} periods; "
         f"compositor overhead ms p50 {overhead['p50']} p99 {overhead['p99']}; "
         f"timewarp ms p50 {report['timewarp_ms']['p50']}, skipped {report['timewarp_skipped']}"
+    )
+    print(
+        f"    image buffers allocated over the run: rendered {buffers['rendered']['allocated']}, "
+        f"warped {buffers['warped']['allocated']}"
     )
     controller = report.get("controller")
     if controller:

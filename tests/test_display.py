@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hmdrt.compositor.buffers import BufferPool
 from hmdrt.compositor.clock import VirtualClock, VsyncClock
 from hmdrt.compositor.display import Display, Frame
 from hmdrt.compositor.pacer import FrameTiming
@@ -181,3 +182,42 @@ def test_with_a_warp_deadline_a_warp_that_cannot_end_before_the_next_vsync_is_sk
     np.testing.assert_array_equal(s.shown[2][1][0], expected)
     again = s.latch(3, at_ns=141 * MS)  # skipped again: what was shown last is shown, with its pose
     assert again.warp_skipped and again.warp_pose == s.warp_pose and s.shown[3][1][0] is s.shown[2][1][0]
+
+
+def test_a_pool_hands_out_a_buffer_again_only_once_nothing_else_holds_it():
+    pool = BufferPool((4, 4, 3))
+    first = pool.take()
+    second = pool.take()
+    assert second is not first and pool.allocated == 2
+    del second
+    view = first[1:]  # a view holds its base
+    first_id = id(first)
+    del first
+    again = pool.take()
+    assert id(again) != first_id and pool.allocated == 2  # the second buffer, free again
+    del again, view
+    assert id(pool.take()) == first_id and pool.allocated == 2
+
+
+def test_a_pool_never_grows_past_its_most_buffers_however_many_are_held():
+    pool = BufferPool((2, 2, 3), most=2)
+    held = [pool.take() for _ in range(5)]
+    assert len({id(b) for b in held}) == 5 and pool.allocated == 5 and pool.pooled == 2
+    del held
+    first, second = id(pool.take()), id(pool.take())
+    assert first == second and pool.allocated == 5  # freed: a pooled buffer again, nothing new
+
+
+def test_repeats_warp_into_two_buffers_that_take_turns():
+    """A warp is shown until the next one replaces it, so repeats after the first two allocate nothing."""
+    target = cameras(2.0)
+    s = Screen(warp_to=target)
+    frame = s.submit(0, target=0, at_ns=95 * MS)
+    s.latch(0)
+    expected = timewarp(frame.images[0], frame.cameras["left"], target["left"]).image
+    for k in range(1, 7):
+        s.shown.clear()  # the display's own reference to what it shows is the only one left
+        s.latch(k)
+        np.testing.assert_array_equal(s.display._shown[0][0], expected)
+    pool = s.display.warp_pools["left"]
+    assert pool.allocated == pool.pooled == 2

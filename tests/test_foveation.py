@@ -5,7 +5,8 @@ import pytest
 
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import METHODS, FrameRequest, make_method
-from hmdrt.foveation.base import EYES
+from hmdrt.foveation.base import EYES, pixel_keys
+from hmdrt.foveation.rrm import Rrm, RrmParams, foveal_rectangle, refresh_phase
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.quality import band_psnr
 from hmdrt.scene import load_scene
@@ -48,6 +49,60 @@ def test_rrm_resolves_a_still_scene_to_the_full_image_after_n_frames():
         frames = run(f"rrm?order={order}", "whitted", lambda s: still(s, 13))
         assert not np.array_equal(frames[10][0][0], full)  # the periphery is not complete before N frames
         np.testing.assert_array_equal(frames[11][0][0], full)  # N = 12 frames later, all of it is fresh
+
+
+class RecordingTracer:
+    """Stands in for Whitted: records the samples asked for and answers each with its key as radiance."""
+
+    def __init__(self):
+        self.calls = []
+
+    def trace_samples(self, camera, xy, keys, stats):
+        self.calls.append((xy.copy(), keys.copy()))
+        return np.repeat(keys[:, None].astype(np.float32), 3, axis=1)
+
+
+@pytest.mark.parametrize(
+    "options, gaze",
+    [
+        ({}, (0.0, 0.0)),
+        ({"order": "scattered", "block": 3}, (20.0, -10.0)),
+        ({"order": "serpentine", "group_w": 5, "group_h": 2, "fovea_deg": 30.0}, (-40.0, 30.0)),
+        ({"fovea_deg": 5.0}, (80.0, 0.0)),  # the rectangle off the image: the periphery alone
+    ],
+)
+def test_rrm_traces_its_cell_and_the_foveal_rectangle_in_row_major_order(options, gaze):
+    """Each frame samples the pixels of refresh_phase's phase for the frame and the foveal rectangle, as pixel
+    centres in row-major order with base.pixel_keys, and the image is the buffer they were written into."""
+    profile = get_profile("sim-cpu").with_resolution(61, 23)  # not multiples of the group or the block
+    scene = load_scene("whitted")
+    cam = EyeCamera.for_eye(profile, scene.start)
+    params = RrmParams(**options, smoothing=1.0)
+    tracer = RecordingTracer()
+    method = Rrm(tracer, params)
+    phase = refresh_phase(cam.width, cam.height, params)
+    g = gaze_direction(*gaze)
+    x0, x1, y0, y1 = foveal_rectangle(cam, g, params)
+    expected = np.zeros((cam.height, cam.width, 3), np.float32)
+    out = np.full_like(expected, np.nan)
+    for frame in range(params.cycle + 2):
+        mask = phase == frame % params.cycle
+        mask[y0:y1, x0:x1] = True
+        pixels = np.flatnonzero(mask)
+        image = method.render(FrameRequest(cam, g, frame, seed=3), FrameStats(), out)
+        xy, keys = tracer.calls[-1]
+        np.testing.assert_array_equal(xy, np.stack([pixels % cam.width, pixels // cam.width], axis=1) + 0.5)
+        np.testing.assert_array_equal(keys, pixel_keys(pixels, 3))
+        expected.reshape(-1, 3)[pixels] = keys[:, None]
+        assert image is out
+        np.testing.assert_array_equal(image, expected)
+
+
+def test_rrm_refuses_an_out_buffer_of_another_shape():
+    cam = EyeCamera.for_eye(PROFILE, load_scene("whitted").start)
+    method = Rrm(RecordingTracer(), RrmParams())
+    with pytest.raises(ValueError, match="out must be a float32 array of shape"):
+        method.render(FrameRequest(cam, gaze_direction(0.0, 0.0)), FrameStats(), np.empty((4, 4, 3), np.float32))
 
 
 @pytest.mark.parametrize("spec", ["weier16", "rrm"])

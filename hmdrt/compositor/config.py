@@ -26,7 +26,7 @@ class _Section(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 
 class Display(_Section):
-    profile: str = "sim-cpu"  # a built-in profile name or a .toml profile (its refresh rate sets the VSync)
+    profile: str = "sim-cpu-640"  # a built-in profile name or a .toml profile (its refresh rate sets the VSync)
     eyes: Eyes = "both"
     resolution: str = ""  # per-eye WIDTHxHEIGHT overriding the profile's, same field of view
     refresh_hz: Annotated[float, msgspec.Meta(ge=0.0, le=1000.0)] = 0.0  # 0: the profile's

@@ -30,6 +30,7 @@ import zmq
 from drivers.base import MONOTONIC, Clock
 from hmdrt import __version__
 from hmdrt.bus.security import Guard, ServerKeys, check_binds
+from hmdrt.compositor.buffers import counts
 from hmdrt.compositor.clock import VirtualClock, VsyncClock
 from hmdrt.compositor.config import RunConfig, load_config
 from hmdrt.compositor.controller import BudgetController, ControllerConfig
@@ -43,7 +44,7 @@ from hmdrt.compositor.sources import Sources
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.foveation import method_params, method_spec
 from hmdrt.optics import EyeCamera
-from hmdrt.present.encode import linear_to_srgb8, write_png
+from hmdrt.present.encode import side_by_side_srgb8, write_png
 from hmdrt.present.video import VideoWriter
 from hmdrt.sequence import compose_pose, eye_cameras
 from hmdrt.telemetry.report import FrameRecord, RunReport, SampleUse
@@ -356,14 +357,19 @@ class Compositor:
             index += 1
 
     def _writer(self) -> None:
-        """Writes queued frames as PNG and to the video; one that cannot be written is counted, the first failure
-        said once."""
+        """Writes queued frames as PNG and to the video, encoded into one reused buffer; one that cannot be written
+        is counted, the first failure said once."""
+        srgb8 = None
         while True:
             item = self._writes.get()
             if item is None:
                 return
             vsync, images = item
-            srgb8 = linear_to_srgb8(np.concatenate(images, axis=1))
+            width = sum(image.shape[1] for image in images)
+            if srgb8 is None or srgb8.shape != (images[0].shape[0], width, 3):
+                srgb8 = np.empty((images[0].shape[0], width, 3), np.uint8)
+            side_by_side_srgb8(images, srgb8)
+            del item, images  # the shown images' buffers go back to their pools while this one waits
             folder = self.config.output.frames_dir
             try:
                 if folder:
@@ -455,7 +461,7 @@ class Compositor:
             return {"ok": False, "error": 'snapshot takes "path": "out.png"'}
         if images is None:
             return {"ok": False, "error": "nothing has been shown yet"}
-        write_png(Path(path), linear_to_srgb8(np.concatenate(images, axis=1)))
+        write_png(Path(path), side_by_side_srgb8(images))
         return {"ok": True, "path": path}
 
     def reload(self) -> None:
@@ -542,6 +548,22 @@ class Compositor:
         out.update(self.sources.counters())
         return out
 
+    def display_info(self) -> dict:
+        """What the frames are rendered for: the profile, per-eye pixels, the eyes and the refresh rate."""
+        profile = self.session.profile
+        return {
+            "profile": profile.name,
+            "width": profile.width,
+            "height": profile.height,
+            "eyes": list(self.session.eyes),
+            "refresh_hz": profile.refresh_hz,
+        }
+
+    def image_buffers(self) -> dict[str, dict[str, int]]:
+        """The rendered and warped images' pools: buffers held and allocated in all, steady after the first frames
+        when no image is copied or leaked."""
+        return {"rendered": counts(self.session.pools.values()), "warped": counts(self.display.warp_pools.values())}
+
     def summary(self) -> dict:
         """The run report so far. Only a copy of the counts is taken under the lock that the render and display
         threads share; the percentiles, over every frame so far, are worked out after it is released."""
@@ -551,6 +573,7 @@ class Compositor:
             method=self.session.method.name,
             method_spec=self.session.spec,
             profile=self.session.profile.name,
+            display=self.display_info(),
             scene=self.session.scene.name,
             drivers=self.drivers(),
             samples={device: {**vars(c), "dropped": c.dropped} for device, c in self.store.counts().items()},
@@ -564,6 +587,7 @@ class Compositor:
             config=self.config.source,
             hmdrt=__version__,
             security=self.security(),
+            image_buffers=self.image_buffers(),
         )
         if self.controller is not None:
             report["controller"] = {

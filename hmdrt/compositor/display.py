@@ -7,7 +7,8 @@ dropped and counted), and it is a miss when it is shown later than its desired p
 repeat is warped from the frame as rendered, not from an earlier warp, so errors do not accumulate.
 Latching depends only on timestamps: a frame counts as finished when it is handed over (submit stamps its
 render end under the display's lock), so a frame stamped before a VSync is always there when that VSync is
-latched, and the display thread's own wake-up jitter never changes what was shown when.
+latched, and the display thread's own wake-up jitter never changes what was shown when. Images are shown as
+rendered, without a copy; warps go into pooled buffers (hmdrt.compositor.buffers).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hmdrt.compositor.buffers import BufferPool
 from hmdrt.compositor.clock import Clock, VsyncClock
 from hmdrt.compositor.pacer import FrameTiming
 from hmdrt.optics import EyeCamera
@@ -34,7 +36,7 @@ class Frame:
     """A rendered frame on its way to the display."""
 
     timing: FrameTiming
-    images: list[np.ndarray]  # per eye, linear RGB, owned by the frame
+    images: list[np.ndarray]  # per eye, linear RGB, as rendered: pooled buffers, never written while held
     cameras: dict[str, EyeCamera]
     actual_wake_ns: int
     render_start_ns: int
@@ -81,6 +83,7 @@ class Display:
         self.last: Frame | None = None  # the newest frame shown
         self._shown: tuple[list[np.ndarray], SampleUse | None] = ([], None)  # the images shown last, and their pose
         self._warp_ns = 0.0  # filtered wall time of one warp of all eyes
+        self.warp_pools: dict[str, BufferPool] = {}  # per eye: the warped images' buffers
         self.dropped = 0
         self.warps_skipped = 0
 
@@ -131,7 +134,7 @@ class Display:
             cameras, warp_pose = target
             rendered = self.last.cameras
             images = [
-                timewarp(image, rendered[eye], cameras[eye]).image
+                timewarp(image, rendered[eye], cameras[eye], self._warp_buffer(eye, image.shape)).image
                 for eye, image in zip(rendered, self.last.images, strict=True)
             ]
             self._shown = (images, warp_pose)
@@ -145,6 +148,12 @@ class Display:
         record.present_ms = (time.perf_counter_ns() - start) / 1e6
         self._on_shown(record, images)
         return record
+
+    def _warp_buffer(self, eye: str, shape: tuple[int, ...]) -> np.ndarray:
+        pool = self.warp_pools.get(eye)
+        if pool is None or pool.shape != shape:
+            pool = self.warp_pools[eye] = BufferPool(shape)
+        return pool.take()
 
     def _warp_fits(self, t_vsync: int) -> bool:
         return not self._warp_deadline or self.clock.now_ns() + self._warp_ns <= t_vsync + self.vsync.period_ns

@@ -3,16 +3,20 @@ and the one step that turns a gaze and head-pose estimate into per-eye images.
 
 The method can be swapped or retuned between frames (control `set`, the budget controller, a config
 reload): the same method with new parameters keeps its history (Method.set_params); another method
-starts fresh.
+starts fresh. Each eye's images are rendered into buffers of a pool (hmdrt.compositor.buffers), reused
+once the display and the frame writer have let go of them.
 """
 
 from __future__ import annotations
 
+import functools
+import inspect
 import time
 
 import msgspec
 import numpy as np
 
+from hmdrt.compositor.buffers import BufferPool
 from hmdrt.compositor.config import RunConfig
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import make_method, method_params
@@ -38,10 +42,18 @@ def display_profile(config: RunConfig) -> HmdProfile:
     return profile
 
 
+@functools.cache
+def renders_into(kind: type) -> bool:
+    """Whether a method class takes Method.render's `out`: a method that does not yet (issue 14) allocates its
+    images, and the pools stay unused while it renders."""
+    return "out" in inspect.signature(kind.render).parameters
+
+
 class Session:
     def __init__(self, config: RunConfig):
         self.profile = display_profile(config)
         self.eyes = EYES if config.display.eyes == "both" else (config.display.eyes,)
+        self.pools = {eye: BufferPool((self.profile.height, self.profile.width, 3)) for eye in self.eyes}
         self.scene = load_scene(config.scene)
         self.tracer = Whitted(self.scene, threads=config.run.threads or None)
         self.spec = config.method_spec
@@ -90,8 +102,12 @@ class Session:
         frame = FrameInput(frame_id, 0, head, directions, depth)
         cameras = eye_cameras(self.profile, frame.pose, self.eyes)
         images, start = [], time.perf_counter_ns()
+        into = renders_into(type(self.method))
         for request in frame_requests(frame, cameras, seed):
-            images.append(self.method.render(request, stats))
+            if into:
+                images.append(self.method.render(request, stats, self.pools[request.eye].take()))
+            else:
+                images.append(self.method.render(request, stats))
         if delay_ns:
             with stats.stage("render_delay"):
                 time.sleep(delay_ns / 1e9)

@@ -88,7 +88,9 @@ PROFILES: dict[str, HmdProfile] = {
         HmdProfile("fove0", 1280, 1440, Fov.symmetric(90.0, 100.0), 70.0, 64.0),
         # Vive Pro raw projection tangents as reported by OpenVR (left eye): approximate.
         HmdProfile("vive_pro_eye", 1440, 1600, Fov.from_tangents(1.3966, 1.2435, 1.4677, 1.4690), 90.0, 65.0),
-        # Reduced resolution with rift_s optics, sized so a 2-core CPU holds the refresh rate.
+        # Reduced resolutions with rift_s optics at 30 Hz: sim-cpu-640 (half of rift_s per side) is the compositor's
+        # default display; sim-cpu, small enough for tests and quick runs on a 2-core CPU.
+        HmdProfile("sim-cpu-640", 640, 720, Fov.symmetric(90.0, 94.0), 30.0, 63.5),
         HmdProfile("sim-cpu", 192, 216, Fov.symmetric(90.0, 94.0), 30.0, 63.5),
     )
 }

@@ -2,7 +2,7 @@
 
 Written through imageio's ffmpeg plugin (the `video` extra: imageio and imageio-ffmpeg, which brings a static
 ffmpeg) as H.264 in yuv420p, which any player opens. yuv420p needs even sides, so an odd one gets its last
-row or column repeated rather than the frame resized.
+row or column repeated (in a buffer kept for the run) rather than the frame resized.
 """
 
 from __future__ import annotations
@@ -37,12 +37,20 @@ class VideoWriter:
         except (HmdrtError, OSError, ValueError, RuntimeError) as exc:
             raise ConfigError(f"output.video: cannot write {self.path}: {exc}") from None
         self.frames = 0
+        self._padded: np.ndarray | None = None  # frames with an odd side, padded to even ones
 
     def append(self, srgb8: np.ndarray) -> None:
         """Add one (h, w, 3) uint8 frame; HmdrtError when ffmpeg refuses it (a full disk, a changed size)."""
         h, w = srgb8.shape[:2]
         if h % 2 or w % 2:
-            srgb8 = np.pad(srgb8, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+            shape = (h + h % 2, w + w % 2, 3)
+            if self._padded is None or self._padded.shape != shape:
+                self._padded = np.empty(shape, np.uint8)
+            padded = self._padded
+            padded[:h, :w] = srgb8
+            padded[h:, :w] = srgb8[h - 1 :]
+            padded[:, w:] = padded[:, w - 1 : w]
+            srgb8 = padded
         try:
             self._writer.append_data(srgb8)
         except (OSError, ValueError, RuntimeError) as exc:
