@@ -34,10 +34,15 @@ from hmdrt.foveation.stages.reproject import (
     bilinear3,
     camera_arrays,
     nearest_index,
-    project,
-    world_point,
 )
-from hmdrt.foveation.stages.temporal import History, exponential_smoothing, same_camera
+from hmdrt.foveation.stages.temporal import (
+    History,
+    exponential_smoothing,
+    eye_point,
+    relative_view,
+    same_camera,
+    view_project,
+)
 from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map, pixel_grid
 from hmdrt.telemetry.stats import FrameStats
@@ -294,12 +299,12 @@ def _tau_sel(i, a, b, c, primary, secondary, thresholds, normal_cos):
 
 
 @serial
-def _store_row(y, width, color, hits, cam, frame, prev_cam, prev_hits, prev, same, tests, reuse, samples):
+def _store_row(y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples):
     """Row y of `frame`, rendered as presampled (color, hits); with `reuse`, kim2021 section 4.4's test per central
-    pixel with a hit: back-projected into the previous frame (onto itself when `same` camera) it must meet a hit
-    within rel_depth of its distance, reused fewer than n_reuse_max times in a row, that agrees in the primary
-    attributes and passes the contrast test at tau_sel x tau_reuse; it takes that pixel's rendered colour then.
-    Returns the row's reused pixels."""
+    pixel with a hit: back-projected into the previous frame (through its relative_view `view`; onto itself when
+    `same`) it must meet a hit within rel_depth of its distance, reused fewer than n_reuse_max times in a row, that
+    agrees in the primary attributes and passes the contrast test at tau_sel x tau_reuse; it takes that pixel's
+    rendered colour then. Returns the row's reused pixels."""
     ref, depth, flags, rendered = frame
     prev_ref, prev_depth, prev_flags, prev_rendered = prev
     hit_depth, geometry, prev_geometry = hits.depth, _geometry(hits), _geometry(prev_hits)
@@ -320,8 +325,8 @@ def _store_row(y, width, color, hits, cam, frame, prev_cam, prev_hits, prev, sam
         if same:
             j, dist = i, min(np.float64(d), FAR)
         else:
-            px, py, pz = world_point(cam, x + 0.5, y + 0.5, d)
-            qx, qy, dist = project(prev_cam, px, py, pz)
+            px, py, pz = eye_point(frustum, x + 0.5, y + 0.5, d)
+            qx, qy, dist = view_project(view, px, py, pz)
             j = nearest_index(qx, qy, width, height)
         if j < 0 or prev_flags[j] >= n_max or math.isinf(prev_depth[j]) or prev_obj[j] < 0:
             continue
@@ -356,20 +361,36 @@ def _clear(width, hits):
 
 
 @kernel
-def _store(width, color, hits, cam, frame, prev_cam, prev_hits, prev, same, tests, reuse, samples):
+def _store(width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples):
     """_store_row over the image; returns the number of reused pixels."""
     reused = 0
     for y in nb.prange(frame.depth.shape[0] // width):
-        reused += _store_row(y, width, color, hits, cam, frame, prev_cam, prev_hits, prev, same, tests, reuse, samples)
+        reused += _store_row(y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples)
     return reused
+
+
+@inline
+def _box_contrast_passes(color, x0, x1, y0, y1, width, bound):
+    """Whether Mitchell's contrast of the box [x0, x1] x [y0, y1] of color (n, 3) stays within bound x (1.36, 1.02,
+    2.04) in every channel, with a margin over float32 rounding. A 2x2 subpixel block inside the box has no more
+    contrast (it grows with max, falls with min, for non-negative colours), so it passes too."""
+    for ch in range(3):
+        lo = hi = np.float64(color[y0 * width + x0, ch])
+        for yy in range(y0, y1 + 1):
+            for xx in range(x0, x1 + 1):
+                v = np.float64(color[yy * width + xx, ch])
+                lo, hi = min(lo, v), max(hi, v)
+        if lo < 0.0 or hi + lo > 0.0 and (hi - lo) / (hi + lo) * (1.0 + 1e-6) > MITCHELL[ch] * bound:
+            return False
+    return True
 
 
 @serial
 def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask):
     """Row y of the two-step disparity test of every subpixel of every central pixel not reused: the 4-bit mask of
     the problematic subpixels (NW, NE, SW, SE). A subpixel whose contrast passes at the smallest threshold passes
-    at tau_sel too, so step one runs only where the contrast is high enough to matter. Returns the row's extra
-    samples and problematic subpixels."""
+    at tau_sel too, so step one runs only where the contrast is high enough to matter, and a pixel whose 3x3
+    neighbourhood passes there is done. Returns the row's extra samples and problematic subpixels."""
     height = flags.shape[0] // width
     p, s2 = _geometry(primary), _geometry(secondary)
     thresholds, normal_cos = tests.thresholds, tests.normal_cos
@@ -383,6 +404,9 @@ def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask)
         if k == 0 or flags[i] != 0:
             continue
         tau_f = tau_fov_[i]
+        x0, x1, y0, y1 = max(x - 1, 0), min(x + 1, width - 1), max(y - 1, 0), min(y + 1, height - 1)
+        if _box_contrast_passes(ref, x0, x1, y0, y1, width, lowest * tau_f):
+            continue
         mask = 0
         for s in range(4):
             dx = -1 if s & 1 == 0 else 1
@@ -619,9 +643,9 @@ class Kim21(Configurable):
                 w,
                 color,
                 cur.gbuffer.primary,
-                camera_arrays(cam),
+                camera_arrays(cam).frustum,
                 frame,
-                camera_arrays(state.previous or cam),
+                relative_view(state.previous or cam, cam),
                 last.gbuffer.primary,
                 prev,
                 same_camera(state.previous, cam),

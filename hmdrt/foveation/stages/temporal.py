@@ -15,7 +15,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.stages.reproject import FAR, bilinear3, camera_arrays
-from hmdrt.jit import kernel, serial
+from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera
 
 
@@ -62,6 +62,7 @@ class History:
         self.cameras: list[EyeCamera | None] = [None] * (size + 1)
         self.depth: np.ndarray | None = None  # (size + 1, h, w) float32
         self.color: np.ndarray | None = None  # (size + 1, h, w, 3) float32
+        self.scratch: np.ndarray | None = None  # (threads, ROW, w) float64: what smoothing keeps of a row
         self._newest = -1
         self._count = 0
 
@@ -70,6 +71,7 @@ class History:
         if self.depth is None or self.depth.shape[1:] != shape:
             self.depth = np.empty((self.size + 1, *shape), np.float32)
             self.color = np.empty((self.size + 1, *shape, 3), np.float32)
+            self.scratch = np.empty((nb.get_num_threads(), ROW, shape[1]))
             self._newest, self._count = -1, 0
         return (self._newest + 1) % (self.size + 1)
 
@@ -99,6 +101,9 @@ class History:
         return np.array([(self._newest - k) % (self.size + 1) for k in range(self._count)], np.int64)
 
 
+ROW = 10  # smoothing's values per pixel of a row: point (3), back-projection x, y, distance, sums (4)
+
+
 class Earlier(NamedTuple):
     """The earlier frames a smoothing pass blends, newest first, and the history rings they are in."""
 
@@ -107,6 +112,7 @@ class Earlier(NamedTuple):
     same: np.ndarray  # (k,) bool: the frame's camera is the current one, so each pixel sees itself there
     depth: np.ndarray  # (size + 1, h, w) float32 ring
     color: np.ndarray  # (size + 1, h, w, 3) float32 ring
+    scratch: np.ndarray  # (chunks, ROW, w) float64: one row's values per chunk of rows
 
 
 VIEW = 16  # relative_view: M (9), t (3), tan_left, width / (tan_right - tan_left), tan_up, height / (tan_up - tan_down)
@@ -123,6 +129,28 @@ def relative_view(earlier: EyeCamera, current: EyeCamera) -> np.ndarray:
     out[14] = earlier.tan_up
     out[15] = earlier.height / (earlier.tan_up - earlier.tan_down)
     return out
+
+
+@inline
+def eye_point(frustum, x, y, depth):
+    """The point at hit distance `depth` (FAR for a miss) along the view ray through continuous pixel (x, y), in
+    the eye frame of the camera with this frustum (CameraArrays.frustum)."""
+    tx = frustum[0] + x * (frustum[1] - frustum[0]) / frustum[4]
+    ty = frustum[2] - y * (frustum[2] - frustum[3]) / frustum[5]
+    s = min(depth, FAR) / math.sqrt(tx * tx + ty * ty + 1.0)
+    return s * tx, s * ty, -s
+
+
+@inline
+def view_project(v, px, py, pz):
+    """Continuous pixel coordinates and distance of eye-frame point p in the camera of relative_view v; x is -1
+    behind that camera."""
+    lx = v[0] * px + v[1] * py + v[2] * pz + v[9]
+    ly = v[3] * px + v[4] * py + v[5] * pz + v[10]
+    lz = v[6] * px + v[7] * py + v[8] * pz + v[11]
+    iz = -1.0 / lz
+    qx = (lx * iz - v[12]) * v[13] if lz < 0.0 else -1.0
+    return qx, (v[14] - ly * iz) * v[15], math.sqrt(lx * lx + ly * ly + lz * lz)
 
 
 def same_camera(a: EyeCamera | None, b: EyeCamera) -> bool:
@@ -143,62 +171,99 @@ def earlier_frames(history: History, camera: EyeCamera, shape: tuple[int, int], 
     for k, s in enumerate(slots):
         views[k] = relative_view(history.cameras[s], camera)
     same = np.array([same_camera(history.cameras[s], camera) for s in slots], bool)
-    return Earlier(slots, views, same, history.depth, history.color)
+    return Earlier(slots, views, same, history.depth, history.color, history.scratch)
 
 
 @serial
-def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out):
-    """Row y of the closed form. A pixel's point at its hit distance (FAR for a miss) is taken into each earlier
-    frame's eye by one matrix product; frames with the current camera read the pixel itself."""
-    slots, views, same, ring_depth, ring_color = earlier
+def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row):
+    """Row y of the closed form, in passes over the row so that the back-projections vectorise: the pixels' points
+    at their hit distances (FAR for a miss) in the current eye frame, then per earlier frame their pixel
+    coordinates and distances there (one matrix product), then the depth test and the blend. Frames seen by the
+    current camera read the pixel itself."""
+    slots, views, same, ring_depth, ring_color, _ = earlier
     h, w = depth.shape
-    tan_l, tan_r, tan_u, tan_d = frustum[0], frustum[1], frustum[2], frustum[3]
-    ty = tan_u - (y + 0.5) * (tan_u - tan_d) / frustum[5]
+    px, py, pz, qxs, qys, dists, acc_r, acc_g, acc_b, wsum = (
+        row[0],
+        row[1],
+        row[2],
+        row[3],
+        row[4],
+        row[5],
+        row[6],
+        row[7],
+        row[8],
+        row[9],
+    )
     for x in range(w):
-        d = depth[y, x]
-        miss = math.isinf(d)
-        tx = tan_l + (x + 0.5) * (tan_r - tan_l) / frustum[4]
-        s = min(d, FAR) / math.sqrt(tx * tx + ty * ty + 1.0)
-        px, py, pz = s * tx, s * ty, -s  # the point in the current eye frame
-        r, g, b = np.float64(color[y, x, 0]), np.float64(color[y, x, 1]), np.float64(color[y, x, 2])
+        px[x], py[x], pz[x] = eye_point(frustum, x + 0.5, y + 0.5, depth[y, x])
+        acc_r[x], acc_g[x], acc_b[x] = color[y, x, 0], color[y, x, 1], color[y, x, 2]
         # the weights a (1 - a)^i over their sum, with the common factor a taken out: at a = 0 (the limit)
         # they are equal, where a (1 - a)^i / sum would be 0 / 0
-        wsum = 1.0
-        keep = 1.0 - alpha[y, x]
-        weight = 1.0
-        for k in range(slots.shape[0]):
-            weight *= keep
-            slot = slots[k]
+        wsum[x] = 1.0
+    for k in range(slots.shape[0]):
+        if not same[k]:
+            view = views[k]
+            for x in range(w):
+                qxs[x], qys[x], dists[x] = view_project(view, px[x], py[x], pz[x])
+        image, image_depth = ring_color[slots[k]], ring_depth[slots[k]]
+        for x in range(w):
+            d = depth[y, x]
             if same[k]:
                 qx, qy, dist = x + 0.5, y + 0.5, min(np.float64(d), FAR)
             else:
-                lx = views[k, 0] * px + views[k, 1] * py + views[k, 2] * pz + views[k, 9]
-                ly = views[k, 3] * px + views[k, 4] * py + views[k, 5] * pz + views[k, 10]
-                lz = views[k, 6] * px + views[k, 7] * py + views[k, 8] * pz + views[k, 11]
-                if lz >= 0.0:  # behind the earlier eye
-                    continue
-                iz = -1.0 / lz
-                qx, qy = (lx * iz - views[k, 12]) * views[k, 13], (views[k, 14] - ly * iz) * views[k, 15]
+                qx, qy, dist = qxs[x], qys[x], dists[x]
                 if not (qx >= 0.0 and qy >= 0.0 and qx < w and qy < h):
                     continue
-                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
-            d_prev = ring_depth[slot, int(qy), int(qx)]
-            if math.isinf(d_prev) if miss else abs(d_prev - dist) <= rel_depth * dist:
-                if same[k]:
-                    cr, cg, cb = ring_color[slot, y, x, 0], ring_color[slot, y, x, 1], ring_color[slot, y, x, 2]
-                else:
-                    cr, cg, cb = bilinear3(ring_color[slot], qx, qy)
+            d_prev = image_depth[int(qy), int(qx)]
+            if not (math.isinf(d_prev) if math.isinf(d) else abs(d_prev - dist) <= rel_depth * dist):
+                continue
+            if same[k]:
+                cr, cg, cb = image[y, x, 0], image[y, x, 1], image[y, x, 2]
+            else:
+                cr, cg, cb = bilinear3(image, qx, qy)
+            weight = (1.0 - alpha[y, x]) ** (k + 1)
+            wsum[x] += weight
+            acc_r[x] += weight * cr
+            acc_g[x] += weight * cg
+            acc_b[x] += weight * cb
+    for x in range(w):
+        out[y, x, 0], out[y, x, 1], out[y, x, 2] = acc_r[x] / wsum[x], acc_g[x] / wsum[x], acc_b[x] / wsum[x]
+
+
+@serial
+def _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out):
+    """Row y of the closed form when every earlier frame was seen by the current camera: each pixel reads itself."""
+    slots, _, _, ring_depth, ring_color, _ = earlier
+    for x in range(depth.shape[1]):
+        d = depth[y, x]
+        dist = min(np.float64(d), FAR)
+        r, g, b = np.float64(color[y, x, 0]), np.float64(color[y, x, 1]), np.float64(color[y, x, 2])
+        wsum = 1.0  # as in _smooth_row
+        for k in range(slots.shape[0]):
+            slot = slots[k]
+            d_prev = ring_depth[slot, y, x]
+            if math.isinf(d_prev) if math.isinf(d) else abs(d_prev - dist) <= rel_depth * dist:
+                weight = (1.0 - alpha[y, x]) ** (k + 1)
                 wsum += weight
-                r += weight * cr
-                g += weight * cg
-                b += weight * cb
+                r += weight * ring_color[slot, y, x, 0]
+                g += weight * ring_color[slot, y, x, 1]
+                b += weight * ring_color[slot, y, x, 2]
         out[y, x, 0], out[y, x, 1], out[y, x, 2] = r / wsum, g / wsum, b / wsum
 
 
 @kernel
 def _smooth(frustum, depth, color, alpha, earlier, rel_depth, out):
-    for y in nb.prange(depth.shape[0]):
-        _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out)
+    """The closed form over the image: pixel by pixel when no earlier camera moved, else in one chunk of rows per
+    scratch row."""
+    chunks, h = earlier.scratch.shape[0], depth.shape[0]
+    if earlier.same.all():
+        for y in nb.prange(h):
+            _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out)
+    else:
+        for t in nb.prange(chunks):
+            row = earlier.scratch[t]
+            for y in range(t * h // chunks, (t + 1) * h // chunks):
+                _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row)
 
 
 def exponential_smoothing(
