@@ -1,5 +1,6 @@
 """The foveated methods: convergence, full-rate foveae, paper behaviours, stage pruning, determinism."""
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -140,6 +141,59 @@ def test_kim21_reuses_pixels_of_a_still_view():
     frames = run("kim21", "whitted", lambda s: still(s, 3))
     assert frames[0][1].metrics["reused_pixels"] == 0
     assert frames[2][1].metrics["reused_pixels"] > 0.5 * frames[2][1].metrics["central_pixels"]
+
+
+def test_kim21_on_a_still_view_matches_back_projection():
+    """Reuse and smoothing read a still camera's earlier frames in place; a camera 1 nm away back-projects."""
+    scene = load_scene("whitted")
+    cam = EyeCamera.for_eye(PROFILE, scene.start)
+    nudged = EyeCamera(**{**cam.__dict__, "position": cam.position + 1e-9})
+    gaze = gaze_direction(-4.0, -8.0)
+    frames = []
+    with Whitted(scene) as tracer:
+        for cameras in ([cam] * 4, [cam, nudged, cam, nudged]):
+            method = make_method("kim21", tracer)
+            stats = [FrameStats() for _ in cameras]
+            images = [
+                method.render(FrameRequest(c, gaze, f), s) for f, (c, s) in enumerate(zip(cameras, stats, strict=True))
+            ]
+            frames.append((images, [s.metrics["reused_pixels"] for s in stats]))
+    (still_images, still_reused), (moved_images, moved_reused) = frames
+    assert still_reused == moved_reused and still_reused[-1] > 0
+    for a, b in zip(still_images, moved_images, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-5)
+
+
+def test_kim21_renders_into_the_callers_buffer_and_leaves_returned_images_alone():
+    scene = load_scene("whitted")
+    inputs = builtin_path(3, PROFILE.period_ns, scene.start)
+    outs = [np.empty((PROFILE.height, PROFILE.width, 3), np.float32) for _ in range(2)]
+    with Whitted(scene) as tracer:
+        method = make_method("kim21", tracer)
+        shown = []
+        for inp, out in zip(inputs, [outs[0], outs[1], None], strict=True):
+            cam = EyeCamera.for_eye(PROFILE, inp.pose, "left")
+            image = method.render(FrameRequest(cam, inp.gaze["left"], inp.frame), FrameStats(), out)
+            assert out is None or image is out
+            shown.append((image, image.copy()))
+    assert shown[2][0] is not outs[0] and shown[2][0] is not outs[1]
+    for image, copy in shown:
+        np.testing.assert_array_equal(image, copy)  # later frames never wrote into an earlier frame's image
+
+
+def test_kim21_foveation_follows_the_gaze_and_the_parameters():
+    """Bands are derived once per change of gaze or parameters, and every change takes effect."""
+    scene = load_scene("whitted")
+    cam = EyeCamera.for_eye(PROFILE, scene.start)
+    with Whitted(scene) as tracer:
+        method = make_method("kim21?tau_0=1&tau_f=1&tau_f_slope=0&tau_np=1", tracer)  # any e_np is valid
+        for f, (gaze, e_np) in enumerate([((0, 0), 30.0), ((0, 0), 30.0), ((20, 5), 30.0), ((20, 5), 12.5)]):
+            if e_np != method.params.e_np:
+                method.set_params(msgspec.structs.replace(method.params, e_np=e_np))
+            g = gaze_direction(*gaze)
+            stats = FrameStats()
+            method.render(FrameRequest(cam, g, f), stats)
+            assert stats.metrics["central_pixels"] == (cam.eccentricity(g) < e_np).sum()
 
 
 def test_weier18_focuses_where_the_gaze_rests():

@@ -22,7 +22,7 @@ from hmdrt.foveation.stages.sampling import (
     transition_points,
     transition_radius,
 )
-from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
+from hmdrt.foveation.stages.temporal import History, exponential_smoothing, k_of_age, running_estimate
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
 from hmdrt.scene import Scene
@@ -182,6 +182,43 @@ def test_alpha_of_eccentricity_is_the_papers_piecewise_linear_function():
     p = Kim21Params()
     e = np.array([0.0, p.e_f, p.e_p, p.e_m, p.e_np, p.e_max, 60.0, (p.e_f + p.e_p) / 2])
     np.testing.assert_allclose(alpha_of_eccentricity(e, p), [0.9, 0.8, 0.7, 0.5, 0.2, 0.1, 0.1, 0.75], rtol=1e-6)
+
+
+# -- kim2021 section 4.7: the smoothing history --
+
+
+def test_history_keeps_the_newest_frames_and_restart_keeps_the_newest_readable():
+    history = History(2)
+    cam = camera(width=4, height=3)
+    for k in range(4):
+        slot = history.begin((3, 4))
+        assert slot not in history.order((3, 4))  # the frame being rendered never overwrites one still in use
+        history.depth[slot] = k
+        history.color[slot] = k
+        history.commit(cam)
+    assert [history.depth[s, 0, 0] for s in history.order((3, 4))] == [3.0, 2.0]
+    history.restart()
+    assert len(history.order((3, 4))) == 0 and history.depth[history.newest((3, 4)), 0, 0] == 3.0
+    assert history.newest((4, 4)) == -1 and len(history.order((4, 4))) == 0
+
+
+def test_kim21_smoothing_reads_frames_of_the_same_camera_in_place():
+    """The fast path (earlier frames seen by the current camera) equals back-projection into a camera 1 nm away."""
+    cam = camera(width=24, height=16)
+    moved = EyeCamera(**{**cam.__dict__, "position": cam.position + 1e-9})
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(1.0, 3.0, (16, 24)).astype(np.float32)
+    depth[:4] = np.inf  # sky: misses match misses
+    alpha = rng.uniform(0.0, 1.0, (16, 24)).astype(np.float32)
+    colors = rng.random((4, 16, 24, 3), dtype=np.float32)
+    images = []
+    for earlier in (cam, moved):
+        history = History(4)
+        for c in colors[:3]:
+            history.push(earlier, depth, c)
+        images.append(exponential_smoothing(cam, depth, colors[3], alpha, history, 4, 0.02))
+    assert not np.allclose(images[0], colors[3], atol=1e-3)  # the earlier frames count
+    np.testing.assert_allclose(images[0], images[1], atol=1e-5)
 
 
 # -- smith2013 section 3.2.1: refresh cycle groups --

@@ -21,7 +21,7 @@ and temporal smoothing works on what the paper targets, the noise of the receive
 from __future__ import annotations
 
 import math
-from typing import Annotated
+from typing import Annotated, NamedTuple
 
 import msgspec
 import numba as nb
@@ -29,9 +29,22 @@ import numpy as np
 
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import HISTORY, Configurable, FrameRequest, Stage, pixel_keys, plan
-from hmdrt.foveation.stages.reproject import bilinear3, camera_arrays, nearest_index, project, world_point
-from hmdrt.foveation.stages.temporal import History, exponential_smoothing
-from hmdrt.optics.camera import eccentricity_map, pixel_centres
+from hmdrt.foveation.stages.reproject import (
+    FAR,
+    bilinear3,
+    camera_arrays,
+    nearest_index,
+)
+from hmdrt.foveation.stages.temporal import (
+    History,
+    exponential_smoothing,
+    eye_point,
+    relative_view,
+    same_camera,
+    view_project,
+)
+from hmdrt.jit import inline, kernel, serial
+from hmdrt.optics.camera import EyeCamera, eccentricity_map, pixel_grid
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBuffer
 from hmdrt.trace.integrator import Whitted
@@ -43,7 +56,6 @@ Samples = Annotated[int, msgspec.Meta(ge=1, le=16)]
 Deg = Annotated[float, msgspec.Meta(ge=0.0, le=180.0)]
 Weight = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]  # a blending factor: above 1, (1 - a)^i changes sign
 MAX_SUBPIXEL_SAMPLES = 16
-POPCOUNT4 = np.array([bin(m).count("1") for m in range(16)], np.int64)
 
 
 class Kim21Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -114,7 +126,42 @@ def bezier_controls(p: Kim21Params) -> np.ndarray:
     return np.array([0.0, m1, p.e_f, p.tau_0, p.tau_0, p.tau_f, p.e_f, m2, p.e_np, p.tau_f, p.tau_np, p.tau_np])
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+MITCHELL = (1.36, 1.02, 2.04)  # kim2021 section 3: the contrast threshold vector per tau
+MAX_SMOOTH_FRAMES = 4  # section 4.7: up to four earlier frames
+
+
+class Foveation(NamedTuple):
+    """What kim21 derives per pixel from its eccentricity e, once per change of the frustum, gaze or parameters."""
+
+    samples: np.ndarray  # (n,) uint8 samples per problematic subpixel in e's band (section 4.6.2); 0 beyond e_np
+    tau_fov: np.ndarray  # (n,) float64 tau_fov(e) (section 4.6.1)
+    alpha: np.ndarray  # (n,) float32 smoothing factor alpha(e) (section 4.7)
+
+    @classmethod
+    def empty(cls, n: int) -> Foveation:
+        return cls(np.empty(n, np.uint8), np.empty(n), np.empty(n, np.float32))
+
+
+class Tests(NamedTuple):
+    """The thresholds of the disparity and reusability tests (Table 1; sections 4.4 and 4.6.1)."""
+
+    thresholds: np.ndarray  # (9,) tau_col, then object id, normal, shadow count, texture at the primary, secondary hit
+    normal_cos: float
+    tau_reuse: float
+    n_reuse_max: int
+    rel_depth: float
+
+
+class Kept(NamedTuple):
+    """A frame's buffers that the next frame reads: presampled colour, hit distance, reuse count, rendered colour."""
+
+    ref: np.ndarray  # (n, 3) float32 the presampled colour at the pixel centres
+    depth: np.ndarray  # (n,) float32 the history's depth slot: distance of the first hit, inf on a miss
+    flags: np.ndarray  # (n,) int32 times in a row the pixel was reused; 0 where rendered
+    rendered: np.ndarray  # (n, 3) float32 the history's colour slot, before smoothing
+
+
+@inline
 def _bezier_y_at_x(x0, x1, x2, y0, y1, y2, e):
     """y of the quadratic Bezier at the parameter where x(t) = e; the linear case when a = 0."""
     a = x0 - 2.0 * x1 + x2
@@ -133,7 +180,7 @@ def _bezier_y_at_x(x0, x1, x2, y0, y1, y2, e):
     return u * u * y0 + 2.0 * u * t * y1 + t * t * y2
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def tau_fov(e, ctrl):
     """kim2021's tau_fov(e): y1(x1^-1(e)) on [0, e_f], y2(x2^-1(e)) on (e_f, e_np], tau_np beyond."""
     if e <= ctrl[2]:
@@ -143,7 +190,7 @@ def tau_fov(e, ctrl):
     return ctrl[11]
 
 
-@nb.njit(cache=True, nogil=True)
+@serial
 def tau_fov_array(e, ctrl):
     out = np.empty(e.shape[0])
     for i in range(e.shape[0]):
@@ -151,15 +198,45 @@ def tau_fov_array(e, ctrl):
     return out
 
 
+def alpha_knots(p: Kim21Params) -> np.ndarray:
+    """The eccentricities where alpha(e) takes p.alpha: 0, e_f, e_p, e_m, e_np, e_max."""
+    return np.array([0.0, p.e_f, p.e_p, p.e_m, p.e_np, p.e_max])
+
+
 def alpha_of_eccentricity(ecc: np.ndarray, p: Kim21Params) -> np.ndarray:
-    """alpha(e), piecewise linear through p.alpha at (0, e_f, e_p, e_m, e_np, e_max), constant beyond."""
-    return np.interp(ecc, (0.0, p.e_f, p.e_p, p.e_m, p.e_np, p.e_max), p.alpha).astype(np.float32)
+    """alpha(e), piecewise linear through p.alpha at alpha_knots, constant beyond."""
+    return np.interp(ecc, alpha_knots(p), p.alpha).astype(np.float32)
 
 
-MITCHELL = (1.36, 1.02, 2.04)  # kim2021 section 3: the contrast threshold vector per tau
+@serial
+def _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
+    samples, tau, alpha = fov
+    width = ecc.shape[1]
+    central = 0
+    for x in range(width):
+        i = y * width + x
+        e = ecc[y, x]
+        band = 0
+        while band < 3 and e >= bounds[band]:
+            band += 1
+        inside = e < e_np
+        samples[i] = counts[band] if inside else 0
+        central += inside
+        tau[i] = tau_fov(e, ctrl)
+        alpha[i] = np.interp(e, alpha_x, alpha_y)
+    return central
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@kernel
+def _foveation(ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
+    """Every pixel's Foveation from the eccentricity map ecc (h, w); returns the number of central pixels (e < e_np)."""
+    central = 0
+    for y in nb.prange(ecc.shape[0]):
+        central += _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov)
+    return central
+
+
+@inline
 def _contrast_fails(color, a, b, c, d, tau):
     """Mitchell's contrast (max - min) / (max + min) of rows a, b, c, d of color (n, 3), per channel,
     against tau x (1.36, 1.02, 2.04)."""
@@ -171,7 +248,7 @@ def _contrast_fails(color, a, b, c, d, tau):
     return False
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def _pair_contrast_fails(color_a, i, color_b, j, tau):
     """Mitchell's contrast between pixel i of color_a and pixel j of color_b."""
     for ch in range(3):
@@ -182,95 +259,202 @@ def _pair_contrast_fails(color_a, i, color_b, j, tau):
     return False
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _discordant(i, j, obj, ns, shadow, tex, normal_cos):
-    """Which of (object id, normal, shadow count, texture) differ between pixels i and j."""
-    dot = ns[i, 0] * ns[j, 0] + ns[i, 1] * ns[j, 1] + ns[i, 2] * ns[j, 2]
-    both_hit = obj[i] >= 0 and obj[j] >= 0
-    return obj[i] != obj[j], both_hit and dot < normal_cos, shadow[i] != shadow[j], tex[i] != tex[j]
+@inline
+def _geometry(hits):
+    """The attributes of Table 1's geometry tests as a plain tuple (object id, normal, shadow count, texture): row
+    functions take them out of the G-buffer once, since every namedtuple a helper receives costs a reference count
+    per array."""
+    return hits.object_id, hits.normal_shading, hits.shadow_count, hits.textured
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _tau_sel(i, neighbours, p_attr, s_attr, thresholds, normal_cos):
-    """Step one: the minimum threshold over geometry attributes on which pixel i disagrees with any
-    neighbour; thresholds[0] (tau_col) when none does."""
-    tau = thresholds[0]
-    found = False
-    for j in neighbours:
-        d = _discordant(i, j, p_attr[0], p_attr[1], p_attr[2], p_attr[3], normal_cos)
-        for k in range(4):
-            if d[k]:
-                tau = thresholds[1 + k] if not found else min(tau, thresholds[1 + k])
-                found = True
-        d = _discordant(i, j, s_attr[0], s_attr[1], s_attr[2], s_attr[3], normal_cos)
-        for k in range(4):
-            if d[k]:
-                tau = thresholds[5 + k] if not found else min(tau, thresholds[5 + k])
-                found = True
+@inline
+def _discordant_threshold(a, i, b, j, thresholds, first, normal_cos):
+    """The smallest of thresholds[first:first + 4] over the attributes (object id, normal, shadow count, texture)
+    on which hit i of geometry a and hit j of geometry b disagree, inf when they agree on all (Table 1). Normals
+    disagree when both are hits and their dot product is below normal_cos."""
+    obj_a, ns_a, shadow_a, tex_a = a
+    obj_b, ns_b, shadow_b, tex_b = b
+    tau = math.inf
+    if obj_a[i] != obj_b[j]:
+        tau = thresholds[first]
+    dot = ns_a[i, 0] * ns_b[j, 0] + ns_a[i, 1] * ns_b[j, 1] + ns_a[i, 2] * ns_b[j, 2]
+    if obj_a[i] >= 0 and obj_b[j] >= 0 and dot < normal_cos:
+        tau = min(tau, thresholds[first + 1])
+    if shadow_a[i] != shadow_b[j]:
+        tau = min(tau, thresholds[first + 2])
+    if tex_a[i] != tex_b[j]:
+        tau = min(tau, thresholds[first + 3])
     return tau
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _inspect(
-    color,
-    ecc,
-    active,
-    p_obj,
-    p_ns,
-    p_shadow,
-    p_tex,
-    s_obj,
-    s_ns,
-    s_shadow,
-    s_tex,
-    thresholds,
-    ctrl,
-    bounds,
-    counts,
-    normal_cos,
-    width,
-    sub_mask,
-    samples,
-):
-    """The two-step disparity test of every subpixel of every active pixel: a 4-bit mask of the
-    problematic subpixels (NW, NE, SW, SE) and the number of extra samples they take."""
-    n = color.shape[0]
-    height = n // width
-    p_attr = (p_obj, p_ns, p_shadow, p_tex)
-    s_attr = (s_obj, s_ns, s_shadow, s_tex)
-    for i in nb.prange(n):
-        sub_mask[i] = 0
-        samples[i] = 0
-        if not active[i]:
+@inline
+def _tau_sel(i, a, b, c, primary, secondary, thresholds, normal_cos):
+    """Step one of a subpixel's disparity test: the smallest threshold over the geometry attributes on which
+    pixel i disagrees with neighbour a, b or c at the primary or the secondary hit; tau_col when it agrees."""
+    tau = math.inf
+    for j in (a, b, c):
+        tau = min(tau, _discordant_threshold(primary, i, primary, j, thresholds, 1, normal_cos))
+        tau = min(tau, _discordant_threshold(secondary, i, secondary, j, thresholds, 5, normal_cos))
+    return thresholds[0] if tau == math.inf else tau
+
+
+@serial
+def _store_row(y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples):
+    """Row y of `frame`, rendered as presampled (color, hits); with `reuse`, kim2021 section 4.4's test per central
+    pixel with a hit: back-projected into the previous frame (through its relative_view `view`; onto itself when
+    `same`) it must meet a hit within rel_depth of its distance, reused fewer than n_reuse_max times in a row, that
+    agrees in the primary attributes and passes the contrast test at tau_sel x tau_reuse; it takes that pixel's
+    rendered colour then. Returns the row's reused pixels."""
+    ref, depth, flags, rendered = frame
+    prev_ref, prev_depth, prev_flags, prev_rendered = prev
+    hit_depth, geometry, prev_geometry = hits.depth, _geometry(hits), _geometry(prev_hits)
+    obj, prev_obj = geometry[0], prev_geometry[0]
+    thresholds, normal_cos, tau_reuse, n_max, rel_depth = tests
+    height = depth.shape[0] // width
+    reused = 0
+    for x in range(width):
+        i = y * width + x
+        d = hit_depth[i]
+        depth[i] = d
+        for c in range(3):
+            ref[i, c] = color[i, c]
+            rendered[i, c] = color[i, c]
+        flags[i] = 0
+        if not reuse or samples[i] == 0 or math.isinf(d) or obj[i] < 0:
             continue
-        x, y = i % width, i // width
-        e = ecc[i]
-        band = 0
-        while band < 3 and e >= bounds[band]:
-            band += 1
-        tau_f = tau_fov(e, ctrl)
+        if same:
+            j, dist = i, min(np.float64(d), FAR)
+        else:
+            px, py, pz = eye_point(frustum, x + 0.5, y + 0.5, d)
+            qx, qy, dist = view_project(view, px, py, pz)
+            j = nearest_index(qx, qy, width, height)
+        if j < 0 or prev_flags[j] >= n_max or math.isinf(prev_depth[j]) or prev_obj[j] < 0:
+            continue
+        if abs(prev_depth[j] - dist) > rel_depth * dist:
+            continue
+        tau = _discordant_threshold(geometry, i, prev_geometry, j, thresholds, 1, normal_cos)
+        tau = thresholds[0] if tau == math.inf else tau
+        if _pair_contrast_fails(color, i, prev_ref, j, tau * tau_reuse):
+            continue
+        flags[i] = prev_flags[j] + 1
+        for c in range(3):
+            rendered[i, c] = prev_rendered[j, c]
+        reused += 1
+    return reused
+
+
+@serial
+def _clear_row(y, width, hits):
+    obj, ns, shadow, tex = _geometry(hits)
+    for i in range(y * width, (y + 1) * width):
+        obj[i] = -1
+        ns[i, 0] = ns[i, 1] = ns[i, 2] = 0.0
+        shadow[i] = 0
+        tex[i] = False
+
+
+@kernel
+def _clear(width, hits):
+    """Every hit a miss in the attributes the tests read (the tracer fills the secondary hits it finds)."""
+    for y in nb.prange(hits.object_id.shape[0] // width):
+        _clear_row(y, width, hits)
+
+
+@kernel
+def _store(width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples):
+    """_store_row over the image; returns the number of reused pixels."""
+    reused = 0
+    for y in nb.prange(frame.depth.shape[0] // width):
+        reused += _store_row(y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples)
+    return reused
+
+
+@inline
+def _box_contrast_passes(color, x0, x1, y0, y1, width, bound):
+    """Whether Mitchell's contrast of the box [x0, x1] x [y0, y1] of color (n, 3) stays within bound x (1.36, 1.02,
+    2.04) in every channel, with a margin over float32 rounding. A 2x2 subpixel block inside the box has no more
+    contrast (it grows with max, falls with min, for non-negative colours), so it passes too."""
+    for ch in range(3):
+        lo = hi = np.float64(color[y0 * width + x0, ch])
+        for yy in range(y0, y1 + 1):
+            for xx in range(x0, x1 + 1):
+                v = np.float64(color[yy * width + xx, ch])
+                lo, hi = min(lo, v), max(hi, v)
+        if lo < 0.0 or hi + lo > 0.0 and (hi - lo) / (hi + lo) * (1.0 + 1e-6) > MITCHELL[ch] * bound:
+            return False
+    return True
+
+
+@serial
+def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask):
+    """Row y of the two-step disparity test of every subpixel of every central pixel not reused: the 4-bit mask of
+    the problematic subpixels (NW, NE, SW, SE). A subpixel whose contrast passes at the smallest threshold passes
+    at tau_sel too, so step one runs only where the contrast is high enough to matter, and a pixel whose 3x3
+    neighbourhood passes there is done. Returns the row's extra samples and problematic subpixels."""
+    height = flags.shape[0] // width
+    p, s2 = _geometry(primary), _geometry(secondary)
+    thresholds, normal_cos = tests.thresholds, tests.normal_cos
+    counts, tau_fov_ = fov.samples, fov.tau_fov
+    lowest = thresholds.min()
+    samples = subpixels = 0
+    for x in range(width):
+        i = y * width + x
+        sub_mask[i] = 0
+        k = np.int64(counts[i])
+        if k == 0 or flags[i] != 0:
+            continue
+        tau_f = tau_fov_[i]
+        x0, x1, y0, y1 = max(x - 1, 0), min(x + 1, width - 1), max(y - 1, 0), min(y + 1, height - 1)
+        if _box_contrast_passes(ref, x0, x1, y0, y1, width, lowest * tau_f):
+            continue
+        mask = 0
         for s in range(4):
             dx = -1 if s & 1 == 0 else 1
             dy = -1 if s < 2 else 1
             nx, ny = min(max(x + dx, 0), width - 1), min(max(y + dy, 0), height - 1)
-            neighbours = (y * width + nx, ny * width + x, ny * width + nx)
-            tau = _tau_sel(i, neighbours, p_attr, s_attr, thresholds, normal_cos) * tau_f
-            if _contrast_fails(color, i, neighbours[0], neighbours[1], neighbours[2], tau):
-                sub_mask[i] |= 1 << s
-                samples[i] += counts[band]
+            a, b, c = y * width + nx, ny * width + x, ny * width + nx
+            if not _contrast_fails(ref, i, a, b, c, lowest * tau_f):
+                continue
+            tau = _tau_sel(i, a, b, c, p, s2, thresholds, normal_cos) * tau_f
+            if _contrast_fails(ref, i, a, b, c, tau):
+                mask |= 1 << s
+                samples += k
+                subpixels += 1
+        sub_mask[i] = mask
+    return samples, subpixels
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _subpixel_samples(sub_mask, samples, first, counts_by_pixel, width, seed_key, xy, keys):
-    """Stratified jittered positions of the extra samples, subpixel by subpixel (section 4.6.2)."""
-    for i in nb.prange(sub_mask.shape[0]):
+@kernel
+def _inspect(width, ref, primary, secondary, fov, flags, tests, sub_mask, row_samples):
+    """_inspect_row over the image: row_samples[y] = row y's extra samples; returns the problematic subpixels."""
+    subpixels = 0
+    for y in nb.prange(flags.shape[0] // width):
+        row_samples[y], sub = _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask)
+        subpixels += sub
+    return subpixels
+
+
+@serial
+def _exclusive_scan(counts):
+    """counts[k] becomes the sum of counts[:k], in place; returns the total."""
+    total = 0
+    for k in range(counts.shape[0]):
+        c = counts[k]
+        counts[k] = total
+        total += c
+    return total
+
+
+@serial
+def _subpixel_samples_row(y, width, sub_mask, samples, first, seed_key, xy, keys):
+    j = first[y]
+    for x in range(width):
+        i = y * width + x
         m = sub_mask[i]
         if m == 0:
             continue
-        x, y = i % width, i // width
-        n = counts_by_pixel[i]
+        n = np.int64(samples[i])
         nx, ny = grid_dims(n)
-        j = first[i]
         for s in range(4):
             if not (m >> s) & 1:
                 continue
@@ -284,20 +468,24 @@ def _subpixel_samples(sub_mask, samples, first, counts_by_pixel, width, seed_key
                 j += 1
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _resolve(color_ref, sub_mask, first, counts_by_pixel, extra, width, out):
-    """Each pixel is the mean of its four subpixels: the mean of a problematic subpixel's samples, or
-    the colour interpolated from the four surrounding pixel centres at the subpixel's centre."""
-    n = sub_mask.shape[0]
-    height = n // width
-    image = color_ref.reshape(height, width, 3)
-    for i in nb.prange(n):
+@kernel
+def _subpixel_samples(width, sub_mask, samples, first, seed_key, xy, keys):
+    """Stratified jittered positions of the extra samples, subpixel by subpixel in scanline order (section 4.6.2);
+    row y's start at first[y]."""
+    for y in nb.prange(first.shape[0] - 1):
+        _subpixel_samples_row(y, width, sub_mask, samples, first, seed_key, xy, keys)
+
+
+@serial
+def _resolve_row(y, image, sub_mask, samples, first, extra, out):
+    width = image.shape[1]
+    j = first[y]
+    for x in range(width):
+        i = y * width + x
         m = sub_mask[i]
         if m == 0:
             continue
-        x, y = i % width, i // width
-        k = counts_by_pixel[i]
-        j = first[i]
+        k = np.int64(samples[i])
         r = g = b = 0.0
         for s in range(4):
             if (m >> s) & 1:
@@ -314,75 +502,51 @@ def _resolve(color_ref, sub_mask, first, counts_by_pixel, extra, width, out):
         out[i, 0], out[i, 1], out[i, 2] = 0.25 * r, 0.25 * g, 0.25 * b
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _reuse(
-    cur_cam,
-    prev_cam,
-    depth,
-    color_ref,
-    central,
-    p_obj,
-    p_ns,
-    p_shadow,
-    p_tex,
-    prev_depth,
-    prev_ref,
-    prev_obj,
-    prev_ns,
-    prev_shadow,
-    prev_tex,
-    prev_flags,
-    prev_rendered,
-    thresholds,
-    tau_reuse,
-    n_max,
-    normal_cos,
-    rel_depth,
-    width,
-    flags,
-    rendered,
-):
-    """kim2021 section 4.4: flags[i] > 0 where pixel i reuses the previous frame's rendered colour."""
-    n = depth.shape[0]
-    height = n // width
-    for i in nb.prange(n):
-        flags[i] = 0
-        if not central[i] or math.isinf(depth[i]) or p_obj[i] < 0:
-            continue
-        x, y = i % width, i // width
-        px, py, pz = world_point(cur_cam, x + 0.5, y + 0.5, depth[i])
-        qx, qy, dist = project(prev_cam, px, py, pz)
-        j = nearest_index(qx, qy, width, height)
-        if j < 0 or prev_flags[j] >= n_max or math.isinf(prev_depth[j]) or prev_obj[j] < 0:
-            continue
-        if abs(prev_depth[j] - dist) > rel_depth * dist:
-            continue
-        tau = thresholds[0]
-        d = (
-            p_obj[i] != prev_obj[j],
-            p_ns[i, 0] * prev_ns[j, 0] + p_ns[i, 1] * prev_ns[j, 1] + p_ns[i, 2] * prev_ns[j, 2] < normal_cos,
-            p_shadow[i] != prev_shadow[j],
-            p_tex[i] != prev_tex[j],
-        )
-        found = False
-        for k in range(4):
-            if d[k]:
-                tau = thresholds[1 + k] if not found else min(tau, thresholds[1 + k])
-                found = True
-        if _pair_contrast_fails(color_ref, i, prev_ref, j, tau * tau_reuse):
-            continue
-        flags[i] = prev_flags[j] + 1
-        for c in range(3):
-            rendered[i, c] = prev_rendered[j, c]
+@kernel
+def _resolve(image, sub_mask, samples, first, extra, out):
+    """Each pixel with problematic subpixels is the mean of its four subpixels: the mean of a problematic one's
+    samples, or the presampled colour (image, (h, w, 3)) interpolated from the four surrounding pixel centres at
+    the subpixel's centre."""
+    for y in nb.prange(image.shape[0]):
+        _resolve_row(y, image, sub_mask, samples, first, extra, out)
+
+
+class _Buffers(NamedTuple):
+    """A frame's G-buffer, presampled colour and reuse counts, which the next frame's reuse test reads."""
+
+    gbuffer: GBuffer
+    ref: np.ndarray  # (n, 3) float32
+    flags: np.ndarray  # (n,) int32
+
+    @classmethod
+    def empty(cls, n: int) -> _Buffers:
+        return cls(GBuffer.empty(n), np.empty((n, 3), np.float32), np.zeros(n, np.int32))
 
 
 class _EyeState:
-    """One eye's buffers carried to the next frame."""
+    """One eye's buffers at one image size, persistent across frames."""
 
-    def __init__(self, history_size: int):
-        self.history = History(history_size)
-        self.gbuffers: list[GBuffer] = []
-        self.previous: tuple | None = None  # camera, depth, colour ref, gbuffer, reuse flags, rendered colour
+    def __init__(self, height: int, width: int, smooth_size: int):
+        n = height * width
+        self.shape = (height, width)
+        self.history = History(MAX_SMOOTH_FRAMES)  # rendered colour and depth, this frame's in the spare slot
+        self.smooth_size = smooth_size  # frames the smoothing history holds since it (re)started
+        self.buffers = [_Buffers.empty(n), _Buffers.empty(n)]  # [this frame's, the previous frame's]
+        self.previous: EyeCamera | None = None
+        self.fov = Foveation.empty(n)
+        self.fov_key: tuple | None = None
+        self.central = 0
+        self.sub_mask = np.empty(n, np.uint8)
+        self.first = np.empty(height + 1, np.int64)  # per row: the index of its first extra sample
+        self.extra_xy = np.empty((0, 2), np.float32)
+        self.extra_keys = np.empty(0, np.int64)
+
+    def extra(self, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """Buffers for `count` extra samples, grown by a quarter at least when too small."""
+        if len(self.extra_keys) < count:
+            size = max(count, len(self.extra_keys) * 5 // 4)
+            self.extra_xy, self.extra_keys = np.empty((size, 2), np.float32), np.empty(size, np.int64)
+        return self.extra_xy[:count], self.extra_keys[:count]
 
 
 class Kim21(Configurable):
@@ -402,6 +566,9 @@ class Kim21(Configurable):
     def __init__(self, tracer: Whitted, params: Kim21Params):
         self.tracer = tracer
         self._eyes: dict[str, _EyeState] = {}
+        self._keys = np.empty(0, np.int64)
+        self._keys_seed: int | None = None
+        self._no_samples = np.empty((0, 3), np.float32)
         self._configure(params)
 
     def _configure(self, params: Kim21Params) -> None:
@@ -410,131 +577,109 @@ class Kim21(Configurable):
         smooth_frames than an eye's history holds starts that history afresh (see render)."""
         p = params
         self.ctrl = bezier_controls(p)
-        self.thresholds = np.array(
-            [p.tau_col, p.tau_poid, p.tau_psn, p.tau_psc, p.tau_pte, p.tau_soid, p.tau_ssn, p.tau_ssc, p.tau_ste]
+        self.tests = Tests(
+            np.array(
+                [p.tau_col, p.tau_poid, p.tau_psn, p.tau_psc, p.tau_pte, p.tau_soid, p.tau_ssn, p.tau_ssc, p.tau_ste]
+            ),
+            p.normal_cos,
+            p.tau_reuse,
+            p.n_reuse_max,
+            p.depth_tolerance,
         )
         self.bounds = np.array([p.e_f, p.e_p, p.e_m])
-        self.counts = np.array([p.n_f, p.n_p, p.n_m, p.n_np], np.int64)
+        self.counts = np.array([p.n_f, p.n_p, p.n_m, p.n_np], np.uint8)
+        self.alpha = (alpha_knots(p), np.array(p.alpha))
         self.params = params
 
-    def _gbuffer(self, state: _EyeState, n: int) -> GBuffer:
-        """A G-buffer for this frame that is not the previous frame's (two are kept and alternated)."""
-        if not state.gbuffers or len(state.gbuffers[0].primary.depth) != n:
-            state.gbuffers = [GBuffer.empty(n), GBuffer.empty(n)]
-        state.gbuffers.reverse()
-        state.gbuffers[0].secondary.clear()
-        return state.gbuffers[0]
+    def _state(self, eye: str, height: int, width: int) -> _EyeState:
+        """The eye's buffers; a new image size starts them afresh, the smoothing history's size kept."""
+        frames = max(self.params.smooth_frames, 1)
+        state = self._eyes.get(eye)
+        if state is None or state.shape != (height, width):
+            state = self._eyes[eye] = _EyeState(height, width, frames if state is None else state.smooth_size)
+        if state.smooth_size < frames:
+            state.smooth_size = frames
+            state.history.restart()
+        return state
 
-    def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
+    def _foveation(self, state: _EyeState, cam: EyeCamera, gaze: np.ndarray) -> Foveation:
+        """The eye's Foveation, recomputed when the frustum, the gaze or the parameters changed."""
+        key = (cam.tan_left, cam.tan_right, cam.tan_up, cam.tan_down, float(gaze[0]), float(gaze[1]), float(gaze[2]))
+        if state.fov_key is None or state.fov_key[0] != key or state.fov_key[1] is not self.params:
+            ecc = eccentricity_map(cam, gaze)
+            state.central = _foveation(
+                ecc, self.ctrl, self.bounds, self.counts, self.params.e_np, *self.alpha, state.fov
+            )
+            state.fov_key = (key, self.params)
+        return state.fov
+
+    def _pixel_keys(self, n: int, seed: int) -> np.ndarray:
+        """pixel_keys of pixels 0..n-1, kept while n and the seed stay."""
+        if len(self._keys) != n or self._keys_seed != seed:
+            self._keys, self._keys_seed = pixel_keys(np.arange(n), seed), seed
+        return self._keys
+
+    def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         cam, p = request.camera, self.params
-        frames = max(p.smooth_frames, 1)
-        state = self._eyes.setdefault(request.eye, _EyeState(frames))
-        if state.history.size < frames:
-            state.history = History(frames)
-        history = (
-            state.previous is not None
-            and state.previous[0].width == cam.width
-            and state.previous[0].height == cam.height
-        )
-        steps = plan(self.stages, frozenset({HISTORY}) if history else frozenset())
-        n = cam.width * cam.height
+        h, w = cam.height, cam.width
+        n = h * w
+        state = self._state(request.eye, h, w)
+        history = state.history
+        steps = plan(self.stages, frozenset({HISTORY}) if state.previous is not None else frozenset())
         with stats.stage("eccentricity"):
-            ecc = eccentricity_map(cam, request.gaze).reshape(-1)
-            xy = pixel_centres(cam.width, cam.height)
-        gbuf = self._gbuffer(state, n)
+            fov = self._foveation(state, cam, request.gaze)
+        state.buffers.reverse()
+        cur, last = state.buffers
         with stats.stage("presample"):
-            color_ref = self.tracer.trace_samples(cam, xy, pixel_keys(np.arange(n), request.seed), stats, gbuf)
-        g1, g2 = gbuf.primary, gbuf.secondary
-        central = ecc < p.e_np
-        rendered = color_ref.copy()
-        flags = np.zeros(n, np.int32)
-        if p.reuse and "reuse" in steps:
-            with stats.stage("reuse"):
-                pcam, pdepth, pref, pg, pflags, prendered = state.previous
-                pp = pg.primary
-                _reuse(
-                    camera_arrays(cam),
-                    camera_arrays(pcam),
-                    g1.depth,
-                    color_ref,
-                    central,
-                    g1.object_id,
-                    g1.normal_shading,
-                    g1.shadow_count,
-                    g1.textured,
-                    pdepth,
-                    pref,
-                    pp.object_id,
-                    pp.normal_shading,
-                    pp.shadow_count,
-                    pp.textured,
-                    pflags,
-                    prendered,
-                    self.thresholds,
-                    p.tau_reuse,
-                    p.n_reuse_max,
-                    p.normal_cos,
-                    p.depth_tolerance,
-                    cam.width,
-                    flags,
-                    rendered,
-                )
+            _clear(w, cur.gbuffer.secondary)
+            keys = self._pixel_keys(n, request.seed)
+            color = self.tracer.trace_samples(cam, pixel_grid(w, h), keys, stats, cur.gbuffer)
+        slot, newest = history.begin((h, w)), max(history.newest((h, w)), 0)
+        frame = Kept(cur.ref, history.depth[slot].reshape(n), cur.flags, history.color[slot].reshape(n, 3))
+        prev = Kept(last.ref, history.depth[newest].reshape(n), last.flags, history.color[newest].reshape(n, 3))
+        reuse = p.reuse and "reuse" in steps
+        with stats.stage("reuse" if reuse else "store"):
+            reused = _store(
+                w,
+                color,
+                cur.gbuffer.primary,
+                camera_arrays(cam).frustum,
+                frame,
+                relative_view(state.previous or cam, cam),
+                last.gbuffer.primary,
+                prev,
+                same_camera(state.previous, cam),
+                self.tests,
+                reuse,
+                fov.samples,
+            )
         with stats.stage("inspect"):
-            active = central & (flags == 0)
-            sub_mask = np.empty(n, np.uint8)
-            samples = np.empty(n, np.int64)
-            _inspect(
-                color_ref,
-                ecc,
-                active,
-                g1.object_id,
-                g1.normal_shading,
-                g1.shadow_count,
-                g1.textured,
-                g2.object_id,
-                g2.normal_shading,
-                g2.shadow_count,
-                g2.textured,
-                self.thresholds,
-                self.ctrl,
-                self.bounds,
-                self.counts,
-                p.normal_cos,
-                cam.width,
-                sub_mask,
-                samples,
-            )
-            first = np.cumsum(samples) - samples
-            per_subpixel = np.where(samples > 0, samples // np.maximum(POPCOUNT4[sub_mask], 1), 0)
-            extra_xy = np.empty((int(samples.sum()), 2), np.float32)
-            extra_keys = np.empty(len(extra_xy), np.int64)
-            _subpixel_samples(
-                sub_mask,
-                samples,
-                first,
-                per_subpixel,
-                cam.width,
-                int(pixel_keys(np.zeros(1), request.seed, stream=1)[0]),
-                extra_xy,
-                extra_keys,
-            )
+            g1, g2 = cur.gbuffer
+            problematic = _inspect(w, cur.ref, g1, g2, fov, cur.flags, self.tests, state.sub_mask, state.first)
+            state.first[h] = 0
+            total = _exclusive_scan(state.first)
+            extra_xy, extra_keys = state.extra(total)
+            seed_key = int(pixel_keys(np.zeros(1), request.seed, stream=1)[0])
+            _subpixel_samples(w, state.sub_mask, fov.samples, state.first, seed_key, extra_xy, extra_keys)
         with stats.stage("supersample"):
-            extra = self.tracer.trace_samples(cam, extra_xy, extra_keys, stats) if len(extra_xy) else extra_xy
+            extra = self.tracer.trace_samples(cam, extra_xy, extra_keys, stats) if total else self._no_samples
         with stats.stage("resolve"):
-            _resolve(color_ref, sub_mask, first, per_subpixel, extra, cam.width, rendered)
-        image = rendered.reshape(cam.height, cam.width, 3)
-        depth = g1.depth.reshape(cam.height, cam.width)
+            _resolve(cur.ref.reshape(h, w, 3), state.sub_mask, fov.samples, state.first, extra, frame.rendered)
+        image = np.empty((h, w, 3), np.float32) if out is None else out
         if p.smooth and p.smooth_frames and "smooth" in steps:
             with stats.stage("smooth"):
-                alpha = alpha_of_eccentricity(ecc.reshape(cam.height, cam.width), p)
-                image = exponential_smoothing(
-                    cam, depth, image, alpha, state.history, p.smooth_frames, p.depth_tolerance
+                alpha = fov.alpha.reshape(h, w)
+                depth = history.depth[slot]
+                exponential_smoothing(
+                    cam, depth, history.color[slot], alpha, history, p.smooth_frames, p.depth_tolerance, image
                 )
-        state.history.push(cam, depth, rendered.reshape(cam.height, cam.width, 3))
-        state.previous = (cam, g1.depth, color_ref, gbuf, flags, rendered)
-        stats.metrics["central_pixels"] = int(central.sum())
-        stats.metrics["reused_pixels"] = int((flags > 0).sum())
-        stats.metrics["problematic_subpixels"] = int(POPCOUNT4[sub_mask].sum())
-        stats.metrics["extra_samples"] = len(extra_xy)
-        stats.metrics["sample_fraction"] = (n + len(extra_xy)) / n
+        else:
+            image[:] = history.color[slot]
+        history.commit(cam)
+        state.previous = cam
+        stats.metrics["central_pixels"] = state.central
+        stats.metrics["reused_pixels"] = reused
+        stats.metrics["problematic_subpixels"] = problematic
+        stats.metrics["extra_samples"] = total
+        stats.metrics["sample_fraction"] = (n + total) / n
         return image

@@ -9,18 +9,13 @@ form, with an eccentricity-dependent blending factor alpha(e). Both keep per-eye
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.stages.reproject import (
-    CameraArrays,
-    bilinear3,
-    camera_arrays,
-    nearest_index,
-    project,
-    world_point,
-)
+from hmdrt.foveation.stages.reproject import FAR, bilinear3, camera_arrays
+from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera
 
 
@@ -57,79 +52,218 @@ def running_estimate(rho_prev, k):
 
 
 class History:
-    """The last `size` frames of one eye in preallocated rings: camera, hit distance (inf on a miss)
-    and colour. A change of image size starts the history afresh."""
+    """The last `size` frames of one eye (camera, hit distance (inf on a miss), colour) in preallocated rings with
+    one slot more, which the frame being rendered is written into in place (begin, then commit), so that no frame
+    is copied. A change of image size starts the history afresh, and so does restart(), which keeps the newest
+    frame readable (newest) but takes every frame out of order()."""
 
     def __init__(self, size: int):
         self.size = size
-        self.cameras: list[EyeCamera | None] = [None] * size
-        self.depth: np.ndarray | None = None  # (size, h, w) float32
-        self.color: np.ndarray | None = None  # (size, h, w, 3) float32
+        self.cameras: list[EyeCamera | None] = [None] * (size + 1)
+        self.depth: np.ndarray | None = None  # (size + 1, h, w) float32
+        self.color: np.ndarray | None = None  # (size + 1, h, w, 3) float32
+        self.scratch: np.ndarray | None = None  # (threads, ROW, w) float64: what smoothing keeps of a row
         self._newest = -1
         self._count = 0
 
-    def push(self, camera: EyeCamera, depth: np.ndarray, color: np.ndarray) -> None:
-        if self.depth is None or self.depth.shape[1:] != depth.shape:
-            self.depth = np.empty((self.size, *depth.shape), np.float32)
-            self.color = np.empty((self.size, *depth.shape, 3), np.float32)
-            self._count = 0
-        self._newest = (self._newest + 1) % self.size
+    def begin(self, shape: tuple[int, int]) -> int:
+        """The ring slot the next frame goes in; its depth and colour are the caller's to fill before commit."""
+        if self.depth is None or self.depth.shape[1:] != shape:
+            self.depth = np.empty((self.size + 1, *shape), np.float32)
+            self.color = np.empty((self.size + 1, *shape, 3), np.float32)
+            self.scratch = np.empty((nb.get_num_threads(), ROW, shape[1]))
+            self._newest, self._count = -1, 0
+        return (self._newest + 1) % (self.size + 1)
+
+    def commit(self, camera: EyeCamera) -> None:
+        """The slot of begin holds the newest frame now, seen by `camera`."""
+        self._newest = (self._newest + 1) % (self.size + 1)
         self.cameras[self._newest] = camera
-        self.depth[self._newest] = depth
-        self.color[self._newest] = color
         self._count = min(self._count + 1, self.size)
+
+    def push(self, camera: EyeCamera, depth: np.ndarray, color: np.ndarray) -> None:
+        slot = self.begin(depth.shape)
+        self.depth[slot] = depth
+        self.color[slot] = color
+        self.commit(camera)
+
+    def restart(self) -> None:
+        self._count = 0
+
+    def newest(self, shape: tuple[int, int]) -> int:
+        """The slot of the newest frame of this image shape, even after restart; -1 if there is none."""
+        return self._newest if self.depth is not None and self.depth.shape[1:] == shape else -1
 
     def order(self, shape: tuple[int, int]) -> np.ndarray:
         """Ring slots of the frames with this image shape, newest first."""
-        if self.depth is None or self.depth.shape[1:] != shape:
+        if self.newest(shape) < 0:
             return np.zeros(0, np.int64)
-        return np.array([(self._newest - k) % self.size for k in range(self._count)], np.int64)
-
-    def camera_stack(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        cams = [camera_arrays(self.cameras[s]) for s in slots]
-        if not cams:
-            return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 6))
-        return (
-            np.stack([c.position for c in cams]),
-            np.stack([c.rotation for c in cams]),
-            np.stack([c.frustum for c in cams]),
-        )
+        return np.array([(self._newest - k) % (self.size + 1) for k in range(self._count)], np.int64)
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _smooth(cur_cam, depth, color, alpha, slots, positions, rotations, frusta, ring_depth, ring_color, rel_depth, out):
+ROW = 10  # smoothing's values per pixel of a row: point (3), back-projection x, y, distance, sums (4)
+
+
+class Earlier(NamedTuple):
+    """The earlier frames a smoothing pass blends, newest first, and the history rings they are in."""
+
+    slots: np.ndarray  # (k,) int64 ring slots
+    views: np.ndarray  # (k, VIEW) float64 each frame's view of the current camera's points (relative_view)
+    same: np.ndarray  # (k,) bool: the frame's camera is the current one, so each pixel sees itself there
+    depth: np.ndarray  # (size + 1, h, w) float32 ring
+    color: np.ndarray  # (size + 1, h, w, 3) float32 ring
+    scratch: np.ndarray  # (chunks, ROW, w) float64: one row's values per chunk of rows
+
+
+VIEW = 16  # relative_view: M (9), t (3), tan_left, width / (tan_right - tan_left), tan_up, height / (tan_up - tan_down)
+
+
+def relative_view(earlier: EyeCamera, current: EyeCamera) -> np.ndarray:
+    """How `earlier` sees points given in `current`'s eye frame: p_earlier = M p_current + t, with the constants
+    that take its eye frame to continuous pixel coordinates, so that a back-projection is one matrix product."""
+    out = np.empty(VIEW)
+    out[:9] = (earlier.rotation.T @ current.rotation).reshape(-1)
+    out[9:12] = earlier.rotation.T @ (current.position - earlier.position)
+    out[12] = earlier.tan_left
+    out[13] = earlier.width / (earlier.tan_right - earlier.tan_left)
+    out[14] = earlier.tan_up
+    out[15] = earlier.height / (earlier.tan_up - earlier.tan_down)
+    return out
+
+
+@inline
+def eye_point(frustum, x, y, depth):
+    """The point at hit distance `depth` (FAR for a miss) along the view ray through continuous pixel (x, y), in
+    the eye frame of the camera with this frustum (CameraArrays.frustum)."""
+    tx = frustum[0] + x * (frustum[1] - frustum[0]) / frustum[4]
+    ty = frustum[2] - y * (frustum[2] - frustum[3]) / frustum[5]
+    s = min(depth, FAR) / math.sqrt(tx * tx + ty * ty + 1.0)
+    return s * tx, s * ty, -s
+
+
+@inline
+def view_project(v, px, py, pz):
+    """Continuous pixel coordinates and distance of eye-frame point p in the camera of relative_view v; x is -1
+    behind that camera."""
+    lx = v[0] * px + v[1] * py + v[2] * pz + v[9]
+    ly = v[3] * px + v[4] * py + v[5] * pz + v[10]
+    lz = v[6] * px + v[7] * py + v[8] * pz + v[11]
+    iz = -1.0 / lz
+    qx = (lx * iz - v[12]) * v[13] if lz < 0.0 else -1.0
+    return qx, (v[14] - ly * iz) * v[15], math.sqrt(lx * lx + ly * ly + lz * lz)
+
+
+def same_camera(a: EyeCamera | None, b: EyeCamera) -> bool:
+    """Whether two cameras see every pixel along the same ray."""
+    if a is b:
+        return True
+    return (
+        a is not None
+        and a._frustum() == b._frustum()
+        and np.array_equal(a.position, b.position)
+        and np.array_equal(a.rotation, b.rotation)
+    )
+
+
+def earlier_frames(history: History, camera: EyeCamera, shape: tuple[int, int], frames: int) -> Earlier:
+    slots = history.order(shape)[:frames]
+    views = np.empty((len(slots), VIEW))
+    for k, s in enumerate(slots):
+        views[k] = relative_view(history.cameras[s], camera)
+    same = np.array([same_camera(history.cameras[s], camera) for s in slots], bool)
+    return Earlier(slots, views, same, history.depth, history.color, history.scratch)
+
+
+@serial
+def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row):
+    """Row y of the closed form, in passes over the row so that the back-projections vectorise: the pixels' points
+    at their hit distances (FAR for a miss) in the current eye frame, then per earlier frame their pixel
+    coordinates and distances there (one matrix product), then the depth test and the blend. Frames seen by the
+    current camera read the pixel itself."""
+    slots, views, same, ring_depth, ring_color, _ = earlier
     h, w = depth.shape
-    for y in nb.prange(h):
-        wsum = np.empty(w)
-        acc = np.empty((w, 3))
-        points = np.empty((w, 3))
-        for x in range(w):
-            # the weights a (1 - a)^i over their sum, with the common factor a taken out: at a = 0 (the limit)
-            # they are equal, where a (1 - a)^i / sum would be 0 / 0
-            wsum[x] = 1.0
-            for c in range(3):
-                acc[x, c] = color[y, x, c]
-            points[x, 0], points[x, 1], points[x, 2] = world_point(cur_cam, x + 0.5, y + 0.5, depth[y, x])
-        for i in range(slots.shape[0]):
-            cam = CameraArrays(positions[i], rotations[i], frusta[i])
-            d_prev, c_prev = ring_depth[slots[i]], ring_color[slots[i]]
+    px, py, pz, qxs, qys, dists, acc_r, acc_g, acc_b, wsum = (
+        row[0],
+        row[1],
+        row[2],
+        row[3],
+        row[4],
+        row[5],
+        row[6],
+        row[7],
+        row[8],
+        row[9],
+    )
+    for x in range(w):
+        px[x], py[x], pz[x] = eye_point(frustum, x + 0.5, y + 0.5, depth[y, x])
+        acc_r[x], acc_g[x], acc_b[x] = color[y, x, 0], color[y, x, 1], color[y, x, 2]
+        # the weights a (1 - a)^i over their sum, with the common factor a taken out: at a = 0 (the limit)
+        # they are equal, where a (1 - a)^i / sum would be 0 / 0
+        wsum[x] = 1.0
+    for k in range(slots.shape[0]):
+        if not same[k]:
+            view = views[k]
             for x in range(w):
-                qx, qy, dist = project(cam, points[x, 0], points[x, 1], points[x, 2])
-                j = nearest_index(qx, qy, w, h)
-                if j < 0:
-                    continue
-                d = d_prev[j // w, j % w]
-                same = math.isinf(d) if math.isinf(depth[y, x]) else abs(d - dist) <= rel_depth * dist
-                if same:
-                    weight = (1.0 - alpha[y, x]) ** (i + 1)
-                    r, g, b = bilinear3(c_prev, qx, qy)
-                    wsum[x] += weight
-                    acc[x, 0] += weight * r
-                    acc[x, 1] += weight * g
-                    acc[x, 2] += weight * b
+                qxs[x], qys[x], dists[x] = view_project(view, px[x], py[x], pz[x])
+        image, image_depth = ring_color[slots[k]], ring_depth[slots[k]]
         for x in range(w):
-            for c in range(3):
-                out[y, x, c] = acc[x, c] / wsum[x]
+            d = depth[y, x]
+            if same[k]:
+                qx, qy, dist = x + 0.5, y + 0.5, min(np.float64(d), FAR)
+            else:
+                qx, qy, dist = qxs[x], qys[x], dists[x]
+                if not (qx >= 0.0 and qy >= 0.0 and qx < w and qy < h):
+                    continue
+            d_prev = image_depth[int(qy), int(qx)]
+            if not (math.isinf(d_prev) if math.isinf(d) else abs(d_prev - dist) <= rel_depth * dist):
+                continue
+            if same[k]:
+                cr, cg, cb = image[y, x, 0], image[y, x, 1], image[y, x, 2]
+            else:
+                cr, cg, cb = bilinear3(image, qx, qy)
+            weight = (1.0 - alpha[y, x]) ** (k + 1)
+            wsum[x] += weight
+            acc_r[x] += weight * cr
+            acc_g[x] += weight * cg
+            acc_b[x] += weight * cb
+    for x in range(w):
+        out[y, x, 0], out[y, x, 1], out[y, x, 2] = acc_r[x] / wsum[x], acc_g[x] / wsum[x], acc_b[x] / wsum[x]
+
+
+@serial
+def _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out):
+    """Row y of the closed form when every earlier frame was seen by the current camera: each pixel reads itself."""
+    slots, _, _, ring_depth, ring_color, _ = earlier
+    for x in range(depth.shape[1]):
+        d = depth[y, x]
+        dist = min(np.float64(d), FAR)
+        r, g, b = np.float64(color[y, x, 0]), np.float64(color[y, x, 1]), np.float64(color[y, x, 2])
+        wsum = 1.0  # as in _smooth_row
+        for k in range(slots.shape[0]):
+            slot = slots[k]
+            d_prev = ring_depth[slot, y, x]
+            if math.isinf(d_prev) if math.isinf(d) else abs(d_prev - dist) <= rel_depth * dist:
+                weight = (1.0 - alpha[y, x]) ** (k + 1)
+                wsum += weight
+                r += weight * ring_color[slot, y, x, 0]
+                g += weight * ring_color[slot, y, x, 1]
+                b += weight * ring_color[slot, y, x, 2]
+        out[y, x, 0], out[y, x, 1], out[y, x, 2] = r / wsum, g / wsum, b / wsum
+
+
+@kernel
+def _smooth(frustum, depth, color, alpha, earlier, rel_depth, out):
+    """The closed form over the image: pixel by pixel when no earlier camera moved, else in one chunk of rows per
+    scratch row."""
+    chunks, h = earlier.scratch.shape[0], depth.shape[0]
+    if earlier.same.all():
+        for y in nb.prange(h):
+            _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out)
+    else:
+        for t in nb.prange(chunks):
+            row = earlier.scratch[t]
+            for y in range(t * h // chunks, (t + 1) * h // chunks):
+                _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row)
 
 
 def exponential_smoothing(
@@ -140,26 +274,18 @@ def exponential_smoothing(
     history: History,
     frames: int,
     rel_depth: float,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
     """kim2021's closed form C*_t(p) = sum_i a (1 - a)^i C(pi_{t-i}(p)) / sum_i a (1 - a)^i over the
     current frame and up to `frames` earlier ones (newest first) whose back-projected pixel sees the
-    same surface: relative distance difference within rel_depth (misses match misses). alpha in [0, 1]; at
-    alpha = 0 the frames weigh alike (the limit of the closed form), at alpha = 1 only the current one counts."""
-    slots = history.order(depth.shape)[:frames]
-    out = np.empty_like(color)
-    if len(slots) == 0:
+    same surface: relative distance difference within rel_depth (misses match misses). alpha (h, w) float32 in
+    [0, 1]; at alpha = 0 the frames weigh alike (the limit of the closed form), at alpha = 1 only the current one
+    counts. An earlier frame seen by the same camera is read pixel for pixel (where back-projection would land).
+    Written into `out` (h, w, 3) float32 when given, which must not be `color`."""
+    out = np.empty_like(color) if out is None else out
+    earlier = earlier_frames(history, camera, depth.shape, frames)
+    if len(earlier.slots) == 0:
         out[:] = color
         return out
-    _smooth(
-        camera_arrays(camera),
-        depth,
-        color,
-        alpha.astype(np.float32),
-        slots,
-        *history.camera_stack(slots),
-        history.depth,
-        history.color,
-        rel_depth,
-        out,
-    )
+    _smooth(camera_arrays(camera).frustum, depth, color, alpha, earlier, rel_depth, out)
     return out
