@@ -308,3 +308,18 @@ def test_bad_method_options_are_refused(spec, message):
 
 def test_every_method_is_registered():
     assert set(METHODS) == {"full", "regular", "rrm", "kim21", "weier16", "weier18"}
+
+
+def test_weier16_renders_into_the_callers_buffer_as_into_its_own():
+    scene = load_scene("interior")
+    inputs = builtin_path(4, PROFILE.period_ns, scene.start, seed=3)
+    own = run("weier16", "interior", lambda s: inputs)
+    out = np.empty((PROFILE.height, PROFILE.width, 3), np.float32)
+    with Whitted(scene) as tracer:
+        method = make_method("weier16", tracer)
+        for inp, (images, _) in zip(inputs, own, strict=True):
+            cam = EyeCamera.for_eye(PROFILE, inp.pose, "left")
+            assert method.render(FrameRequest(cam, inp.gaze["left"], inp.frame), FrameStats(), out) is out
+            np.testing.assert_array_equal(out, images[0])
+        with pytest.raises(ValueError, match="C-contiguous"):
+            method.render(FrameRequest(cam, inp.gaze["left"], 5), FrameStats(), out[:, :-1])

@@ -11,7 +11,7 @@ from hmdrt.foveation.rrm import RrmParams, refresh_phase, visit_order
 from hmdrt.foveation.stages.dof import DOF_PRESETS, circle_of_confusion, coc_map, focal_lengths
 from hmdrt.foveation.stages.gaze import FixationFilter, vergence_depth
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push
-from hmdrt.foveation.stages.reproject import backproject, reproject_mesh
+from hmdrt.foveation.stages.reproject import CoarseMesh, backproject
 from hmdrt.foveation.stages.sampling import (
     FRC_PRESETS,
     bernoulli_mask,
@@ -299,14 +299,14 @@ def test_mesh_reprojection_is_exact_for_an_unmoved_camera():
     sw, sh = 24, 27
     gx, gy = (np.arange(sw) + 0.5) * 96 / sw, (np.arange(sh) + 0.5) * 108 / sh
     depth = 2.0 + np.random.default_rng(0).random((sh, sw))
-    mesh, zinv = reproject_mesh(cam, gx, gy, depth, cam, 96, 108)
+    mesh, zinv = CoarseMesh().reproject(cam, gx, gy, depth, cam, 96, 108)
     inner = np.zeros((108, 96), bool)
     inner[4:-4, 2:-2] = True
     covered = (zinv > 0) & inner
     assert covered.sum() > 0.95 * inner.sum()
     ys, xs = np.nonzero(covered)
-    np.testing.assert_allclose(mesh[ys, xs, 0], xs + 0.5, atol=1e-3)
-    np.testing.assert_allclose(mesh[ys, xs, 1], ys + 0.5, atol=1e-3)
+    np.testing.assert_allclose(mesh[0, ys, xs], xs + 0.5, atol=1e-3)
+    np.testing.assert_allclose(mesh[1, ys, xs], ys + 0.5, atol=1e-3)
 
 
 def test_mesh_and_back_projection_agree_after_a_head_turn():
@@ -315,14 +315,18 @@ def test_mesh_and_back_projection_agree_after_a_head_turn():
     sw, sh = 48, 54
     gx, gy = (np.arange(sw) + 0.5) * 2, (np.arange(sh) + 0.5) * 2
     depth = np.full((sh, sw), 3.0)  # a sphere of radius 3 around the first eye
-    mesh, zinv = reproject_mesh(before, gx, gy, depth, after, 96, 108)
-    # back-project the reprojected surface from the new camera into the old one: it lands where it came from
-    with np.errstate(invalid="ignore"):  # vertices that left the view are inf; their distance is not used
-        dist_after = np.linalg.norm(mesh[..., 2:5] - after.position, axis=2).astype(np.float32)
-    xy, _ = backproject(after, np.where(zinv > 0, dist_after, np.inf).astype(np.float32), before)
+    mesh, zinv = CoarseMesh().reproject(before, gx, gy, depth, after, 96, 108)
+    # the surface seen at a pixel lies on its view ray at view depth 1 / zinv: back-projected from the new camera
+    # into the old one, it lands where it came from
+    tx = after.tan_left + (np.arange(96) + 0.5) * (after.tan_right - after.tan_left) / 96
+    ty = after.tan_up - (np.arange(108) + 0.5) * (after.tan_up - after.tan_down) / 108
+    with np.errstate(divide="ignore"):
+        dist = np.sqrt(tx[None, :] ** 2 + ty[:, None] ** 2 + 1.0) / zinv
+    xy, dist_before = backproject(after, np.where(zinv > 0, dist, np.inf).astype(np.float32), before)
     ok = (zinv > 0) & np.isfinite(xy[..., 0])
     assert ok.sum() > 5000
-    np.testing.assert_allclose(xy[ok], mesh[ok][:, :2], atol=2e-2)
+    np.testing.assert_allclose(xy[ok], np.moveaxis(mesh, 0, -1)[ok], atol=2e-2)
+    np.testing.assert_allclose(dist_before[ok], 3.0, rtol=2e-3)  # on the chords of the sphere of radius 3
 
 
 def test_pull_push_keeps_samples_and_fills_holes():

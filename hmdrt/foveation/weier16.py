@@ -15,6 +15,11 @@ merged from the support image. Section 3.5: when the scene has area lights or am
 resampled pixel borrows the light buffer of the closest reconstructed pixel found by n random taps in
 a window sized by the nearest reconstructed pixel along the image axes.
 
+Each frame reprojects the mesh, marks the resampling info, selects and traces the samples, then runs
+one pass that gathers the previous frame through the mesh, applies the running estimate and merges,
+reading one of two persistent final buffers per eye and writing the other and the caller's image;
+nothing of the image's size is allocated per frame.
+
 Values the paper leaves open (eps_*, k_min, k_max, t_max, footprint taps, post taps) are parameters
 with defaults chosen here. Section 3.4 prints alpha = min(alpha', k); the running estimate uses
 max(alpha', k), the lower bound the text describes (see stages.temporal.running_estimate).
@@ -23,8 +28,7 @@ max(alpha', k), the lower bound the text describes (see stages.temporal.running_
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated, Literal, NamedTuple
 
 import msgspec
 import numba as nb
@@ -36,13 +40,25 @@ from hmdrt.foveation.base import (
     Configurable,
     FrameRequest,
     Stage,
-    pixel_keys,
     plan,
     scene_features,
 )
-from hmdrt.foveation.stages.reproject import FAR, bilinear3, gather_previous, reproject_mesh
-from hmdrt.foveation.stages.sampling import Foveal, bernoulli_mask, foveal_config
+from hmdrt.foveation.stages.reproject import (
+    FAR,
+    ROWS,
+    CoarseMesh,
+    bilinear3,
+    camera_arrays,
+    dynamic,
+    gaussian_taps,
+    nearest_texel,
+    row_footprints,
+    view_distance,
+    view_point,
+)
+from hmdrt.foveation.stages.sampling import Foveal, foveal_config, foveal_probability
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
+from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
 from hmdrt.rng import uniform
 from hmdrt.telemetry.stats import FrameStats
@@ -52,7 +68,10 @@ from hmdrt.trace.integrator import Whitted
 Deg = Annotated[float, msgspec.Meta(ge=0.0, le=180.0)]
 Fraction = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 DK2_SUPPORT = (256, 318, 1182, 1464)  # section 4.1: a 256 x 318 support image at 1182 x 1464
-STATE = 6  # cache info per pixel: alpha, rho, frame last touched, and the light buffer's irradiance (rgb)
+INFO = 3  # cache info per pixel: alpha, rho and the frame it was last touched
+TRACED, FRESH, RESAMPLE, COVERED = 1, 2, 4, 8  # a pixel's flags: traced this frame; its sample replaces the
+# cache (fovea or resampled); marked in the resampling info; covered by the reprojected mesh
+SUPPORT_STREAM = 2 << 40  # base.pixel_keys stream 2: the support image's samples
 
 
 class Weier16Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -90,28 +109,121 @@ def support_size(params: Weier16Params, width: int, height: int) -> tuple[int, i
     return min(w, width), min(h, height)
 
 
-def support_grid(width: int, height: int, sw: int, sh: int) -> tuple[np.ndarray, np.ndarray]:
-    """Full-resolution pixel coordinates of the support pixels' centres."""
-    return (np.arange(sw) + 0.5) * width / sw, (np.arange(sh) + 0.5) * height / sh
+class Support(NamedTuple):
+    """A frame's support image and support G-buffer (section 3.1), the next frame's coarse mesh."""
+
+    depth: np.ndarray  # (sh, sw) float32 hit distance
+    normal: np.ndarray  # (sh, sw, 3) float32 geometric normal
+    color: np.ndarray  # (sh, sw, 3) float32
+
+    @classmethod
+    def empty(cls, sw: int, sh: int) -> Support:
+        return cls(np.empty((sh, sw), np.float32), np.empty((sh, sw, 3), np.float32), np.empty((sh, sw, 3), np.float32))
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _resampling_info(
-    mesh, zinv, prev_color, prev_normal, prev_cam_pos, full_w, full_h, eps_depth, eps_lum, eps_edge, out
-):
+class Final(NamedTuple):
+    """A frame's final colour and cache info (section 3.4) and its accumulated light buffer (section 3.5),
+    which stays zero in a scene without stochastic lights."""
+
+    color: np.ndarray  # (h, w, 3) float32
+    info: np.ndarray  # (h, w, INFO) float32
+    light: np.ndarray  # (h, w, 3) float32 irradiance
+
+    @classmethod
+    def empty(cls, w: int, h: int) -> Final:
+        return cls(np.empty((h, w, 3), np.float32), np.empty((h, w, INFO), np.float32), np.zeros((h, w, 3), np.float32))
+
+
+class Selection(NamedTuple):
+    """Where the frame traces: per pixel its flags, per row its samples (they are in scanline order)."""
+
+    flags: np.ndarray  # (h, w) uint8: TRACED, FRESH, RESAMPLE, COVERED
+    counts: np.ndarray  # (h,) int64 traced pixels per row
+    row_start: np.ndarray  # (h + 1,) int64: the first sample of each row
+    resampled: np.ndarray  # (h,) int64 pixels per row marked in the resampling info
+    merged: np.ndarray  # (h,) int64 pixels per row taken from the support image
+
+
+class Samples(NamedTuple):
+    """The frame's traced samples, pixels in scanline order, then the support image's."""
+
+    rgb: np.ndarray  # (n + support, 3) float32
+    depth: np.ndarray  # (n + support,) float32 primary hit distance
+    light: np.ndarray  # (n + support, 3) float32 light buffer irradiance; zero without stochastic lights
+    albedo: np.ndarray  # (n + support, 3) float32 light buffer albedo
+
+
+class Thresholds(NamedTuple):
+    """Section 3.3's resampling thresholds."""
+
+    depth: float
+    lum: float
+    edge: float
+
+
+class CacheRule(NamedTuple):
+    """Section 3.4's running estimate and section 3.2's footprint filter for one frame."""
+
+    frame: float
+    k_min: float
+    k_max: float
+    t_max: float
+    eps_cache: float
+    footprint_samples: int
+    seed: int  # of the footprint's taps
+    stochastic: bool  # the light buffer is accumulated too
+
+
+class _Buffers:
+    """Everything a frame of one size works in, shared by the eyes (they render one after the other), kept
+    across frames: the two coarse meshes, the resampling info, the selection, the sample list given to the
+    tracer and the geometry of the support grid. Replaced when the image or the support size changes."""
+
+    def __init__(self, w: int, h: int, sw: int, sh: int):
+        self.size = (w, h, sw, sh)
+        self.mesh = CoarseMesh()  # at full resolution
+        self.low_mesh = CoarseMesh()  # at support resolution, for the resampling info
+        self.resample = np.empty((sh, sw), bool)
+        self.low_scratch = np.empty((2, sh, sw))  # reprojected depth and luminance
+        self.no_resample = np.zeros((0, 0), bool)  # stand-ins for a frame without history
+        self.no_zinv = np.zeros((0, 0), np.float32)
+        self.selection = Selection(
+            np.empty((h, w), np.uint8),
+            np.empty(h, np.int64),
+            np.zeros(h + 1, np.int64),
+            np.empty(h, np.int64),
+            np.empty(h, np.int64),
+        )
+        self.grid_x, self.grid_y = (np.arange(sw) + 0.5) * w / sw, (np.arange(sh) + 0.5) * h / sh
+        self.low_cols = np.arange(w) * sw // w  # the support column each pixel's resampling info comes from
+        self.footprints = np.empty((nb.config.NUMBA_NUM_THREADS, w), np.float32)  # a row's, per thread
+        # the sample list for the most a frame can trace, every pixel and the support image: pages a frame
+        # never reaches are never touched, so this costs memory only as far as frames fill it
+        most = w * h + sw * sh
+        self.xy, self.keys = np.empty((most, 2), np.float32), np.empty(most, np.int64)
+        self.light = LightBuffer.empty(most)  # zeros: without stochastic lights the tracer leaves it so
+
+    def sample_list(self, n: int) -> tuple[np.ndarray, np.ndarray, LightBuffer]:
+        """xy, keys and light buffer rows for n samples."""
+        return self.xy[:n], self.keys[:n], LightBuffer(self.light.irradiance[:n], self.light.albedo[:n])
+
+
+@kernel
+def _resampling_info(mesh, cur, support, prev_position, full_w, full_h, eps, scratch, out):
     """weier2016 section 3.3 at support resolution: depth or luminance discontinuities between a cell
     and its 4-neighbours in the reprojected support image, grazing surfaces, and uncovered cells."""
+    prev, zinv = mesh.prev, mesh.zinv
+    prev_color, prev_normal = support.color, support.normal
+    depth, lum = scratch[0], scratch[1]
     h, w = zinv.shape
     ph, pw = prev_color.shape[0], prev_color.shape[1]
-    depth = np.empty((h, w))
-    lum = np.empty((h, w))
     for y in nb.prange(h):
         for x in range(w):
             if zinv[y, x] <= 0.0:
                 depth[y, x] = math.nan
                 continue
             depth[y, x] = 1.0 / zinv[y, x]
-            sx, sy = mesh[y, x, 0] * pw / full_w, mesh[y, x, 1] * ph / full_h  # previous support coordinates
+            sx, sy = prev[0, y, x] * pw / full_w, prev[1, y, x] * ph / full_h  # previous support coordinates
             r, g, b = bilinear3(prev_color, sx, sy)
             lum[y, x] = 0.2126 * r + 0.7152 * g + 0.0722 * b
     for y in nb.prange(h):
@@ -126,136 +238,260 @@ def _resampling_info(
                 if ny < 0 or nx < 0 or ny >= h or nx >= w or math.isnan(depth[ny, nx]):
                     continue
                 dn = depth[ny, nx]
-                if abs(dn - d) > eps_depth * min(dn, d):
+                if abs(dn - d) > eps.depth * min(dn, d):
                     mark = True
                 la, lb = lum[y, x], lum[ny, nx]
-                if la + lb > 0.0 and abs(la - lb) / (la + lb) > eps_lum:
+                if la + lb > 0.0 and abs(la - lb) / (la + lb) > eps.lum:
                     mark = True
             if not mark:
                 # grazing test with the previous frame's geometric normal and the direction to its eye
-                sx = min(max(int(mesh[y, x, 0] * pw / full_w), 0), pw - 1)
-                sy = min(max(int(mesh[y, x, 1] * ph / full_h), 0), ph - 1)
+                sx = min(max(int(prev[0, y, x] * pw / full_w), 0), pw - 1)
+                sy = min(max(int(prev[1, y, x] * ph / full_h), 0), ph - 1)
                 nx_, ny_, nz_ = prev_normal[sy, sx, 0], prev_normal[sy, sx, 1], prev_normal[sy, sx, 2]
                 if nx_ != 0.0 or ny_ != 0.0 or nz_ != 0.0:
-                    vx = prev_cam_pos[0] - mesh[y, x, 2]
-                    vy = prev_cam_pos[1] - mesh[y, x, 3]
-                    vz = prev_cam_pos[2] - mesh[y, x, 4]
+                    px, py, pz = view_point(cur, x + 0.5, y + 0.5, d)
+                    vx, vy, vz = prev_position[0] - px, prev_position[1] - py, prev_position[2] - pz
                     inv = 1.0 / max(math.sqrt(vx * vx + vy * vy + vz * vz), 1e-30)
-                    mark = max((nx_ * vx + ny_ * vy + nz_ * vz) * inv, 0.0) < eps_edge
+                    mark = max((nx_ * vx + ny_ * vy + nz_ * vz) * inv, 0.0) < eps.edge
             out[y, x] = mark
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _cache_update(
-    pixels,
-    sample_rgb,
-    sample_depth,
-    sample_light,
-    fresh,
-    covered,
-    re_color,
-    re_state,
-    re_dist,
-    frame,
-    k_min,
-    k_max,
-    t_max,
-    eps_cache,
-    out_color,
-    out_state,
-    has_color,
-):
-    """weier2016 section 3.4 for every traced pixel; reprojected pixels that were not traced keep their cache."""
-    h, w = covered.shape
+@kernel
+def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, selection):
+    """Section 3.1's ray generation (pixel q traced when xi_q < p(q), sampling.bernoulli_mask's xi) and the
+    pixels of cells marked in the resampling info, with each pixel's flags and each row's sample count."""
+    flags, counts, resampled = selection.flags, selection.counts, selection.resampled
+    h, w = flags.shape
+    sh = resample.shape[0]
+    history = zinv.shape[0] == h
     for y in nb.prange(h):
+        ly = y * sh // h
+        n = nr = 0
         for x in range(w):
-            has_color[y, x] = covered[y, x]
-            if covered[y, x]:
-                for c in range(3):
-                    out_color[y, x, c] = re_color[y, x, c]
-                for c in range(STATE):
-                    out_state[y, x, c] = re_state[y, x, c]
-    for s in nb.prange(pixels.shape[0]):
-        i = pixels[s]
-        y, x = i // w, i % w
-        d = sample_depth[s]
-        new = fresh[s] or not covered[y, x]
-        if not new:
-            far_sample, far_cache = d >= FAR or math.isinf(d), re_dist[y, x] >= 0.5 * FAR
-            if far_sample != far_cache or (not far_sample and abs(re_dist[y, x] - d) > eps_cache * d):
-                new = True
-        if new:
-            alpha, rho = 1.0, 1.0
-        else:
-            k = k_of_age(frame - re_state[y, x, 2], k_min, k_max, t_max)
-            alpha, rho = running_estimate(max(re_state[y, x, 1], 1.0), k)
-        for c in range(3):
-            out_color[y, x, c] = alpha * sample_rgb[s, c] + (1.0 - alpha) * (0.0 if new else re_color[y, x, c])
-            prev_e = 0.0 if new else re_state[y, x, 3 + c]
-            out_state[y, x, 3 + c] = alpha * sample_light[s, c] + (1.0 - alpha) * prev_e
-        out_state[y, x, 0], out_state[y, x, 1], out_state[y, x, 2] = alpha, rho, frame
-        has_color[y, x] = True
+            e = ecc[y, x]
+            f = COVERED if history and zinv[y, x] > 0.0 else 0
+            if sh > 0 and resample[ly, low_cols[x]]:
+                f |= TRACED | FRESH | RESAMPLE
+                nr += 1
+            elif e < foveal.r0:  # p(q) = 1
+                f |= TRACED | FRESH
+            else:
+                p = foveal_probability(e, foveal.r0, foveal.r1, foveal.p_min)
+                if p >= 1.0 or uniform(y * w + x + (seed << 32), 0x5A3, frame) < p:
+                    f |= TRACED
+            flags[y, x] = f
+            n += f & TRACED
+        counts[y] = n
+        resampled[y] = nr
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _merge(support, has_color, color):
-    """Pixels without colour take the bilinearly upsampled support image."""
-    h, w = has_color.shape
+@kernel
+def _fill_samples(flags, row_start, grid_x, grid_y, key_base, xy, keys):
+    """Pixel centres and random-stream keys of the traced pixels in scanline order, then of the support grid
+    (base.pixel_keys: stream 0 for pixels, 2 for the support image)."""
+    h, w = flags.shape
+    for y in nb.prange(h):
+        s = row_start[y]
+        for x in range(w):
+            if flags[y, x] & TRACED:
+                xy[s, 0], xy[s, 1] = x + 0.5, y + 0.5
+                keys[s] = y * w + x + key_base
+                s += 1
+    n, sw = row_start[h], grid_x.shape[0]
+    for j in nb.prange(grid_y.shape[0]):
+        for i in range(sw):
+            k = n + j * sw + i
+            xy[k, 0], xy[k, 1] = grid_x[i], grid_y[j]
+            keys[k] = j * sw + i + key_base + SUPPORT_STREAM
+
+
+@inline
+def _moved(depth, dist, eps_cache):
+    """Section 3.4: the sample's surface is not the cached one: one of them a miss and the other not, or
+    their distances from the eye apart by more than eps_cache of the sample's."""
+    far_sample, far_cache = depth >= FAR or math.isinf(depth), dist >= 0.5 * FAR
+    return far_sample != far_cache or (not far_sample and abs(dist - depth) > eps_cache * depth)
+
+
+@serial
+def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule, scratch, final, image):
+    flags, row_start = selection.flags, selection.row_start
+    prev, zinv = mesh.prev, mesh.zinv
+    prev_color, prev_info, prev_light = previous.color, previous.info, previous.light
+    rgb, sample_depth, sample_light = samples.rgb, samples.depth, samples.light
+    color, info, light = final.color, final.info, final.light
+    h, w = flags.shape
     sh, sw = support.shape[0], support.shape[1]
-    for y in nb.prange(h):
+    spread_row = scratch[nb.get_thread_id()]
+    history = zinv.shape[0] == h  # else no pixel is covered, and the mesh buffers may be empty
+    for y in range(y0, y1):
+        if history:
+            row_footprints(prev, flags, COVERED, y, spread_row)
+        s = row_start[y]
+        merged = 0
         for x in range(w):
-            if not has_color[y, x]:
+            f = flags[y, x]
+            covered, traced = (f & COVERED) != 0, (f & TRACED) != 0
+            new = traced and (
+                (f & FRESH) != 0
+                or not covered
+                or _moved(
+                    sample_depth[s], np.float32(view_distance(cur, x + 0.5, y + 0.5, 1.0 / zinv[y, x])), rule.eps_cache
+                )
+            )
+            r = g = b = 0.0
+            jy = jx = 0
+            if covered and not new:  # the previous frame seen through the mesh
+                qx, qy, spread = prev[0, y, x], prev[1, y, x], spread_row[x]
+                if spread <= 1.5 or rule.footprint_samples <= 1:
+                    r, g, b = bilinear3(prev_color, qx, qy)
+                else:
+                    key = (y * w + x) * 64 + rule.seed
+                    r, g, b = gaussian_taps(prev_color, qx, qy, 0.5 * spread, rule.footprint_samples, key)
+                r, g, b = np.float32(r), np.float32(g), np.float32(b)  # the reprojected image is float32
+                jy, jx = nearest_texel(qx, qy, w, h)  # cache info is not blended: the nearest texel
+            if traced:
+                alpha, rho = 1.0, 1.0
+                if not new:
+                    k = k_of_age(rule.frame - prev_info[jy, jx, 2], rule.k_min, rule.k_max, rule.t_max)
+                    alpha, rho = running_estimate(max(prev_info[jy, jx, 1], 1.0), k)
+                color[y, x, 0] = alpha * rgb[s, 0] + (1.0 - alpha) * r
+                color[y, x, 1] = alpha * rgb[s, 1] + (1.0 - alpha) * g
+                color[y, x, 2] = alpha * rgb[s, 2] + (1.0 - alpha) * b
+                info[y, x, 0], info[y, x, 1], info[y, x, 2] = alpha, rho, rule.frame
+                if rule.stochastic:
+                    for c in range(3):
+                        kept = 0.0 if new else prev_light[jy, jx, c]
+                        light[y, x, c] = alpha * sample_light[s, c] + (1.0 - alpha) * kept
+                s += 1
+            elif covered:
+                color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
+                for c in range(INFO):
+                    info[y, x, c] = prev_info[jy, jx, c]
+                if rule.stochastic:
+                    for c in range(3):
+                        light[y, x, c] = prev_light[jy, jx, c]
+            else:  # the merge: the bilinearly upsampled support image
                 r, g, b = bilinear3(support, (x + 0.5) * sw / w, (y + 0.5) * sh / h)
                 color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
+                for c in range(INFO):
+                    info[y, x, c] = 0.0
+                if rule.stochastic:
+                    for c in range(3):
+                        light[y, x, c] = 0.0
+                merged += 1
+            for c in range(3):
+                image[y, x, c] = color[y, x, c]
+        selection.merged[y] = merged
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _post(pixels, resampled, sample_light, sample_albedo, reconstructed, state, radius, taps, seed, color):
-    """weier2016 section 3.5: a resampled pixel borrows the accumulated light buffer of the closest
-    reconstructed pixel among `taps` random taps in a window sized by the nearest reconstructed pixel
-    along the image axes."""
-    h, w = reconstructed.shape
-    for s in nb.prange(pixels.shape[0]):
-        if not resampled[s]:
+@kernel
+def _update(selection, mesh, cur, previous, samples, support, rule, scratch, final, image):
+    """Sections 3.2 and 3.4 in one pass: each pixel's previous colour and cache info gathered through the
+    mesh, its sample merged into them with the running estimate (or replacing them: fovea, resampled,
+    uncovered or moved), and pixels left without colour taken from the support image; into the final
+    colour, cache info and the caller's image."""
+    h = selection.flags.shape[0]
+    for b in nb.prange((h + ROWS - 1) // ROWS):
+        _update_rows(
+            b * ROWS,
+            min(h, (b + 1) * ROWS),
+            selection,
+            mesh,
+            cur,
+            previous,
+            samples,
+            support,
+            rule,
+            scratch,
+            final,
+            image,
+        )
+
+
+@inline
+def _reconstructed(flags):
+    """Covered by the reprojection and not resampled: a pixel whose cache the post filter may borrow."""
+    return flags & (COVERED | RESAMPLE) == COVERED
+
+
+@serial
+def _post_rows(y0, y1, selection, samples, light, radius, taps, seed, color, image):
+    for y in range(y0, y1):
+        if selection.resampled[y]:
+            _post_row(y, selection, samples, light, radius, taps, seed, color, image)
+
+
+@inline
+def _post_row(y, selection, samples, light, radius, taps, seed, color, image):
+    flags = selection.flags
+    h, w = flags.shape
+    s = selection.row_start[y] - 1
+    for x in range(w):
+        if not flags[y, x] & TRACED:
             continue
-        i = pixels[s]
-        y, x = i // w, i % w
+        s += 1
+        if not flags[y, x] & RESAMPLE:
+            continue
         reach = 0
         for dist in range(1, radius + 1):
             if (
-                (x + dist < w and reconstructed[y, x + dist])
-                or (x - dist >= 0 and reconstructed[y, x - dist])
-                or (y + dist < h and reconstructed[y + dist, x])
-                or (y - dist >= 0 and reconstructed[y - dist, x])
+                (x + dist < w and _reconstructed(flags[y, x + dist]))
+                or (x - dist >= 0 and _reconstructed(flags[y, x - dist]))
+                or (y + dist < h and _reconstructed(flags[y + dist, x]))
+                or (y - dist >= 0 and _reconstructed(flags[y - dist, x]))
             ):
                 reach = dist
                 break
         if reach == 0:
             continue
+        i = y * w + x
         best, best_d2 = -1, 1e30
         for t in range(taps):
             ox = int(math.floor((2.0 * uniform(i + seed, 11, 2 * t) - 1.0) * reach + 0.5))
             oy = int(math.floor((2.0 * uniform(i + seed, 11, 2 * t + 1) - 1.0) * reach + 0.5))
             ty, tx = y + oy, x + ox
-            if 0 <= ty < h and 0 <= tx < w and reconstructed[ty, tx] and ox * ox + oy * oy < best_d2:
+            if 0 <= ty < h and 0 <= tx < w and _reconstructed(flags[ty, tx]) and ox * ox + oy * oy < best_d2:
                 best, best_d2 = ty * w + tx, ox * ox + oy * oy
         if best < 0:
             continue
         by, bx = best // w, best % w
         for c in range(3):
             # colour minus its own stochastic part is >= 0 exactly; max() only absorbs float rounding
-            rest = max(color[y, x, c] - sample_albedo[s, c] * sample_light[s, c], 0.0)
-            color[y, x, c] = rest + sample_albedo[s, c] * state[by, bx, 3 + c]
+            rest = max(color[y, x, c] - samples.albedo[s, c] * samples.light[s, c], 0.0)
+            color[y, x, c] = rest + samples.albedo[s, c] * light[by, bx, c]
+            image[y, x, c] = color[y, x, c]
 
 
-@dataclass
+@kernel
+def _post(selection, samples, light, radius, taps, seed, color, image):
+    """weier2016 section 3.5: a resampled pixel borrows the accumulated light buffer of the closest
+    reconstructed pixel among `taps` random taps in a window sized by the nearest reconstructed pixel
+    along the image axes."""
+    h = selection.flags.shape[0]
+    for b in nb.prange((h + ROWS - 1) // ROWS):
+        _post_rows(b * ROWS, min(h, (b + 1) * ROWS), selection, samples, light, radius, taps, seed, color, image)
+
+
 class _EyeState:
-    camera: EyeCamera
-    color: np.ndarray  # (h, w, 3) final colour
-    state: np.ndarray  # (h, w, STATE) cache info
-    support_depth: np.ndarray  # (sh, sw)
-    support_normal: np.ndarray  # (sh, sw, 3) geometric normal
-    support_color: np.ndarray  # (sh, sw, 3)
+    """One eye's history: the camera of its newest frame, its final colour and cache info double-buffered
+    (the newest is read while the next is written) and the newest support image and G-buffer."""
+
+    def __init__(self, w: int, h: int, sw: int, sh: int):
+        self.size = (w, h, sw, sh)
+        self.camera: EyeCamera | None = None
+        self.finals = (Final.empty(w, h), Final.empty(w, h))
+        self.newest = 0
+        self.support = Support.empty(sw, sh)
+
+
+def _output(out: np.ndarray | None, w: int, h: int) -> np.ndarray:
+    """The caller's image buffer, checked, or a new one."""
+    if out is None:
+        return np.empty((h, w, 3), np.float32)
+    if out.shape != (h, w, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous ({h}, {w}, 3) float32 array, got {out.dtype} {out.shape}")
+    return out
 
 
 class Weier16(Configurable):
@@ -264,12 +500,11 @@ class Weier16(Configurable):
     name = "weier16"
     Params = Weier16Params
     stages = (
-        Stage("sample"),
         Stage("reproject", frozenset({HISTORY})),
         Stage("resample_info", frozenset({HISTORY})),
+        Stage("sample"),
         Stage("trace"),
-        Stage("cache_update"),
-        Stage("merge"),
+        Stage("cache_update"),  # with the reprojected frame's gather and the merge, in one pass
         Stage("post", frozenset({HISTORY, STOCHASTIC})),
     )
 
@@ -277,6 +512,7 @@ class Weier16(Configurable):
         self.tracer = tracer
         self.features = scene_features(tracer)
         self._eyes: dict[str, _EyeState] = {}
+        self._buffers: _Buffers | None = None
         self._gbuffers = GBufferPool()
         self._configure(params)
 
@@ -288,116 +524,92 @@ class Weier16(Configurable):
         foveal = params.foveal()
         self.params, self.foveal = params, foveal
 
-    def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
+    def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         cam, p, t = request.camera, self.params, request.frame
         w, h = cam.width, cam.height
         sw, sh = support_size(p, w, h)
-        prev = self._eyes.get(request.eye)
-        history = prev is not None and prev.color.shape[:2] == (h, w) and prev.support_depth.shape == (sh, sw)
+        image = _output(out, w, h)
+        if self._buffers is None or self._buffers.size != (w, h, sw, sh):
+            self._buffers = _Buffers(w, h, sw, sh)
+        buf, eye = self._buffers, self._eyes.get(request.eye)
+        history = eye is not None and eye.size == (w, h, sw, sh) and eye.camera is not None
+        if not history:
+            eye = self._eyes[request.eye] = _EyeState(w, h, sw, sh)
         steps = plan(self.stages, self.features | ({HISTORY} if history else set()))
-        gx, gy = support_grid(w, h, sw, sh)
-        with stats.stage("sample"):
-            ecc = eccentricity_map(cam, request.gaze)
-            mask = bernoulli_mask(ecc, self.foveal, request.seed, t)
-            fovea = ecc < self.foveal.r0
-        covered = np.zeros((h, w), bool)
-        re_color = re_state = re_dist = None
+        previous, final = eye.finals[eye.newest], eye.finals[1 - eye.newest]
+        mesh, resample = buf.mesh.image, buf.no_resample
         if "reproject" in steps:
             with stats.stage("reproject"):
-                mesh, zinv = reproject_mesh(prev.camera, gx, gy, prev.support_depth, cam, w, h)
-                re_color, re_state, re_dist = gather_previous(
-                    mesh, zinv, cam, prev.color, prev.state, p.footprint_samples, request.seed + t
-                )
-                covered = zinv > 0
-        resample = np.zeros((h, w), bool)
+                mesh = buf.mesh.reproject(eye.camera, buf.grid_x, buf.grid_y, eye.support.depth, cam, w, h)
         if "resample_info" in steps:
             with stats.stage("resample_info"):
-                low_mesh, low_zinv = reproject_mesh(prev.camera, gx, gy, prev.support_depth, cam, sw, sh)
-                low = np.empty((sh, sw), bool)
+                low = buf.low_mesh.reproject(eye.camera, buf.grid_x, buf.grid_y, eye.support.depth, cam, sw, sh)
+                eps = Thresholds(p.eps_depth, p.eps_lum, p.eps_edge)
+                low_cam = camera_arrays(cam, sw, sh)
                 _resampling_info(
-                    low_mesh,
-                    low_zinv,
-                    prev.support_color,
-                    prev.support_normal,
-                    prev.camera.position,
+                    low,
+                    low_cam,
+                    eye.support,
+                    eye.camera.position,
                     float(w),
                     float(h),
-                    p.eps_depth,
-                    p.eps_lum,
-                    p.eps_edge,
-                    low,
+                    eps,
+                    buf.low_scratch,
+                    buf.resample,
                 )
-                resample = low[(np.arange(h) * sh // h)[:, None], (np.arange(w) * sw // w)[None, :]]
+                resample = buf.resample
+        sel, stochastic = buf.selection, STOCHASTIC in self.features
+        with stats.stage("sample"):
+            ecc = eccentricity_map(cam, request.gaze)
+            dynamic(
+                _select,
+                ecc,
+                self.foveal,
+                request.seed,
+                t,
+                mesh.zinv if history else buf.no_zinv,
+                resample,
+                buf.low_cols,
+                sel,
+            )
+            np.cumsum(sel.counts, out=sel.row_start[1:])
+            n = int(sel.row_start[-1])
+            xy, keys, light = buf.sample_list(n + sw * sh)
+            _fill_samples(
+                sel.flags, sel.row_start, buf.grid_x, buf.grid_y, (request.seed << 32) + t * (1 << 22), xy, keys
+            )
         with stats.stage("trace"):
-            traced = mask | resample
-            pixels = np.flatnonzero(traced)
-            xy = np.empty((len(pixels) + sw * sh, 2), np.float32)
-            xy[: len(pixels), 0] = pixels % w + 0.5
-            xy[: len(pixels), 1] = pixels // w + 0.5
-            xy[len(pixels) :, 0] = np.tile(gx, sh)
-            xy[len(pixels) :, 1] = np.repeat(gy, sw)
-            keys = np.concatenate(
-                [pixel_keys(pixels, request.seed, t), pixel_keys(np.arange(sw * sh), request.seed, t, 2)]
-            )
             gbuf = self._gbuffers.rows(len(xy))
-            light = LightBuffer.empty(len(xy)) if STOCHASTIC in self.features else None
-            rgb = self.tracer.trace_samples(cam, xy, keys, stats, gbuf, light)
-        n = len(pixels)
+            rgb = self.tracer.trace_samples(cam, xy, keys, stats, gbuf, light if stochastic else None)
+        samples = Samples(rgb, gbuf.primary.depth, light.irradiance, light.albedo)
         with stats.stage("cache_update"):
-            color = np.zeros((h, w, 3), np.float32)
-            state = np.zeros((h, w, STATE), np.float32)
-            has_color = np.empty((h, w), bool)
-            fresh = (fovea | resample).reshape(-1)[pixels]
-            if re_color is None:
-                re_color, re_state, re_dist = color, state, np.full((h, w), np.nan, np.float32)
-            sample_light = light.irradiance[:n] if light is not None else np.zeros((n, 3), np.float32)
-            _cache_update(
-                pixels,
-                rgb[:n],
-                gbuf.primary.depth[:n],
-                sample_light,
-                fresh,
-                covered,
-                re_color,
-                re_state,
-                re_dist,
-                float(t),
-                p.k_min,
-                p.k_max,
-                p.t_max,
-                p.eps_cache,
-                color,
-                state,
-                has_color,
+            support = eye.support
+            np.copyto(support.depth, gbuf.primary.depth[n:].reshape(sh, sw))
+            np.copyto(support.normal, gbuf.primary.normal_geometric[n:].reshape(sh, sw, 3))
+            np.copyto(support.color, rgb[n:].reshape(sh, sw, 3))
+            rule = CacheRule(
+                float(t), p.k_min, p.k_max, p.t_max, p.eps_cache, p.footprint_samples, request.seed + t, stochastic
             )
-        support_color = rgb[n:].reshape(sh, sw, 3)
-        with stats.stage("merge"):
-            _merge(support_color, has_color, color)
-        if p.post and "post" in steps and light is not None:
+            cam_arrays = camera_arrays(cam)
+            dynamic(
+                _update, sel, mesh, cam_arrays, previous, samples, support.color, rule, buf.footprints, final, image
+            )
+        if p.post and "post" in steps:
             with stats.stage("post"):
-                reconstructed = has_color & ~resample & covered
-                _post(
-                    pixels,
-                    resample.reshape(-1)[pixels],
-                    light.irradiance[:n],
-                    light.albedo[:n],
-                    reconstructed,
-                    state,
+                dynamic(
+                    _post,
+                    sel,
+                    samples,
+                    final.light,
                     p.post_radius,
                     p.post_samples,
                     request.seed + t,
-                    color,
+                    final.color,
+                    image,
                 )
-        self._eyes[request.eye] = _EyeState(
-            cam,
-            color,
-            state,
-            gbuf.primary.depth[n:].reshape(sh, sw).copy(),
-            gbuf.primary.normal_geometric[n:].reshape(sh, sw, 3).copy(),
-            support_color,
-        )
+        eye.camera, eye.newest = cam, 1 - eye.newest
         stats.metrics["sample_fraction"] = n / (w * h)
-        stats.metrics["resampled_pixels"] = int(resample.sum())
+        stats.metrics["resampled_pixels"] = int(sel.resampled.sum())
         stats.metrics["support_rays"] = sw * sh
-        stats.metrics["merged_pixels"] = int((~has_color).sum())
-        return color
+        stats.metrics["merged_pixels"] = int(sel.merged.sum())
+        return image

@@ -14,6 +14,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
+from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.rng import uniform
 
@@ -28,12 +29,14 @@ class CameraArrays(NamedTuple):
     frustum: np.ndarray  # (6,) tan_left, tan_right, tan_up, tan_down, width, height
 
 
-def camera_arrays(camera: EyeCamera) -> CameraArrays:
-    frustum = np.array([camera.tan_left, camera.tan_right, camera.tan_up, camera.tan_down, camera.width, camera.height])
+def camera_arrays(camera: EyeCamera, width: int | None = None, height: int | None = None) -> CameraArrays:
+    """The camera's arrays; width and height: its frustum over a pixel grid of that size instead of its own."""
+    w, h = width or camera.width, height or camera.height
+    frustum = np.array([camera.tan_left, camera.tan_right, camera.tan_up, camera.tan_down, w, h], np.float64)
     return CameraArrays(np.asarray(camera.position, np.float64), np.asarray(camera.rotation, np.float64), frustum)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def ray_direction(cam, x, y):
     """World unit direction of the view ray through continuous pixel (x, y)."""
     f = cam.frustum
@@ -49,7 +52,7 @@ def ray_direction(cam, x, y):
     )
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def project(cam, px, py, pz):
     """Continuous pixel coordinates and distance from the camera of world point p; x is NaN behind it."""
     dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
@@ -66,7 +69,7 @@ def project(cam, px, py, pz):
     return x, y, dist
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def world_point(cam, x, y, depth):
     """The point at hit distance `depth` along the view ray of pixel (x, y); FAR for a miss."""
     dx, dy, dz = ray_direction(cam, x, y)
@@ -74,7 +77,7 @@ def world_point(cam, x, y, depth):
     return cam.position[0] + d * dx, cam.position[1] + d * dy, cam.position[2] + d * dz
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
+@kernel
 def _backproject(cur, depth, prev, out_xy, out_dist):
     h, w = depth.shape
     for y in nb.prange(h):
@@ -96,7 +99,7 @@ def backproject(current: EyeCamera, depth: np.ndarray, previous: EyeCamera) -> t
     return xy, dist
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def nearest_index(x, y, w, h):
     """Row-major index of the pixel containing continuous (x, y), or -1 outside the image or NaN."""
     if not (x >= 0.0 and y >= 0.0 and x < w and y < h):
@@ -104,7 +107,7 @@ def nearest_index(x, y, w, h):
     return int(y) * w + int(x)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def bilinear3(image, x, y):
     """The three channels of image (h, w, 3) at continuous (x, y), clamped at the border."""
     h, w = image.shape[0], image.shape[1]
@@ -124,13 +127,72 @@ def bilinear3(image, x, y):
 # -- weier2016 section 3.2: reprojection through a coarse mesh built from the support G-buffer --
 
 NEAR = 1e-4  # metres: mesh vertices closer to (or behind) the current eye drop their triangles
-NEIGHBOUR_DX, NEIGHBOUR_DY = (-1, 1, 0, 0), (0, 0, -1, 1)
-MESH_ATTRS = 5  # out: previous pixel x, y and world x, y, z
-VERTEX_ATTRS = 6  # in: previous pixel x z, y z and z (z: previous view depth), world x, y, z: all linear
-# in the world on a planar facet, so perspective-correct interpolation recovers x and y exactly
+VERTEX_ATTRS = 3  # previous pixel x z, y z and z (z: previous view depth): linear in the world on a planar
+# facet, so perspective-correct interpolation recovers x and y exactly
+ROWS = 4  # rows of a block, the unit of work of the row-parallel kernels (see hmdrt/trace/blocks.py)
+BANDS = 64  # bands of image rows the rasteriser sorts triangles into, one parallel task each
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+def dynamic(kernel, *args) -> None:
+    """Run a parallel kernel with numba's chunk size at one iteration: a thread takes the next block when it
+    is free rather than a fixed share, for kernels whose blocks cost unequal time (fovea or periphery, empty
+    bands); on a machine shared with other processes, a thread that loses its core then delays one block.
+    (Set around the call: set inside a kernel, it keeps numba from caching the kernel.)"""
+    chunk = nb.set_parallel_chunksize(1)
+    try:
+        kernel(*args)
+    finally:
+        nb.set_parallel_chunksize(chunk)
+
+
+class MeshVertices(NamedTuple):
+    """The support grid's vertices in the current view and the attributes interpolated across them."""
+
+    screen: np.ndarray  # (hs, ws, 3) float64: current pixel x, y and view depth
+    attr: np.ndarray  # (hs, ws, VERTEX_ATTRS) float64
+
+
+class TriangleBins(NamedTuple):
+    """The mesh's triangles sorted into bands of band_rows image rows (a counting sort)."""
+
+    rows: np.ndarray  # (triangles, 2) int64: the rows [r0, r1) a triangle can cover, empty when culled
+    starts: np.ndarray  # (bands + 1,) int64: each band's first entry in members
+    members: np.ndarray  # (>= starts[-1],) int64: triangle indices, band by band
+    band_rows: int
+
+
+class MeshImage(NamedTuple):
+    """The rasterised mesh per pixel: the previous frame's pixel coordinates of the surface seen there and
+    its 1/z (current view depth), 0 where the mesh does not cover the pixel. The surface point itself lies
+    on the pixel's view ray at depth 1/zinv (see view_point)."""
+
+    prev: np.ndarray  # (2, h, w) float32: x and y planes
+    zinv: np.ndarray  # (h, w) float32
+
+
+@inline
+def view_point(cam, x, y, z):
+    """The world point at view depth z (along -Z) on the view ray through continuous pixel (x, y)."""
+    f, r = cam.frustum, cam.rotation
+    tx = f[0] + x * (f[1] - f[0]) / f[4]
+    ty = f[2] - y * (f[2] - f[3]) / f[5]
+    return (
+        cam.position[0] + z * (r[0, 0] * tx + r[0, 1] * ty - r[0, 2]),
+        cam.position[1] + z * (r[1, 0] * tx + r[1, 1] * ty - r[1, 2]),
+        cam.position[2] + z * (r[2, 0] * tx + r[2, 1] * ty - r[2, 2]),
+    )
+
+
+@inline
+def view_distance(cam, x, y, z):
+    """The distance from the eye of the point at view depth z on the view ray through pixel (x, y)."""
+    f = cam.frustum
+    tx = f[0] + x * (f[1] - f[0]) / f[4]
+    ty = f[2] - y * (f[2] - f[3]) / f[5]
+    return z * math.sqrt(tx * tx + ty * ty + 1.0)
+
+
+@inline
 def project_view(cam, px, py, pz):
     """Continuous pixel coordinates and view depth (along -Z, positive in front) of world point p."""
     dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
@@ -144,8 +206,9 @@ def project_view(cam, px, py, pz):
     return (lx / z - f[0]) / (f[1] - f[0]) * f[4], (f[2] - ly / z) / (f[2] - f[3]) * f[5], z
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _mesh_vertices(prev, grid_x, grid_y, depth, cur, screen, attr):
+@kernel
+def _mesh_vertices(prev, grid_x, grid_y, depth, cur, vertices):
+    screen, attr = vertices.screen, vertices.attr  # written through locals: see hmdrt/trace/blocks.py
     hs, ws = depth.shape
     for j in nb.prange(hs):
         for i in range(ws):
@@ -153,10 +216,9 @@ def _mesh_vertices(prev, grid_x, grid_y, depth, cur, screen, attr):
             screen[j, i, 0], screen[j, i, 1], screen[j, i, 2] = project_view(cur, px, py, pz)
             zp = project_view(prev, px, py, pz)[2]
             attr[j, i, 0], attr[j, i, 1], attr[j, i, 2] = grid_x[i] * zp, grid_y[j] * zp, zp
-            attr[j, i, 3], attr[j, i, 4], attr[j, i, 5] = px, py, pz
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def _triangle(j, i, t):
     """Grid vertices (row, column) of triangle t (0 or 1) of grid cell (j, i)."""
     if t == 0:
@@ -164,7 +226,7 @@ def _triangle(j, i, t):
     return (j, i), (j + 1, i + 1), (j + 1, i)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def _row_range(screen, a, b, c, height):
     """Rows [r0, r1) whose pixel centres the triangle can cover; empty when culled by the near plane."""
     if screen[a[0], a[1], 2] <= NEAR or screen[b[0], b[1], 2] <= NEAR or screen[c[0], c[1], 2] <= NEAR:
@@ -175,194 +237,212 @@ def _row_range(screen, a, b, c, height):
     return r0, max(r0, r1)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _raster_triangle(screen, attr, a, b, c, y0, y1, width, out_attr, out_zinv):
-    """Rasterise triangle (a, b, c) of grid vertices into rows [y0, y1) with a 1/z depth test."""
-    ax, ay, az = screen[a[0], a[1], 0], screen[a[0], a[1], 1], screen[a[0], a[1], 2]
-    bx, by, bz = screen[b[0], b[1], 0], screen[b[0], b[1], 1], screen[b[0], b[1], 2]
-    cx, cy, cz = screen[c[0], c[1], 0], screen[c[0], c[1], 1], screen[c[0], c[1], 2]
-    ymin, ymax = min(ay, min(by, cy)), max(ay, max(by, cy))
-    ry0, ry1 = max(y0, int(math.ceil(ymin - 0.5))), min(y1, int(math.floor(ymax - 0.5)) + 1)
-    xmin, xmax = min(ax, min(bx, cx)), max(ax, max(bx, cx))
-    rx0, rx1 = max(0, int(math.ceil(xmin - 0.5))), min(width, int(math.floor(xmax - 0.5)) + 1)
-    area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-    if ry0 >= ry1 or rx0 >= rx1 or abs(area) < 1e-12:
-        return
-    inv_area = 1.0 / area
-    iza, izb, izc = 1.0 / az, 1.0 / bz, 1.0 / cz
-    # per-vertex attributes times 1/z, so each pixel only blends them
-    a0, a1, a2 = attr[a[0], a[1], 0] * iza, attr[a[0], a[1], 1] * iza, attr[a[0], a[1], 2] * iza
-    a3, a4, a5 = attr[a[0], a[1], 3] * iza, attr[a[0], a[1], 4] * iza, attr[a[0], a[1], 5] * iza
-    b0, b1, b2 = attr[b[0], b[1], 0] * izb, attr[b[0], b[1], 1] * izb, attr[b[0], b[1], 2] * izb
-    b3, b4, b5 = attr[b[0], b[1], 3] * izb, attr[b[0], b[1], 4] * izb, attr[b[0], b[1], 5] * izb
-    c0, c1, c2 = attr[c[0], c[1], 0] * izc, attr[c[0], c[1], 1] * izc, attr[c[0], c[1], 2] * izc
-    c3, c4, c5 = attr[c[0], c[1], 3] * izc, attr[c[0], c[1], 4] * izc, attr[c[0], c[1], 5] * izc
-    # barycentric weights are affine in the pixel position: step them along x
-    dwa_dx, dwb_dx = (by - cy) * inv_area, (cy - ay) * inv_area
-    for y in range(ry0, ry1):
-        sy = y + 0.5
-        sx = rx0 + 0.5
-        wa = ((bx - sx) * (cy - sy) - (by - sy) * (cx - sx)) * inv_area
-        wb = ((cx - sx) * (ay - sy) - (cy - sy) * (ax - sx)) * inv_area
-        for x in range(rx0, rx1):
-            wc = 1.0 - wa - wb
-            if wa >= 0.0 and wb >= 0.0 and wc >= 0.0:
-                iz = wa * iza + wb * izb + wc * izc
-                if iz > out_zinv[y, x]:
-                    out_zinv[y, x] = iz
-                    zp = wa * a2 + wb * b2 + wc * c2
-                    out_attr[y, x, 0] = (wa * a0 + wb * b0 + wc * c0) / zp
-                    out_attr[y, x, 1] = (wa * a1 + wb * b1 + wc * c1) / zp
-                    out_attr[y, x, 2] = (wa * a3 + wb * b3 + wc * c3) / iz
-                    out_attr[y, x, 3] = (wa * a4 + wb * b4 + wc * c4) / iz
-                    out_attr[y, x, 4] = (wa * a5 + wb * b5 + wc * c5) / iz
-            wa += dwa_dx
-            wb += dwb_dx
-
-
-@nb.njit(cache=True, nogil=True)
-def _triangle_rows(screen, height, rows):
-    hs, ws = screen.shape[0], screen.shape[1]
-    for j in range(hs - 1):
+@serial
+def _grid_rows_triangles(j0, j1, screen, height, rows):
+    ws = screen.shape[1]
+    for j in range(j0, j1):
         for i in range(ws - 1):
             for t in range(2):
                 a, b, c = _triangle(j, i, t)
-                rows[(j * (ws - 1) + i) * 2 + t] = _row_range(screen, a, b, c, height)
+                r0, r1 = _row_range(screen, a, b, c, height)
+                rows[(j * (ws - 1) + i) * 2 + t, 0] = r0
+                rows[(j * (ws - 1) + i) * 2 + t, 1] = r1
 
 
-@nb.njit(cache=True, nogil=True)
-def _bin_triangles(rows, band_rows, bands):
-    """Triangle indices per band of rows (a counting sort): start offsets (bands + 1) and the list."""
-    counts = np.zeros(bands + 1, np.int64)
+@kernel
+def _triangle_rows(screen, height, rows):
+    cells = screen.shape[0] - 1
+    for b in nb.prange((cells + ROWS - 1) // ROWS):
+        _grid_rows_triangles(b * ROWS, min(cells, (b + 1) * ROWS), screen, height, rows)
+
+
+@serial
+def _count_bins(rows, band_rows, starts):
+    """Entries per band, summed into starts[band + 1]; returns the total."""
+    starts[:] = 0
     for t in range(rows.shape[0]):
         r0, r1 = rows[t, 0], rows[t, 1]
         if r1 > r0:
             for band in range(r0 // band_rows, (r1 - 1) // band_rows + 1):
-                counts[band + 1] += 1
-    starts = np.cumsum(counts)
-    fill = starts[:-1].copy()
-    members = np.empty(starts[-1], np.int64)
+                starts[band + 1] += 1
+    for band in range(1, starts.shape[0]):
+        starts[band] += starts[band - 1]
+    return starts[-1]
+
+
+@serial
+def _fill_bins(rows, band_rows, starts, members):
+    """The triangles of each band into members, using starts[band] as the band's cursor and shifting the
+    cursors back to the starts afterwards."""
     for t in range(rows.shape[0]):
         r0, r1 = rows[t, 0], rows[t, 1]
         if r1 > r0:
             for band in range(r0 // band_rows, (r1 - 1) // band_rows + 1):
-                members[fill[band]] = t
-                fill[band] += 1
-    return starts, members
+                members[starts[band]] = t
+                starts[band] += 1
+    for band in range(starts.shape[0] - 1, 0, -1):
+        starts[band] = starts[band - 1]
+    starts[0] = 0
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _raster_mesh(screen, attr, width, height, band_rows, starts, members, out_attr, out_zinv):
+@serial
+def _raster_band(y0, vertices, bins, image):
+    """Rasterise the band's triangles into rows [y0, y0 + band_rows) with a 1/z depth test. (One flat loop:
+    per-triangle helpers taking the arrays would cost numba reference counting per call.)"""
+    screen, attr, members = vertices.screen, vertices.attr, bins.members
+    out_prev, out_zinv = image.prev, image.zinv
+    band = y0 // bins.band_rows
     ws = screen.shape[1]
-    for band in nb.prange(starts.shape[0] - 1):
-        y0, y1 = band * band_rows, min(height, (band + 1) * band_rows)
-        for y in range(y0, y1):
-            for x in range(width):
-                out_zinv[y, x] = 0.0
-        for k in range(starts[band], starts[band + 1]):
-            t = members[k]
-            cell = t // 2
-            a, b, c = _triangle(cell // (ws - 1), cell % (ws - 1), t % 2)
-            _raster_triangle(screen, attr, a, b, c, y0, y1, width, out_attr, out_zinv)
+    y1, width = min(out_zinv.shape[0], y0 + bins.band_rows), out_zinv.shape[1]
+    out_zinv[y0:y1] = 0.0
+    for k in range(bins.starts[band], bins.starts[band + 1]):
+        t = members[k]
+        cell = t // 2
+        a, b, c = _triangle(cell // (ws - 1), cell % (ws - 1), t % 2)
+        ax, ay, az = screen[a[0], a[1], 0], screen[a[0], a[1], 1], screen[a[0], a[1], 2]
+        bx, by, bz = screen[b[0], b[1], 0], screen[b[0], b[1], 1], screen[b[0], b[1], 2]
+        cx, cy, cz = screen[c[0], c[1], 0], screen[c[0], c[1], 1], screen[c[0], c[1], 2]
+        ymin, ymax = min(ay, min(by, cy)), max(ay, max(by, cy))
+        ry0, ry1 = max(y0, int(math.ceil(ymin - 0.5))), min(y1, int(math.floor(ymax - 0.5)) + 1)
+        xmin, xmax = min(ax, min(bx, cx)), max(ax, max(bx, cx))
+        rx0, rx1 = max(0, int(math.ceil(xmin - 0.5))), min(width, int(math.floor(xmax - 0.5)) + 1)
+        area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+        if ry0 >= ry1 or rx0 >= rx1 or abs(area) < 1e-12:
+            continue
+        inv_area = 1.0 / area
+        iza, izb, izc = 1.0 / az, 1.0 / bz, 1.0 / cz
+        # per-vertex attributes times 1/z, so each pixel only blends them
+        a0, a1, a2 = attr[a[0], a[1], 0] * iza, attr[a[0], a[1], 1] * iza, attr[a[0], a[1], 2] * iza
+        b0, b1, b2 = attr[b[0], b[1], 0] * izb, attr[b[0], b[1], 1] * izb, attr[b[0], b[1], 2] * izb
+        c0, c1, c2 = attr[c[0], c[1], 0] * izc, attr[c[0], c[1], 1] * izc, attr[c[0], c[1], 2] * izc
+        # barycentric weights are affine in the pixel position: stepped along x. On a still view the grid's
+        # vertices sit on support pixel centres, and these sums decide which triangle takes them
+        dwa_dx, dwb_dx = (by - cy) * inv_area, (cy - ay) * inv_area
+        for y in range(ry0, ry1):
+            sy, sx = y + 0.5, rx0 + 0.5
+            wa = ((bx - sx) * (cy - sy) - (by - sy) * (cx - sx)) * inv_area
+            wb = ((cx - sx) * (ay - sy) - (cy - sy) * (ax - sx)) * inv_area
+            for x in range(rx0, rx1):
+                wc = 1.0 - wa - wb
+                if wa >= 0.0 and wb >= 0.0 and wc >= 0.0:
+                    iz = wa * iza + wb * izb + wc * izc
+                    if iz > out_zinv[y, x]:
+                        out_zinv[y, x] = iz
+                        zp = wa * a2 + wb * b2 + wc * c2
+                        out_prev[0, y, x] = (wa * a0 + wb * b0 + wc * c0) / zp
+                        out_prev[1, y, x] = (wa * a1 + wb * b1 + wc * c1) / zp
+                wa += dwa_dx
+                wb += dwb_dx
 
 
-def reproject_mesh(
-    previous: EyeCamera,
-    grid_x: np.ndarray,
-    grid_y: np.ndarray,
-    depth: np.ndarray,
-    current: EyeCamera,
-    width: int,
-    height: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """weier2016's coarse-mesh reprojection: the support grid (pixel centres grid_x, grid_y of the
-    previous full-resolution image, hit distances depth (hs, ws)) is unprojected with the previous
-    camera, projected with the current one and rasterised at width x height.
+@kernel
+def _raster_mesh(vertices, bins, image):
+    for band in nb.prange(bins.starts.shape[0] - 1):
+        _raster_band(band * bins.band_rows, vertices, bins, image)
 
-    Returns per pixel the interpolated previous-frame pixel coordinates and world point (h, w, 5) and
-    1/z of the nearest surface (h, w), 0 where the mesh does not cover the pixel.
+
+class CoarseMesh:
+    """weier2016 section 3.2's coarse-mesh reprojection: the support grid (pixel centres grid_x, grid_y of the
+    previous full-resolution image, hit distances depth (hs, ws)) unprojected with the previous camera,
+    projected with the current one and rasterised at width x height with a 1/z depth test.
+
+    Its buffers persist across frames and are replaced only when the grid or the image changes size.
     """
-    prev, cur = camera_arrays(previous), camera_arrays(current)
-    cur = CameraArrays(cur.position, cur.rotation, np.array([*cur.frustum[:4], width, height]))
-    hs, ws = depth.shape
-    screen = np.empty((hs, ws, 3))
-    attr = np.empty((hs, ws, VERTEX_ATTRS))
-    _mesh_vertices(
-        prev, grid_x.astype(np.float64), grid_y.astype(np.float64), depth.astype(np.float64), cur, screen, attr
-    )
-    rows = np.empty((2 * (hs - 1) * (ws - 1), 2), np.int64)
-    _triangle_rows(screen, height, rows)
-    band_rows = max(1, height // 64)
-    bands = (height + band_rows - 1) // band_rows
-    starts, members = _bin_triangles(rows, band_rows, bands)
-    out_attr = np.empty((height, width, MESH_ATTRS), np.float32)
-    out_zinv = np.empty((height, width), np.float32)
-    _raster_mesh(screen, attr, width, height, band_rows, starts, members, out_attr, out_zinv)
-    return out_attr, out_zinv
+
+    def __init__(self):
+        self.image = MeshImage(np.empty((2, 0, 0), np.float32), np.empty((0, 0), np.float32))
+        self._vertices = MeshVertices(np.empty((0, 0, 3)), np.empty((0, 0, VERTEX_ATTRS)))
+        self._rows = np.empty((0, 2), np.int64)
+        self._starts = np.empty(0, np.int64)
+        self._members = np.empty(0, np.int64)
+
+    def reproject(
+        self,
+        previous: EyeCamera,
+        grid_x: np.ndarray,
+        grid_y: np.ndarray,
+        depth: np.ndarray,
+        current: EyeCamera,
+        width: int,
+        height: int,
+    ) -> MeshImage:
+        """The mesh rasterised at width x height (a view of buffers that the next call overwrites)."""
+        hs, ws = depth.shape
+        if self._vertices.screen.shape[:2] != (hs, ws):
+            self._vertices = MeshVertices(np.empty((hs, ws, 3)), np.empty((hs, ws, VERTEX_ATTRS)))
+            self._rows = np.empty((2 * max(hs - 1, 0) * max(ws - 1, 0), 2), np.int64)
+        band_rows = max(1, height // BANDS)
+        bands = (height + band_rows - 1) // band_rows
+        if self.image.zinv.shape != (height, width):
+            self.image = MeshImage(np.empty((2, height, width), np.float32), np.empty((height, width), np.float32))
+            self._starts = np.empty(bands + 1, np.int64)
+        cur = camera_arrays(current, width, height)
+        _mesh_vertices(camera_arrays(previous), grid_x, grid_y, depth, cur, self._vertices)
+        _triangle_rows(self._vertices.screen, height, self._rows)
+        entries = _count_bins(self._rows, band_rows, self._starts)
+        if len(self._members) < entries:
+            self._members = np.empty(int(1.25 * entries), np.int64)
+        _fill_bins(self._rows, band_rows, self._starts, self._members)
+        dynamic(
+            _raster_mesh, self._vertices, TriangleBins(self._rows, self._starts, self._members, band_rows), self.image
+        )
+        return self.image
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _gather(mesh, zinv, cur, color, state, samples, seed, out_color, out_state, out_dist):
-    h, w = zinv.shape
-    ph, pw = color.shape[0], color.shape[1]
-    for y in nb.prange(h):
-        for x in range(w):
-            if zinv[y, x] <= 0.0:
-                out_dist[y, x] = math.nan
-                continue
-            qx, qy = mesh[y, x, 0], mesh[y, x, 1]
-            # footprint: how far one pixel step moves in the previous image, from covered neighbours only
-            footprint = 0.0
-            for k in range(4):
-                ny, nx = y + NEIGHBOUR_DY[k], x + NEIGHBOUR_DX[k]
-                if 0 <= ny < h and 0 <= nx < w and zinv[ny, nx] > 0.0:
-                    footprint = max(footprint, abs(mesh[ny, nx, 0] - qx), abs(mesh[ny, nx, 1] - qy))
-            if footprint <= 1.5 or samples <= 1:
-                r, g, b = bilinear3(color, qx, qy)
-            else:
-                # weier2016: random samples of the pixel footprint from a normal distribution
-                sigma = 0.5 * footprint
-                r = g = b = 0.0
-                key = (y * w + x) * 64 + seed
-                for k in range(samples):
-                    u1 = max(uniform(key, 7, 2 * k), 1e-12)
-                    u2 = uniform(key, 7, 2 * k + 1)
-                    rad = sigma * math.sqrt(-2.0 * math.log(u1))
-                    sr, sg, sb = bilinear3(
-                        color, qx + rad * math.cos(2 * math.pi * u2), qy + rad * math.sin(2 * math.pi * u2)
-                    )
-                    r, g, b = r + sr / samples, g + sg / samples, b + sb / samples
-            out_color[y, x, 0], out_color[y, x, 1], out_color[y, x, 2] = r, g, b
-            j = nearest_index(qx, qy, pw, ph)
-            if j < 0:
-                j = min(max(int(qy), 0), ph - 1) * pw + min(max(int(qx), 0), pw - 1)
-            for k in range(state.shape[2]):
-                out_state[y, x, k] = state[j // pw, j % pw, k]
-            ddx = mesh[y, x, 2] - cur.position[0]
-            ddy = mesh[y, x, 3] - cur.position[1]
-            ddz = mesh[y, x, 4] - cur.position[2]
-            out_dist[y, x] = math.sqrt(ddx * ddx + ddy * ddy + ddz * ddz)
+@inline
+def _step(qx, qy, sx, sy, covered):
+    """How far a neighbour at (sx, sy) in the previous image lies from (qx, qy) along either axis, if covered."""
+    return max(abs(sx - qx), abs(sy - qy)) if covered else np.float32(0.0)
 
 
-def gather_previous(
-    mesh: np.ndarray,
-    zinv: np.ndarray,
-    current: EyeCamera,
-    color: np.ndarray,
-    state: np.ndarray,
-    samples: int,
-    seed: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The previous frame's colour and per-pixel state seen through the reprojected mesh.
+@inline
+def row_footprints(prev, covered, mask, y, out):
+    """weier2016 section 3.2's pixel footprint along row y: how far one pixel step moves in the previous image,
+    the largest step to a 4-neighbour that is covered (covered & mask nonzero) along either axis, 0 without
+    one. The row's interior is written out without branches or array-taking helpers, so that numba
+    vectorises it (prev in planes); the two end pixels clamp their neighbours."""
+    px, py = prev[0], prev[1]
+    h, w = covered.shape
+    up, down = max(y - 1, 0), min(y + 1, h - 1)
+    mu, md = mask if y > 0 else 0, mask if y + 1 < h else 0
+    zero = np.float32(0.0)
+    for x in range(1, w - 1):
+        qx, qy = px[y, x], py[y, x]
+        left = max(abs(px[y, x - 1] - qx), abs(py[y, x - 1] - qy)) if covered[y, x - 1] & mask else zero
+        right = max(abs(px[y, x + 1] - qx), abs(py[y, x + 1] - qy)) if covered[y, x + 1] & mask else zero
+        above = max(abs(px[up, x] - qx), abs(py[up, x] - qy)) if covered[up, x] & mu else zero
+        below = max(abs(px[down, x] - qx), abs(py[down, x] - qy)) if covered[down, x] & md else zero
+        out[x] = max(max(left, right), max(above, below))
+    for x in (0, w - 1):
+        qx, qy = px[y, x], py[y, x]
+        lx, rx = max(x - 1, 0), min(x + 1, w - 1)
+        ml, mr = mask if x > 0 else 0, mask if x + 1 < w else 0
+        across = max(
+            _step(qx, qy, px[y, lx], py[y, lx], covered[y, lx] & ml),
+            _step(qx, qy, px[y, rx], py[y, rx], covered[y, rx] & mr),
+        )
+        along = max(
+            _step(qx, qy, px[up, x], py[up, x], covered[up, x] & mu),
+            _step(qx, qy, px[down, x], py[down, x], covered[down, x] & md),
+        )
+        out[x] = max(across, along)
 
-    Colour is filtered over each pixel's footprint in the previous image (bilinear when the footprint
-    is about a pixel, else the mean of `samples` normally distributed taps); state (cache info) takes
-    the nearest texel, since ages and counts must not be blended. Also returns each covered pixel's
-    distance from the current eye to the reprojected surface (NaN where uncovered).
-    """
-    h, w = zinv.shape
-    out_color = np.zeros((h, w, 3), np.float32)
-    out_state = np.zeros((h, w, state.shape[2]), np.float32)
-    out_dist = np.empty((h, w), np.float32)
-    _gather(mesh, zinv, camera_arrays(current), color, state, samples, seed, out_color, out_state, out_dist)
-    return out_color, out_state, out_dist
+
+@serial
+def gaussian_taps(color, qx, qy, sigma, samples, key):
+    """The mean of `samples` bilinear taps of color around (qx, qy), normally distributed with deviation
+    sigma (weier2016 section 3.2: a footprint wider than a pixel, sampled at random)."""
+    r = g = b = 0.0
+    for k in range(samples):
+        u1 = max(uniform(key, 7, 2 * k), 1e-12)
+        u2 = uniform(key, 7, 2 * k + 1)
+        rad = sigma * math.sqrt(-2.0 * math.log(u1))
+        sr, sg, sb = bilinear3(color, qx + rad * math.cos(2 * math.pi * u2), qy + rad * math.sin(2 * math.pi * u2))
+        r, g, b = r + sr / samples, g + sg / samples, b + sb / samples
+    return r, g, b
+
+
+@inline
+def nearest_texel(x, y, w, h):
+    """Row and column of the pixel containing continuous (x, y), clamped to the image (x, y not NaN)."""
+    return min(max(int(y), 0), h - 1), min(max(int(x), 0), w - 1)
