@@ -6,11 +6,11 @@ Measures, on the same primary rays of one eye (1280x1440 at rift_s; --rays: only
 size of a foveated method's batches, e.g. 4000 at sim-cpu):
   bare      one embreex EmbreeScene.run(..., output=1) call (one thread, as embreex offers it)
   bare-N    the same rays split into N equal parts, each traced on one of N pool threads
-  tracer    hmdrt.trace.tracer.Tracer.intersect (tiles shared by the calling thread and the pool)
+  tracer    hmdrt.trace.tracer.Tracer.intersect (Embree called from a numba kernel on the tracer's threads)
   primary   ray generation from the camera + Tracer.intersect (the project's whole primary path)
 Repeats are interleaved and the median is reported, since these machines are shared and noisy.
 The target (issue 2) is tracer / bare >= 0.85. On small batches bare-N shows what handing work to other
-threads costs, which is why the tracer keeps a batch under two tiles (MIN_TILE) on the calling thread.
+threads costs.
 """
 
 from __future__ import annotations

@@ -152,28 +152,30 @@ def test_intersect_validates_its_input():
         assert len(tr.intersect(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)).prim) == 0
 
 
-def test_tiles_on_the_thread_pool_give_the_same_hits_as_one_call():
+def test_direct_embree_agrees_with_embreex_and_with_itself_on_two_threads():
+    """The numba-side Embree calls (hmdrt.trace.embree) give embreex's hits ray by ray, on any thread count."""
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
     scene = bunny()
     geometry = pack(scene).geometry
     cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(96, 96), scene.start)
     dirs = cam.directions(pixel_centres(96, 96))
     origins = np.tile(cam.position.astype(np.float32), (len(dirs), 1))
-    with (
-        Tracer(geometry, threads=1, tile_rays=1 << 30) as one,
-        Tracer(geometry, threads=2, tile_rays=1024, min_tile_rays=1024) as many,
-    ):
-        assert len(many.tiles(len(dirs))) == 9  # shared by this thread and the pool thread
+    reference = rtcore_scene.EmbreeScene()
+    TriangleMesh(reference, geometry.vertices, geometry.faces)
+    want = reference.run(origins, dirs, output=1)
+    with Tracer(geometry, threads=1) as one, Tracer(geometry, threads=2) as many:
         a, b = one.intersect(origins, dirs), many.intersect(origins, dirs)
         far = np.full(len(dirs), float(np.median(a.t[a.prim >= 0])), np.float32)
         blocked_one, blocked_many = one.occluded(origins, dirs, far), many.occluded(origins, dirs, far)
+    hit = want["primID"] >= 0
+    assert 0 < hit.sum() < len(dirs)
+    np.testing.assert_array_equal(a.prim, want["primID"])
+    np.testing.assert_allclose(a.t[hit], want["tfar"][hit], rtol=1e-6)
+    np.testing.assert_allclose(a.u[hit], want["u"][hit], atol=1e-6)
+    np.testing.assert_allclose(a.v[hit], want["v"][hit], atol=1e-6)
     np.testing.assert_array_equal(a.prim, b.prim)
     np.testing.assert_array_equal(a.t, b.t)
     np.testing.assert_array_equal(blocked_one, blocked_many)
     assert 0 < blocked_one.sum() < len(dirs)
-
-
-def test_a_batch_under_two_minimum_tiles_stays_on_the_calling_thread():
-    with Tracer(pack(bunny()).geometry, threads=2, min_tile_rays=4096) as tracer:
-        assert tracer.tiles(8191) == [slice(0, 4096), slice(4096, 8191)]
-        assert tracer.tiles(4096) == [slice(0, 4096)]
-        assert tracer.tiles(100_000)[0] == slice(0, 1 << 15)

@@ -12,7 +12,7 @@ import msgspec
 import numpy as np
 
 from hmdrt.foveation.base import Configurable, FrameRequest, NoParams, Stage, sample_keys
-from hmdrt.optics.camera import pixel_centres
+from hmdrt.optics.camera import pixel_grid
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
 from hmdrt.trace.sampling import jittered_pixels
@@ -32,15 +32,19 @@ class Full(Configurable):
         self._configure(params)
 
     def _configure(self, params: NoParams) -> None:
-        """Stateless: nothing to keep or reset."""
+        """No parameters; the sample keys of the last (image size, seed) are kept."""
         self.params = params
+        self._keys = (None, np.empty(0, np.int64))
 
-    def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
+    def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         cam = request.camera
-        with stats.stage("raygen"):
-            xy = pixel_centres(cam.width, cam.height)
-        rgb = self.tracer.trace_samples(cam, xy, sample_keys(0, len(xy), request.seed), stats)
-        return rgb.reshape(cam.height, cam.width, 3)
+        xy = pixel_grid(cam.width, cam.height)
+        if self._keys[0] != (len(xy), request.seed):
+            self._keys = ((len(xy), request.seed), sample_keys(0, len(xy), request.seed))
+        if out is None:
+            out = np.empty((cam.height, cam.width, 3), np.float32)
+        self.tracer.trace_samples(cam, xy, self._keys[1], stats, out=out.reshape(-1, 3))
+        return out
 
 
 class RegularParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -63,9 +67,9 @@ class Regular(Configurable):
         self.params = params
         self.spp = params.spp
 
-    def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
+    def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         cam = request.camera
-        image = np.empty((cam.height, cam.width, 3), dtype=np.float32)
+        image = np.empty((cam.height, cam.width, 3), dtype=np.float32) if out is None else out
         band = max(1, self.tracer.chunk // (cam.width * self.spp))
         for row0 in range(0, cam.height, band):
             rows = min(band, cam.height - row0)

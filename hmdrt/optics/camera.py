@@ -12,30 +12,52 @@ import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
 
+from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.profiles import HmdProfile
 from hmdrt.spatial import Pose
 
 
-def _eye_directions(xy, tan_l, tan_r, tan_u, tan_d, width, height, rot, out):
-    sx = (tan_r - tan_l) / width
-    sy = (tan_u - tan_d) / height
+class EyeRays(NamedTuple):
+    """What generating an eye's view rays needs, for kernels (EyeCamera's fields, the grid as floats)."""
+
+    tan_left: float
+    tan_right: float
+    tan_up: float
+    tan_down: float
+    width: float
+    height: float
+    rotation: np.ndarray  # (3, 3) float64
+    position: np.ndarray  # (3,) float64
+
+
+@inline
+def eye_direction(eye, x, y):
+    """World-space unit direction (float64 triple) of the view ray through pixel coordinates (x, y)."""
+    tan_l, tan_r, tan_u, tan_d, width, height, rot, _ = eye
+    tx = tan_l + x * ((tan_r - tan_l) / width)
+    ty = tan_u - y * ((tan_u - tan_d) / height)
+    inv = 1.0 / math.sqrt(tx * tx + ty * ty + 1.0)
+    ex, ey, ez = tx * inv, ty * inv, -inv
+    return (
+        rot[0, 0] * ex + rot[0, 1] * ey + rot[0, 2] * ez,
+        rot[1, 0] * ex + rot[1, 1] * ey + rot[1, 2] * ez,
+        rot[2, 0] * ex + rot[2, 1] * ey + rot[2, 2] * ez,
+    )
+
+
+def _eye_directions(xy, eye, out):
     for i in nb.prange(xy.shape[0]):
-        tx = tan_l + xy[i, 0] * sx
-        ty = tan_u - xy[i, 1] * sy
-        inv = 1.0 / math.sqrt(tx * tx + ty * ty + 1.0)
-        ex, ey, ez = tx * inv, ty * inv, -inv
-        out[i, 0] = rot[0, 0] * ex + rot[0, 1] * ey + rot[0, 2] * ez
-        out[i, 1] = rot[1, 0] * ex + rot[1, 1] * ey + rot[1, 2] * ez
-        out[i, 2] = rot[2, 0] * ex + rot[2, 1] * ey + rot[2, 2] * ez
+        out[i, 0], out[i, 1], out[i, 2] = eye_direction(eye, xy[i, 0], xy[i, 1])
 
 
 # starting the thread pool costs tens of microseconds, more than a few gaze samples take to convert
-_eye_directions_parallel = nb.njit(parallel=True, cache=True, nogil=True)(_eye_directions)
-_eye_directions_serial = nb.njit(cache=True, nogil=True)(_eye_directions)
+_eye_directions_parallel = kernel(_eye_directions)
+_eye_directions_serial = serial(_eye_directions)
 PARALLEL_MIN = 4096
 OFF_IMAGE_TAN = 1e6  # gaze_pixel's point of regard for a gaze that never meets the image plane, in tangent units
 
@@ -112,8 +134,14 @@ class EyeCamera:
         """World-space unit view-ray directions (n, 3) float32 through pixel coordinates xy (n, 2)."""
         out = np.empty((len(xy), 3), dtype=np.float32)
         kernel = _eye_directions_parallel if len(xy) >= PARALLEL_MIN else _eye_directions_serial
-        kernel(np.ascontiguousarray(xy, dtype=np.float32), *self._frustum(), self.rotation, out)
+        kernel(np.ascontiguousarray(xy, dtype=np.float32), self.rays(), out)
         return out
+
+    def rays(self) -> EyeRays:
+        """This eye's ray generation for kernels (eye_direction)."""
+        return EyeRays(
+            *self._frustum(), np.ascontiguousarray(self.rotation, np.float64), np.asarray(self.position, np.float64)
+        )
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel coordinates (n, 2) and view depth along -Z (n,) of world points (n, 3); depth <= 0 is behind."""

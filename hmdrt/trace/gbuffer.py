@@ -9,10 +9,9 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import numba as nb
 import numpy as np
 
-from hmdrt.trace.blocks import BLOCK
+from hmdrt.jit import serial
 
 
 class HitAttributes(NamedTuple):
@@ -96,8 +95,9 @@ class LightBuffer(NamedTuple):
         return cls(np.zeros((n, 3), np.float32), np.zeros((n, 3), np.float32))
 
 
-@nb.njit(cache=True, nogil=True)
-def _store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, stop):
+@serial
+def store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, stop):
+    """attrs[rows[i]] = attributes of hit i, for every i in [start, stop) with rows[i] >= 0."""
     depth, a_ng, a_ns, a_obj, a_shadow, a_tex, a_kr, a_kt = attrs
     hits, ng, ns, obj, material = surf.hit, surf.normal_geometric, surf.normal_shading, surf.object_id, surf.material
     for i in range(start, stop):
@@ -114,11 +114,3 @@ def _store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, st
         a_tex[r] = textured[material[i]] if hit else False
         a_kr[r] = kr[i] if hit else 0.0
         a_kt[r] = kt[i] if hit else 0.0
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def store_kernel(attrs, rows, t, surf, textured, shadow_count, kr, kt):
-    """attrs[rows[i]] = attributes of hit i, for every i with rows[i] >= 0."""
-    n = rows.shape[0]
-    for b in nb.prange((n + BLOCK - 1) // BLOCK):
-        _store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, b * BLOCK, min(n, (b + 1) * BLOCK))

@@ -1,31 +1,40 @@
-"""Whitted ray tracing of arbitrary camera samples, as a wavefront over bounce depth.
+"""Whitted ray tracing of arbitrary camera samples (default depth 3): the entry point every method uses.
 
-Every foveation method hands this its sample positions; nothing else casts or shades rays. Per
-depth: intersect, build shading records, trace the shadow / area / AO rays the scene needs, shade,
-then spawn reflected and refracted rays (Whitted recursion, default depth 3). Stages a scene cannot
-use are not run (no point lights -> no "shadow", no mirrors or glass -> no "secondary").
+Every foveation method hands this its sample positions; nothing else casts or shades rays. The work is
+one fused kernel (hmdrt.trace.wavefront) on the tracer's threads, over scratch that persists across
+calls, so a frame allocates nothing but what the caller asks for (the radiance, unless it passes `out`).
+Stages a scene cannot use are not run (no point lights -> no "shadow", no mirrors or glass -> no "secondary").
 """
 
 from __future__ import annotations
 
+import threading
+import time
+
+import numba as nb
 import numpy as np
+from numba import typed
 
 from hmdrt.memory import retain_freed_memory
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.scene.model import Scene
 from hmdrt.scene.pack import pack
 from hmdrt.telemetry.stats import FrameStats
-from hmdrt.trace.gbuffer import GBuffer, LightBuffer, store_kernel
-from hmdrt.trace.lighting import RayBatch, light_plan, light_rays_kernel, shade_kernel
-from hmdrt.trace.secondary import Rays, accumulate_kernel, interaction_kernel, spawn_kernel
-from hmdrt.trace.surface import Surface, surface_kernel
+from hmdrt.trace import meter
+from hmdrt.trace.gbuffer import GBuffer, LightBuffer
+from hmdrt.trace.lighting import light_plan
 from hmdrt.trace.tracer import Tracer
+from hmdrt.trace.wavefront import Frame, Lane, SceneArgs, lane_empty, trace
 
-RAYS_PER_CHUNK = 1 << 20  # bounds memory: samples per chunk x rays per sample stays near this
+RAYS_PER_CHUNK = 1 << 20  # callers that build sample arrays in bands keep a band's rays near this (see chunk)
+MAX_BLOCK = 4096  # samples per block at most: a block's calls cost ~10 us, ~2 ns a sample at this size
+MIN_BLOCK = 256
+BLOCKS_PER_THREAD = 4  # smaller blocks for small batches, so that every thread has some
 
 
 class Whitted:
-    """Shades camera samples of one scene; build once, call trace_samples per frame."""
+    """Shades camera samples of one scene; build once, call trace_samples per frame (one call at a time:
+    calls from several threads take turns)."""
 
     def __init__(self, scene: Scene, threads: int | None = None):
         retain_freed_memory()
@@ -36,7 +45,43 @@ class Whitted:
         self.secondary = scene.has_secondary
         self.n_point = len(self.packed.lights.point_position)
         per_hit = 1 + self.n_point + self.plan.area_total + self.plan.ao_samples
-        self.chunk = max(4096, RAYS_PER_CHUNK // per_hit)
+        self.chunk = max(4096, RAYS_PER_CHUNK // per_hit)  # samples a band of a caller's own arrays should hold
+        self._scene = SceneArgs(
+            self.tracer.scene.handle,
+            self.tracer.args,
+            self.packed.geometry,
+            self.packed.materials,
+            self.packed.lights,
+            self.plan,
+            self.packed.has_textures,
+            self.max_depth,
+            self.secondary,
+        )
+        self._lock = threading.Lock()
+        self._no_gbuffer, self._no_light = GBuffer.empty(0), LightBuffer.empty(0)
+        # one lane of scratch per numba thread id; those the tracer's threads take start with room for a block and
+        # its children, any other starts empty, and each grows to the largest level it met (meter.NEED)
+        first = MAX_BLOCK * (2 if self.secondary and self.max_depth else 1)
+        self._lanes = [self._lane(first if t < self.tracer.threads else 0) for t in range(nb.config.NUMBA_NUM_THREADS)]
+        self._typed_lanes = typed.List(self._lanes)
+
+    def _lane(self, capacity: int) -> Lane:
+        return lane_empty(capacity, MAX_BLOCK, self.n_point, self.plan.area_total, self.plan.ao_samples)
+
+    def _grow(self) -> None:
+        """Give each lane that met a level larger than its scratch room for that level."""
+        grown = False
+        for t, lane in enumerate(self._lanes):
+            need = int(lane.tally[meter.NEED])
+            if need > len(lane.work.kr):
+                self._lanes[t] = self._lane(need)
+                grown = True
+        if grown:
+            self._typed_lanes = typed.List(self._lanes)
+
+    def block(self, n: int) -> int:
+        """Samples per block for a batch of n."""
+        return min(MAX_BLOCK, max(MIN_BLOCK, -(-n // (self.tracer.threads * BLOCKS_PER_THREAD))))
 
     def close(self) -> None:
         self.tracer.close()
@@ -55,97 +100,43 @@ class Whitted:
         stats: FrameStats,
         gbuffer: GBuffer | None = None,
         light: LightBuffer | None = None,
+        out: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Radiance (n, 3) float32 of the camera rays through pixel coordinates xy (n, 2).
+        """Radiance (n, 3) float32 of the camera rays through pixel coordinates xy (n, 2), written into `out`
+        (a C-contiguous (n, 3) float32 array) when given.
 
         keys (n,) int64 seed each sample's random decisions; gbuffer and light, if given, are filled for all n.
         """
-        out = np.empty((len(xy), 3), dtype=np.float32)
-        for s in range(0, len(xy), self.chunk):
-            e = min(s + self.chunk, len(xy))
-            with stats.stage("raygen"):
-                n = e - s
-                rays = Rays(
-                    np.empty((n, 3), np.float32),
-                    camera.directions(xy[s:e]),
-                    np.ones((n, 3), np.float32),
-                    np.arange(n, dtype=np.int64),
-                    np.ascontiguousarray(keys[s:e], dtype=np.int64),
-                    np.ones(n, bool),
-                )
-                rays.origins[:] = camera.position
-            radiance = np.zeros((n, 3), dtype=np.float64)
-            self._trace_wavefront(rays, radiance, stats, gbuffer, light, s)
-            out[s:e] = radiance
+        xy = np.ascontiguousarray(xy, dtype=np.float32)
+        keys = np.ascontiguousarray(keys, dtype=np.int64)
+        n = len(xy)
+        if xy.shape != (n, 2) or keys.shape != (n,):
+            raise ValueError(f"xy must be (n, 2) and keys (n,), got {xy.shape} and {keys.shape}")
+        if out is None:
+            out = np.empty((n, 3), np.float32)
+        elif out.shape != (n, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise ValueError(f"out must be a C-contiguous ({n}, 3) float32 array, got {out.shape} {out.dtype}")
+        for name, buffer in (("gbuffer", gbuffer and gbuffer.primary.depth), ("light", light and light.albedo)):
+            if buffer is not None and len(buffer) < n:
+                raise ValueError(f"{name} holds {len(buffer)} samples, fewer than the {n} traced")
+        if n == 0:
+            return out
+        frame = Frame(
+            camera.rays(),
+            xy,
+            keys,
+            out,
+            self._no_gbuffer if gbuffer is None else gbuffer,
+            self._no_light if light is None else light,
+            gbuffer is not None,
+            light is not None,
+        )
+        with self._lock:
+            for lane in self._lanes:
+                lane.tally.fill(0)
+            start = time.perf_counter_ns()
+            self.tracer.run(trace, self._scene, frame, self._typed_lanes, self.block(n))
+            wall_ms = (time.perf_counter_ns() - start) / 1e6
+            meter.credit(stats, wall_ms, [lane.tally for lane in self._lanes])
+            self._grow()
         return out
-
-    def _trace_wavefront(
-        self,
-        rays: Rays,
-        radiance: np.ndarray,
-        stats: FrameStats,
-        gbuffer: GBuffer | None,
-        light: LightBuffer | None,
-        row0: int,
-    ) -> None:
-        for depth in range(self.max_depth + 1):
-            n = len(rays.owner)
-            if n == 0:
-                return
-            kind = "primary" if depth == 0 else "secondary"
-            with stats.stage(kind):
-                hits = self.tracer.intersect(rays.origins, rays.directions)
-            stats.count(kind, n)
-            with stats.stage("surface"):
-                surf = Surface.empty(n)
-                surface_kernel(
-                    self.packed.geometry, self.packed.materials, rays.directions, hits.prim, hits.u, hits.v, surf
-                )
-            local, shadow_count, stochastic = self._shade(surf, rays, stats)
-            with stats.stage("shade"):
-                if depth == 0:
-                    radiance += local
-                    if light is not None:
-                        light.irradiance[row0 : row0 + n] = stochastic
-                        light.albedo[row0 : row0 + n] = np.where(surf.hit[:, None], surf.albedo, 0.0)
-                else:
-                    accumulate_kernel(radiance, rays, local)
-            spawn = depth < self.max_depth and self.secondary
-            if spawn or gbuffer is not None and depth <= 1:
-                with stats.stage("secondary" if spawn else "gbuffer"):
-                    kr, kt, counts = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.int64)
-                    interaction_kernel(self.packed.materials, surf, rays, spawn, kr, kt, counts)
-            if gbuffer is not None and depth <= 1:
-                with stats.stage("gbuffer"):
-                    attrs = gbuffer.primary if depth == 0 else gbuffer.secondary
-                    rows = rays.owner + row0 if depth == 0 else np.where(rays.principal, rays.owner + row0, -1)
-                    store_kernel(attrs, rows, hits.t, surf, self.packed.has_textures, shadow_count, kr, kt)
-            if not spawn:
-                return
-            with stats.stage("secondary"):
-                first = np.cumsum(counts) - counts
-                children = Rays.empty(int(counts.sum()))
-                spawn_kernel(self.packed.materials, surf, rays, kr, kt, first, depth + 1, children)
-            rays = children
-
-    def _shade(self, surf, rays: Rays, stats: FrameStats) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Local radiance of every hit (background on misses), its count of shadowed light samples, and
-        the irradiance of its stochastic sources (area lights, ambient occlusion)."""
-        n = len(surf.hit)
-        per_hit = (self.n_point, self.plan.area_total, self.plan.ao_samples)
-        point, area, ao = (RayBatch.empty(n * k) for k in per_hit)
-        if sum(per_hit):
-            with stats.stage("lightgen"):
-                light_rays_kernel(self.packed.lights, self.plan, surf, rays.key, point, area, ao)
-        for kind, batch in (("shadow", point), ("area", area), ("ao", ao)):
-            if len(batch.tfar):
-                with stats.stage(kind):
-                    batch.occluded[:] = self.tracer.occluded(batch.origins, batch.directions, batch.tfar)
-                stats.count(kind, batch.active())
-        local = np.empty((n, 3), np.float64)
-        shadow_count = np.empty(n, np.int16)
-        stochastic = np.empty((n, 3), np.float32)
-        with stats.stage("shade"):
-            args = (self.packed.lights, self.plan, self.packed.materials, surf, rays.directions, point, area, ao)
-            shade_kernel(*args, local, shadow_count, stochastic)
-        return local, shadow_count, stochastic

@@ -1,9 +1,8 @@
 """Direct lighting for Whitted shading: point lights with hard shadows, area lights with stratified
 shadow samples, ambient occlusion with cosine-weighted samples, and Phong/Lambert local shading.
 
-Ray generation and shading are separate passes around the occlusion queries. A ray that cannot
-contribute (light behind the surface, no hit) gets tfar = -1, which Embree skips at almost no cost,
-and it is not counted as traced.
+Ray generation and shading are separate steps around a block's occlusion queries. A ray that cannot
+contribute (light behind the surface, no hit) gets tfar = -1: it is neither traced nor counted.
 """
 
 from __future__ import annotations
@@ -11,12 +10,11 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import numba as nb
 import numpy as np
 
+from hmdrt.jit import inline, serial
 from hmdrt.scene.model import Scene
 from hmdrt.scene.pack import Lights
-from hmdrt.trace.blocks import BLOCK
 from hmdrt.trace.sampling import DIM_AO, DIM_AREA, cosine_hemisphere, grid_shape, stratified
 
 AREA_SHORTEN = 1.0 - 1e-4  # stop area shadow rays just short of the emitter's own geometry
@@ -30,14 +28,12 @@ class RayBatch(NamedTuple):
     tfar: np.ndarray  # (n,) float32; -1 marks a ray that is not traced
     occluded: np.ndarray  # (n,) bool
 
-    @classmethod
-    def empty(cls, n: int) -> RayBatch:
-        return cls(
-            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32), np.zeros(n, bool)
-        )
 
-    def active(self) -> int:
-        return int(np.count_nonzero(self.tfar > 0))
+@serial
+def batch_empty(n):
+    return RayBatch(
+        np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32), np.zeros(n, np.bool_)
+    )
 
 
 class LightPlan(NamedTuple):
@@ -73,7 +69,7 @@ def light_plan(lights: Lights, scene: Scene) -> LightPlan:
     )
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def _spawn(origins, directions, far, j, position, ng, offset, i, tx, ty, tz, shorten):
     """Ray j from hit i towards (tx, ty, tz), starting on the side of the geometric normal."""
     off = offset[i]
@@ -88,7 +84,7 @@ def _spawn(origins, directions, far, j, position, ng, offset, i, tx, ty, tz, sho
     far[j] = dist * shorten if dist > 0.0 else -1.0
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def _inactive(origins, directions, far, j):
     origins[j, 0] = origins[j, 1] = origins[j, 2] = 0.0
     directions[j, 0] = directions[j, 1] = 0.0
@@ -96,22 +92,23 @@ def _inactive(origins, directions, far, j):
     far[j] = -1.0
 
 
-@nb.njit(cache=True, nogil=True)
-def _light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
-    l_pos, a_corner, a_u, a_v, a_normal, a_samples = (
-        lights.point_position,
-        lights.area_corner,
-        lights.area_u,
-        lights.area_v,
-        lights.area_normal,
-        lights.area_samples,
-    )
-    a_base, a_nx, a_ny, a_total = plan.area_base, plan.area_nx, plan.area_ny, plan.area_total
-    ao_n, ao_nx, ao_ny, ao_dist = plan.ao_samples, plan.ao_nx, plan.ao_ny, plan.ao_distance
+@serial
+def light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
+    """Fill the point-light, area-light and AO rays of hits [start, stop); hit i owns a fixed block of each.
+    One pass per kind of source: a loop that holds all three runs twice as slow even where two are empty."""
+    if lights.point_position.shape[0]:
+        _point_rays(lights, surf, point, start, stop)
+    if plan.area_total:
+        _area_rays(lights, plan, surf, keys, area, start, stop)
+    if plan.ao_samples:
+        _ao_rays(plan, surf, keys, ao, start, stop)
+
+
+@serial
+def _point_rays(lights, surf, point, start, stop):
+    l_pos = lights.point_position
     hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
     p_org, p_dir, p_far = point.origins, point.directions, point.tfar
-    a_org, a_dir, a_far = area.origins, area.directions, area.tfar
-    o_org, o_dir, o_far = ao.origins, ao.directions, ao.tfar
     n_point = l_pos.shape[0]
     for i in range(start, stop):
         hit = hits[i]
@@ -124,6 +121,24 @@ def _light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
                 _spawn(p_org, p_dir, p_far, j, position, ng, offset, i, lx, ly, lz, 1.0)
             else:
                 _inactive(p_org, p_dir, p_far, j)
+
+
+@serial
+def _area_rays(lights, plan, surf, keys, area, start, stop):
+    a_corner, a_u, a_v, a_normal, a_samples = (
+        lights.area_corner,
+        lights.area_u,
+        lights.area_v,
+        lights.area_normal,
+        lights.area_samples,
+    )
+    a_base, a_nx, a_ny, a_total = plan.area_base, plan.area_nx, plan.area_ny, plan.area_total
+    hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
+    a_org, a_dir, a_far = area.origins, area.directions, area.tfar
+    for i in range(start, stop):
+        hit = hits[i]
+        px, py, pz = position[i, 0], position[i, 1], position[i, 2]
+        gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
         for a in range(a_base.shape[0]):
             for k in range(a_samples[a]):
                 j = i * a_total + a_base[a] + k
@@ -141,9 +156,19 @@ def _light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
                     _spawn(a_org, a_dir, a_far, j, position, ng, offset, i, qx, qy, qz, AREA_SHORTEN)
                 else:
                     _inactive(a_org, a_dir, a_far, j)
+
+
+@serial
+def _ao_rays(plan, surf, keys, ao, start, stop):
+    ao_n, ao_nx, ao_ny, ao_dist = plan.ao_samples, plan.ao_nx, plan.ao_ny, plan.ao_distance
+    hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
+    o_org, o_dir, o_far = ao.origins, ao.directions, ao.tfar
+    for i in range(start, stop):
+        px, py, pz = position[i, 0], position[i, 1], position[i, 2]
+        gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
         for k in range(ao_n):
             j = i * ao_n + k
-            if not hit:
+            if not hits[i]:
                 _inactive(o_org, o_dir, o_far, j)
                 continue
             s, t = stratified(keys[i], k, DIM_AO, ao_nx, ao_ny)
@@ -152,15 +177,7 @@ def _light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
             o_far[j] = ao_dist
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def light_rays_kernel(lights, plan, surf, keys, point, area, ao):
-    """Fill the point-light, area-light and AO batches; hit i owns a fixed block of each."""
-    n = surf.hit.shape[0]
-    for b in nb.prange((n + BLOCK - 1) // BLOCK):
-        _light_rays_block(lights, plan, surf, keys, point, area, ao, b * BLOCK, min(n, (b + 1) * BLOCK))
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def _lit(ns, albedo, i, wlocal, ks, shininess, view, light, e):
     """Lambert + Phong (rgb) at hit i for a viewer along -view, light arriving from unit direction
     `light` with irradiance scale e (rgb, 1/r^2 included); vectors are 3-tuples."""
@@ -179,53 +196,65 @@ def _lit(ns, albedo, i, wlocal, ks, shininess, view, light, e):
     return e[0] * (w * albedo[i, 0] + spec), e[1] * (w * albedo[i, 1] + spec), e[2] * (w * albedo[i, 2] + spec)
 
 
-@nb.njit(cache=True, nogil=True)
-def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count, stochastic, start, stop):
-    l_int, a_normal, a_size, a_rad, a_samples = (
-        lights.point_intensity,
-        lights.area_normal,
-        lights.area_size,
-        lights.area_radiance,
-        lights.area_samples,
-    )
-    a_base, a_total, ao_n = plan.area_base, plan.area_total, plan.ao_samples
-    refl, trans, spec_k, shin, emission = (
-        mats.reflectance,
-        mats.transmittance,
-        mats.specular,
-        mats.shininess,
-        mats.emission,
-    )
-    hits, ns, albedo, material = surf.hit, surf.normal_shading, surf.albedo, surf.material
+@serial
+def shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, acc, local, shadow_count, stochastic, start, stop):
+    """Local radiance (n, 3) at hits [start, stop) (background on misses), each hit's count of shadowed light
+    samples, and the irradiance its area lights and ambient occlusion contribute (stochastic (n, 3)):
+    the diffuse part of local from those sources is albedo x stochastic. acc (n, 6) float64: scratch for the
+    sums that one pass per kind of source hands on (radiance rgb, stochastic irradiance rgb), added in the
+    same order as one pass over all sources would."""
+    _shade_points(lights, mats, surf, dirs_in, point, acc, shadow_count, start, stop)
+    if plan.area_total:
+        _shade_areas(lights, plan, mats, surf, dirs_in, area, acc, shadow_count, start, stop)
+    _shade_finish(plan, mats, surf, ao, acc, local, stochastic, start, stop)
+
+
+@inline
+def _material_terms(mats, surf, dirs_in, i):
+    k = surf.material[i]
+    wlocal = 1.0 - mats.reflectance[k] - mats.transmittance[k]
+    return wlocal, mats.specular[k], mats.shininess[k], (dirs_in[i, 0], dirs_in[i, 1], dirs_in[i, 2])
+
+
+@serial
+def _shade_points(lights, mats, surf, dirs_in, point, acc, shadow_count, start, stop):
+    l_int = lights.point_intensity
+    hits, ns, albedo = surf.hit, surf.normal_shading, surf.albedo
     p_dir, p_far, point_occ = point.directions, point.tfar, point.occluded
-    a_dir, a_far, area_occ = area.directions, area.tfar, area.occluded
-    ao_occ, ambient, background = ao.occluded, plan.ambient, plan.background
     n_point = l_int.shape[0]
     for i in range(start, stop):
-        if not hits[i]:
-            for c in range(3):
-                local[i, c] = background[c]
-                stochastic[i, c] = 0.0
-            shadow_count[i] = 0
-            continue
-        k = material[i]
-        wlocal = 1.0 - refl[k] - trans[k]
-        ks, sh = spec_k[k], shin[k]
-        view = (dirs_in[i, 0], dirs_in[i, 1], dirs_in[i, 2])
         ar = ag = ab = 0.0
-        er = eg = eb = 0.0  # irradiance from the stochastic sources, for the light buffer
         shadowed = 0
-        for l in range(n_point):
-            j = i * n_point + l
-            if p_far[j] <= 0.0:
-                continue
-            if point_occ[j]:
-                shadowed += 1
-                continue
-            inv_r2 = 1.0 / (p_far[j] * p_far[j])
-            e = (l_int[l, 0] * inv_r2, l_int[l, 1] * inv_r2, l_int[l, 2] * inv_r2)
-            cr, cg, cb = _lit(ns, albedo, i, wlocal, ks, sh, view, (p_dir[j, 0], p_dir[j, 1], p_dir[j, 2]), e)
-            ar, ag, ab = ar + cr, ag + cg, ab + cb
+        if hits[i]:
+            wlocal, ks, sh, view = _material_terms(mats, surf, dirs_in, i)
+            for l in range(n_point):
+                j = i * n_point + l
+                if p_far[j] <= 0.0:
+                    continue
+                if point_occ[j]:
+                    shadowed += 1
+                    continue
+                inv_r2 = 1.0 / (p_far[j] * p_far[j])
+                e = (l_int[l, 0] * inv_r2, l_int[l, 1] * inv_r2, l_int[l, 2] * inv_r2)
+                cr, cg, cb = _lit(ns, albedo, i, wlocal, ks, sh, view, (p_dir[j, 0], p_dir[j, 1], p_dir[j, 2]), e)
+                ar, ag, ab = ar + cr, ag + cg, ab + cb
+        acc[i, 0], acc[i, 1], acc[i, 2] = ar, ag, ab
+        acc[i, 3] = acc[i, 4] = acc[i, 5] = 0.0
+        shadow_count[i] = shadowed
+
+
+@serial
+def _shade_areas(lights, plan, mats, surf, dirs_in, area, acc, shadow_count, start, stop):
+    a_normal, a_size, a_rad, a_samples = lights.area_normal, lights.area_size, lights.area_radiance, lights.area_samples
+    a_base, a_total = plan.area_base, plan.area_total
+    hits, ns, albedo = surf.hit, surf.normal_shading, surf.albedo
+    a_dir, a_far, area_occ = area.directions, area.tfar, area.occluded
+    for i in range(start, stop):
+        if not hits[i]:
+            continue
+        wlocal, ks, sh, view = _material_terms(mats, surf, dirs_in, i)
+        ar, ag, ab, er, eg, eb = acc[i, 0], acc[i, 1], acc[i, 2], acc[i, 3], acc[i, 4], acc[i, 5]
+        shadowed = shadow_count[i]
         for a in range(a_base.shape[0]):
             n_s = a_samples[a]
             for s in range(n_s):
@@ -244,6 +273,23 @@ def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shad
                 ar, ag, ab = ar + cr, ag + cg, ab + cb
                 cos_s = max(ns[i, 0] * lx + ns[i, 1] * ly + ns[i, 2] * lz, 0.0) * wlocal
                 er, eg, eb = er + e[0] * cos_s, eg + e[1] * cos_s, eb + e[2] * cos_s
+        acc[i, 0], acc[i, 1], acc[i, 2], acc[i, 3], acc[i, 4], acc[i, 5] = ar, ag, ab, er, eg, eb
+        shadow_count[i] = shadowed
+
+
+@serial
+def _shade_finish(plan, mats, surf, ao, acc, local, stochastic, start, stop):
+    ao_n, ao_occ, ambient, background = plan.ao_samples, ao.occluded, plan.ambient, plan.background
+    refl, trans, emission = mats.reflectance, mats.transmittance, mats.emission
+    hits, albedo, material = surf.hit, surf.albedo, surf.material
+    for i in range(start, stop):
+        if not hits[i]:
+            for c in range(3):
+                local[i, c] = background[c]
+                stochastic[i, c] = 0.0
+            continue
+        k = material[i]
+        wlocal = 1.0 - refl[k] - trans[k]
         open_sky = 1.0
         if ao_n > 0:
             blocked = 0
@@ -251,22 +297,6 @@ def _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, local, shad
                 if ao_occ[i * ao_n + s]:
                     blocked += 1
             open_sky = 1.0 - blocked / ao_n
-        local[i, 0] = emission[k, 0] + ar + wlocal * ambient[0] * albedo[i, 0] * open_sky
-        local[i, 1] = emission[k, 1] + ag + wlocal * ambient[1] * albedo[i, 1] * open_sky
-        local[i, 2] = emission[k, 2] + ab + wlocal * ambient[2] * albedo[i, 2] * open_sky
-        stochastic[i, 0] = er + wlocal * ambient[0] * open_sky
-        stochastic[i, 1] = eg + wlocal * ambient[1] * open_sky
-        stochastic[i, 2] = eb + wlocal * ambient[2] * open_sky
-        shadow_count[i] = shadowed
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def shade_kernel(lights, plan, mats, surf, dirs_in, point, area, ao, local, shadow_count, stochastic):
-    """Local radiance (n, 3) at each hit (background on misses), each hit's count of shadowed light
-    samples, and the irradiance its area lights and ambient occlusion contribute (stochastic (n, 3)):
-    the diffuse part of local from those sources is albedo x stochastic."""
-    n = surf.hit.shape[0]
-    for b in nb.prange((n + BLOCK - 1) // BLOCK):
-        stop = min(n, (b + 1) * BLOCK)
-        out = (local, shadow_count, stochastic)
-        _shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, *out, b * BLOCK, stop)
+        for c in range(3):
+            local[i, c] = emission[k, c] + acc[i, c] + wlocal * ambient[c] * albedo[i, c] * open_sky
+            stochastic[i, c] = acc[i, 3 + c] + wlocal * ambient[c] * open_sky

@@ -9,11 +9,10 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import numba as nb
 import numpy as np
 
+from hmdrt.jit import inline, serial
 from hmdrt.rng import hash32
-from hmdrt.trace.blocks import BLOCK
 from hmdrt.trace.bsdf import reflect, refract, split
 
 MIN_THROUGHPUT = 1e-4  # children whose every channel would carry less than this are not traced
@@ -28,21 +27,25 @@ class Rays(NamedTuple):
     owner: np.ndarray  # (n,) int64 index of the sample the ray belongs to
     key: np.ndarray  # (n,) int64 random stream of the ray
     principal: np.ndarray  # (n,) bool: the heavier child of its parent (the "first secondary hit")
-
-    @classmethod
-    def empty(cls, n: int) -> Rays:
-        return cls(
-            np.empty((n, 3), np.float32),
-            np.empty((n, 3), np.float32),
-            np.empty((n, 3), np.float32),
-            np.empty(n, np.int64),
-            np.empty(n, np.int64),
-            np.empty(n, bool),
-        )
+    through: np.ndarray  # (n,) bool: a refracted ray (it left through the surface), not a reflected one
 
 
-@nb.njit(cache=True, nogil=True)
-def _interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, start, stop):
+@serial
+def rays_empty(n):
+    return Rays(
+        np.empty((n, 3), np.float32),
+        np.empty((n, 3), np.float32),
+        np.empty((n, 3), np.float32),
+        np.empty(n, np.int64),
+        np.empty(n, np.int64),
+        np.empty(n, np.bool_),
+        np.empty(n, np.bool_),
+    )
+
+
+@serial
+def interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, start, stop):
+    """Weights of the reflected and refracted rays at hits [start, stop), and how many children each spawns."""
     refl, trans, ior = mats.reflectance, mats.transmittance, mats.ior
     hits, ns, entering, material = surf.hit, surf.normal_shading, surf.entering, surf.material
     dirs, thr = rays.directions, rays.throughput
@@ -62,15 +65,7 @@ def _interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, start, s
             counts[i] = int(kr * peak > MIN_THROUGHPUT) + int(kt * peak > MIN_THROUGHPUT)
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def interaction_kernel(mats, surf, rays, spawn, kr_out, kt_out, counts):
-    """Weights of the reflected and refracted rays at every hit, and how many children each spawns."""
-    n = surf.hit.shape[0]
-    for b in nb.prange((n + BLOCK - 1) // BLOCK):
-        _interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, b * BLOCK, min(n, (b + 1) * BLOCK))
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def _child(out, j, surf, parent, i, direction, side, weight, key, principal):
     """Child ray j of hit i: leaves from the `side` (+1 out, -1 through) of the surface along `direction`."""
     off = surf.offset[i] * side
@@ -81,10 +76,12 @@ def _child(out, j, surf, parent, i, direction, side, weight, key, principal):
     out.owner[j] = parent.owner[i]
     out.key[j] = key
     out.principal[j] = principal
+    out.through[j] = side < 0.0
 
 
-@nb.njit(cache=True, nogil=True)
-def _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, start, stop):
+@serial
+def spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, start, stop):
+    """Write the children of hits [start, stop) at out[first[i]:] (reflection first, then refraction)."""
     ior, ng, ns, entering, material = mats.ior, surf.normal_geometric, surf.normal_shading, surf.entering, surf.material
     dirs, thr, keys = rays.directions, rays.throughput, rays.key
     for i in range(start, stop):
@@ -113,20 +110,3 @@ def _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, start, stop)
                 tx, ty, tz = dx, dy, dz
             key = hash32(keys[i], depth, 2)
             _child(out, j, surf, rays, i, (tx, ty, tz), -1.0, kt, key, not principal_is_reflection)
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def spawn_kernel(mats, surf, rays, kr_in, kt_in, first, depth, out):
-    """Write the children of every hit at out[first[i]:] (reflection first, then refraction)."""
-    n = surf.hit.shape[0]
-    for b in nb.prange((n + BLOCK - 1) // BLOCK):
-        _spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, b * BLOCK, min(n, (b + 1) * BLOCK))
-
-
-@nb.njit(cache=True, nogil=True)
-def accumulate_kernel(radiance, rays, local):
-    """radiance[owner] += throughput * local, serially (several rays may share an owner)."""
-    for i in range(rays.owner.shape[0]):
-        o = rays.owner[i]
-        for c in range(3):
-            radiance[o, c] += rays.throughput[i, c] * local[i, c]

@@ -10,10 +10,9 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import numba as nb
 import numpy as np
 
-from hmdrt.trace.blocks import BLOCK
+from hmdrt.jit import serial
 from hmdrt.trace.textures import texture_block
 
 OFFSET_REL = 2.0**-16  # ~512 float32 ulps of the triangle's coordinates
@@ -33,24 +32,26 @@ class Surface(NamedTuple):
     object_id: np.ndarray  # (n,) int32, -1 on a miss
     offset: np.ndarray  # (n,) float32, metres
 
-    @classmethod
-    def empty(cls, n: int) -> Surface:
-        return cls(
-            np.empty(n, bool),
-            np.empty((n, 3)),
-            np.empty((n, 3), np.float32),
-            np.empty((n, 3), np.float32),
-            np.empty(n, bool),
-            np.empty((n, 3)),
-            np.empty((n, 3), np.float32),
-            np.empty(n, np.int32),
-            np.empty(n, np.int32),
-            np.empty(n, np.float32),
-        )
+
+@serial
+def surface_empty(n):
+    return Surface(
+        np.empty(n, np.bool_),
+        np.empty((n, 3)),
+        np.empty((n, 3), np.float32),
+        np.empty((n, 3), np.float32),
+        np.empty(n, np.bool_),
+        np.empty((n, 3)),
+        np.empty((n, 3), np.float32),
+        np.empty(n, np.int32),
+        np.empty(n, np.int32),
+        np.empty(n, np.float32),
+    )
 
 
-@nb.njit(cache=True, nogil=True)
-def _surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
+@serial
+def surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
+    """Fill rows [start, stop) of `out` (a Surface) from the hits (prim, bu, bv) of rays with the given directions."""
     faces, verts, fnorm, vnorm, uvs = geo.faces, geo.vertices, geo.face_normals, geo.vertex_normals, geo.uv
     extent, tri_object, obj_mat, obj_smooth, obj_uv = (
         geo.extent,
@@ -105,11 +106,3 @@ def _surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
             texcoord[i, 2] = 0.0
         offset[i] = max(extent[p], 1e-30) * OFFSET_REL
     texture_block(mats, material, texcoord, hit, albedo, start, stop)
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def surface_kernel(geo, mats, directions, prim, bu, bv, out):
-    """Fill `out` (a Surface) from the hits (prim, bu, bv) of rays with the given directions."""
-    n = prim.shape[0]
-    for b in nb.prange((n + BLOCK - 1) // BLOCK):
-        _surface_block(geo, mats, directions, prim, bu, bv, out, b * BLOCK, min(n, (b + 1) * BLOCK))

@@ -6,14 +6,14 @@ ones; the surface pass chooses, this pass turns them into albedo = diffuse x tex
 
 import math
 
-import numba as nb
 import numpy as np
 
+from hmdrt.jit import serial
 from hmdrt.scene.noise import fbm
 from hmdrt.scene.pack import TEX_CHECKER, TEX_IMAGE, TEX_NOISE, Materials
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@serial
 def _bilinear(texels, base, h, w, u, v, out, i):
     x = (u - math.floor(u)) * w - 0.5
     y = (1.0 - (v - math.floor(v))) * h - 0.5  # UV origin is the bottom-left of the image
@@ -32,9 +32,15 @@ def _bilinear(texels, base, h, w, u, v, out, i):
                 out[i, c] += wgt * texels[idx, c]
 
 
-@nb.njit(cache=True, nogil=True)
+@serial
+def _noise(a, b, c, octaves, seed):
+    return min(max(0.5 + 0.5 * fbm(a, b, c, octaves, seed), 0.0), 1.0)
+
+
+@serial
 def texture_block(mats, material, coords, active, albedo, start, stop):
-    """albedo[i] = diffuse x texture of material[i] at coords[i], for active i in [start, stop)."""
+    """albedo[i] = diffuse x texture of material[i] at coords[i], for active i in [start, stop). Image and noise
+    lookups are calls, not inlined: their code in the loop would slow the common checker and plain cases."""
     diffuse, kinds, scales = mats.diffuse, mats.tex_kind, mats.tex_scale
     c0, c1, octaves, seeds = mats.tex_color0, mats.tex_color1, mats.tex_octaves, mats.tex_seed
     texels, offsets, heights, widths = mats.texels, mats.tex_offset, mats.tex_height, mats.tex_width
@@ -51,7 +57,7 @@ def texture_block(mats, material, coords, active, albedo, start, stop):
             if kind == TEX_CHECKER:
                 t = float((int(math.floor(a)) + int(math.floor(b)) + int(math.floor(c))) & 1)
             else:
-                t = min(max(0.5 + 0.5 * fbm(a, b, c, octaves[k], seeds[k]), 0.0), 1.0)
+                t = _noise(a, b, c, octaves[k], seeds[k])
             for ch in range(3):
                 albedo[i, ch] = (1.0 - t) * c0[k, ch] + t * c1[k, ch]  # exact at t = 0 and t = 1
         else:

@@ -1,0 +1,321 @@
+"""Whitted tracing of camera samples as one fused kernel: a parallel loop over blocks of samples, each block a
+small wavefront over bounce depth that never leaves its thread's cache-sized scratch.
+
+Per block and depth: generate the camera rays (depth 0), intersect them, build the shading records, make
+the shadow / area / AO rays and trace them, shade, store the G-buffer and light buffer rows, then spawn
+the reflected and refracted rays into the next level. Embree is called per ray from the kernel
+(hmdrt.trace.embree), so nothing the size of the batch is allocated and no Python runs between the steps.
+A sample's contributions add up in the order the former batch-wide wavefront added them (depth by depth,
+parents in order, reflection before refraction), so the result does not depend on the block size.
+
+Each thread owns a Lane of scratch sized for `capacity` rays per level; a level that needs more (deep
+glass) takes fresh arrays for that block and reports the size it needed (meter.NEED), and the caller grows
+the lanes for the next call.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numba as nb
+import numpy as np
+
+from hmdrt.jit import kernel, serial
+from hmdrt.optics.camera import eye_direction
+from hmdrt.trace import embree, meter
+from hmdrt.trace.gbuffer import GBuffer, store_block
+from hmdrt.trace.lighting import RayBatch, batch_empty, light_rays_block, shade_block
+from hmdrt.trace.secondary import Rays, interaction_block, rays_empty, spawn_block
+from hmdrt.trace.surface import Surface, surface_block, surface_empty
+from hmdrt.trace.tracer import Hits
+
+
+class Work(NamedTuple):
+    """A thread's scratch for one level of up to n rays (light batches: n x the rays per hit of each kind)."""
+
+    hits: Hits
+    surf: Surface
+    point: RayBatch
+    area: RayBatch
+    ao: RayBatch
+    acc: np.ndarray  # (n, 6) float64 shading sums (lighting.shade_block)
+    local: np.ndarray  # (n, 3) float64 local radiance of each hit
+    shadow_count: np.ndarray  # (n,) int16
+    stochastic: np.ndarray  # (n, 3) float32
+    kr: np.ndarray  # (n,) float32
+    kt: np.ndarray  # (n,) float32
+    counts: np.ndarray  # (n,) int64 children of each hit
+    first: np.ndarray  # (n,) int64 where its children go
+    rows: np.ndarray  # (n,) int64 G-buffer row of each ray, -1 for none
+
+
+class Lane(NamedTuple):
+    """One thread's scratch: a level's work arrays, two ray buffers (this level, the next) and the block's
+    radiance, Embree ray packet, clock and tally (meter)."""
+
+    work: Work
+    rays: Rays
+    children: Rays
+    radiance: np.ndarray  # (block, 3) float64
+    packet: np.ndarray  # an Embree ray packet (embree.packets)
+    clock: np.ndarray  # (2,) int64
+    tally: np.ndarray  # (meter.TALLY,) int64
+
+
+class Frame(NamedTuple):
+    """What one trace_samples call reads and writes: samples (xy, keys) of an eye, the radiance out, and the
+    G-buffer and light buffer, each written only where its flag is set."""
+
+    eye: object  # hmdrt.optics.camera.EyeRays
+    xy: np.ndarray  # (n, 2) float32
+    keys: np.ndarray  # (n,) int64
+    out: np.ndarray  # (n, 3) float32
+    gbuffer: object  # hmdrt.trace.gbuffer.GBuffer
+    light: object  # hmdrt.trace.gbuffer.LightBuffer
+    has_gbuffer: bool
+    has_light: bool
+
+
+class SceneArgs(NamedTuple):
+    """The scene as the kernel sees it: Embree handle, packed arrays, light plan and recursion settings."""
+
+    handle: int
+    args: np.ndarray  # Embree query arguments (embree.coherent_args)
+    geometry: object  # hmdrt.scene.pack.Geometry
+    materials: object  # hmdrt.scene.pack.Materials
+    lights: object  # hmdrt.scene.pack.Lights
+    plan: object  # hmdrt.trace.lighting.LightPlan
+    textured: np.ndarray  # (k,) bool per material
+    max_depth: int
+    secondary: bool
+
+
+@serial
+def work_empty(n, n_point, n_area, n_ao):
+    return Work(
+        Hits(np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)),
+        surface_empty(n),
+        batch_empty(n * n_point),
+        batch_empty(n * n_area),
+        batch_empty(n * n_ao),
+        np.empty((n, 6)),
+        np.empty((n, 3)),
+        np.empty(n, np.int16),
+        np.empty((n, 3), np.float32),
+        np.empty(n, np.float32),
+        np.empty(n, np.float32),
+        np.empty(n, np.int64),
+        np.empty(n, np.int64),
+        np.empty(n, np.int64),
+    )
+
+
+def lane_empty(capacity: int, block: int, n_point: int, n_area: int, n_ao: int) -> Lane:
+    """A thread's scratch for levels of up to `capacity` rays and blocks of `block` samples."""
+    return Lane(
+        work_empty(capacity, n_point, n_area, n_ao),
+        rays_empty(capacity),
+        rays_empty(capacity),
+        np.zeros((block, 3)),
+        embree.packets(1)[0],
+        np.zeros(2, np.int64),
+        np.zeros(meter.TALLY, np.int64),
+    )
+
+
+@serial
+def _occlude(scene, packet, batch, hits, per_hit):
+    o, d, far, occluded = batch
+    return embree.occluded_rays(scene.handle, scene.args, packet, o, d, far, occluded, hits, per_hit)
+
+
+@serial
+def _raygen(frame, rays, radiance, start, count):
+    eye, xy, keys = frame.eye, frame.xy, frame.keys
+    ox, oy, oz = np.float32(eye.position[0]), np.float32(eye.position[1]), np.float32(eye.position[2])
+    for i in range(count):
+        s = start + i
+        dx, dy, dz = eye_direction(eye, xy[s, 0], xy[s, 1])
+        rays.origins[i, 0], rays.origins[i, 1], rays.origins[i, 2] = ox, oy, oz
+        rays.directions[i, 0], rays.directions[i, 1], rays.directions[i, 2] = dx, dy, dz
+        for c in range(3):
+            rays.throughput[i, c] = 1.0
+            radiance[i, c] = 0.0
+        rays.owner[i] = i
+        rays.key[i] = keys[s]
+        rays.principal[i] = True
+        rays.through[i] = False
+
+
+@serial
+def _accumulate(frame, w, rays, radiance, start, count, depth):
+    """Add the level's local radiance to its samples; depth 0 also fills the light buffer."""
+    local = w.local
+    if depth == 0:
+        for i in range(count):
+            for c in range(3):
+                radiance[i, c] += local[i, c]
+        if frame.has_light:
+            irradiance, albedo = frame.light
+            hit, surf_albedo = w.surf.hit, w.surf.albedo
+            for i in range(count):
+                for c in range(3):
+                    irradiance[start + i, c] = w.stochastic[i, c]
+                    albedo[start + i, c] = surf_albedo[i, c] if hit[i] else 0.0
+        return
+    owner, thr = rays.owner, rays.throughput
+    for i in range(count):
+        o = owner[i]
+        for c in range(3):
+            radiance[o, c] += thr[i, c] * local[i, c]
+
+
+@serial
+def _store_gbuffer(frame, scene, w, rays, start, count, depth):
+    rows = w.rows
+    for i in range(count):
+        rows[i] = start + rays.owner[i] if depth == 0 or rays.principal[i] else -1
+    attrs = frame.gbuffer.primary if depth == 0 else frame.gbuffer.secondary
+    store_block(attrs, rows, w.hits.t, w.surf, scene.textured, w.shadow_count, w.kr, w.kt, 0, count)
+
+
+@serial
+def _intersect(scene, packet, rays, hits, count, depth):
+    """Primary rays in packets of neighbours; secondary rays with the reflected and refracted ones apart (each kind
+    is coherent on its own, a mix of the two is not)."""
+    o, d = rays.origins, rays.directions
+    if depth == 0:
+        embree.intersect_rays(scene.handle, scene.args, packet, o, d, None, hits, 0, count)
+        return
+    for through in (False, True):
+        embree.intersect_selected(scene.handle, scene.args, packet, o, d, rays.through, through, hits, count)
+
+
+@serial
+def _shade(scene, w, rays, count):
+    shade_block(
+        scene.lights,
+        scene.plan,
+        scene.materials,
+        w.surf,
+        rays.directions,
+        w.point,
+        w.area,
+        w.ao,
+        w.acc,
+        w.local,
+        w.shadow_count,
+        w.stochastic,
+        0,
+        count,
+    )
+
+
+@serial
+def _spawn(scene, w, rays, children, count, depth):
+    """The next level's rays, in a larger buffer than `children` where they do not fit, and how many there are."""
+    total = 0
+    for i in range(count):
+        w.first[i] = total
+        total += w.counts[i]
+    if total > children.owner.shape[0]:
+        children = rays_empty(total)
+    spawn_block(scene.materials, w.surf, rays, w.kr, w.kt, w.first, depth + 1, children, 0, count)
+    return children, total
+
+
+@serial
+def _block(scene, frame, lane, start, stop):
+    """Trace, shade and write samples [start, stop) of the frame."""
+    plan, tally, clock, packet, radiance = scene.plan, lane.tally, lane.clock, lane.packet, lane.radiance
+    n_point, n_area, n_ao = scene.lights.point_position.shape[0], plan.area_total, plan.ao_samples
+    t = meter.now(clock)
+    rays, children = lane.rays, lane.children
+    count = stop - start
+    if count > rays.owner.shape[0]:
+        rays = rays_empty(count)
+    _raygen(frame, rays, radiance, start, count)
+    t = meter.tick(tally, clock, meter.RAYGEN, t)
+    for depth in range(scene.max_depth + 1):
+        if count == 0:
+            break
+        tally[meter.NEED] = max(tally[meter.NEED], count)
+        w = lane.work if count <= lane.work.kr.shape[0] else work_empty(count, n_point, n_area, n_ao)
+        _intersect(scene, packet, rays, w.hits, count, depth)
+        kind = meter.PRIMARY if depth == 0 else meter.SECONDARY
+        tally[meter.RAYS_PRIMARY if depth == 0 else meter.RAYS_SECONDARY] += count
+        t = meter.tick(tally, clock, kind, t)
+        surface_block(
+            scene.geometry, scene.materials, rays.directions, w.hits.prim, w.hits.u, w.hits.v, w.surf, 0, count
+        )
+        t = meter.tick(tally, clock, meter.SURFACE, t)
+        if n_point + n_area + n_ao:
+            light_rays_block(scene.lights, plan, w.surf, rays.key, w.point, w.area, w.ao, 0, count)
+            t = meter.tick(tally, clock, meter.LIGHTGEN, t)
+        if n_point:
+            tally[meter.RAYS_SHADOW] += _occlude(scene, packet, w.point, count, n_point)
+            t = meter.tick(tally, clock, meter.SHADOW, t)
+        if n_area:
+            tally[meter.RAYS_AREA] += _occlude(scene, packet, w.area, count, n_area)
+            t = meter.tick(tally, clock, meter.AREA, t)
+        if n_ao:
+            tally[meter.RAYS_AO] += _occlude(scene, packet, w.ao, count, n_ao)
+            t = meter.tick(tally, clock, meter.AO, t)
+        _shade(scene, w, rays, count)
+        _accumulate(frame, w, rays, radiance, start, count, depth)
+        t = meter.tick(tally, clock, meter.SHADE, t)
+        spawn = depth < scene.max_depth and scene.secondary
+        store = frame.has_gbuffer and depth <= 1
+        if spawn or store:
+            interaction_block(scene.materials, w.surf, rays, spawn, w.kr, w.kt, w.counts, 0, count)
+            t = meter.tick(tally, clock, meter.SECONDARY if spawn else meter.GBUFFER, t)
+        if store:
+            _store_gbuffer(frame, scene, w, rays, start, count, depth)
+            t = meter.tick(tally, clock, meter.GBUFFER, t)
+        if not spawn:
+            break
+        next_rays, count = _spawn(scene, w, rays, children, count, depth)
+        rays, children = next_rays, rays
+        tally[meter.NEED] = max(tally[meter.NEED], count)
+        t = meter.tick(tally, clock, meter.SECONDARY, t)
+    out = frame.out
+    for i in range(stop - start):
+        for c in range(3):
+            out[start + i, c] = radiance[i, c]
+    meter.tick(tally, clock, meter.SHADE, t)
+
+
+@kernel
+def _trace_kernel(
+    handle,
+    args,
+    geo,
+    mats,
+    lights,
+    plan,
+    textured,
+    max_depth,
+    secondary,
+    eye,
+    xy,
+    keys,
+    out,
+    gb1,
+    gb2,
+    light,
+    flags,
+    lanes,
+    block,
+):
+    n = xy.shape[0]
+    for b in nb.prange((n + block - 1) // block):
+        scene = SceneArgs(handle, args, geo, mats, lights, plan, textured, max_depth, secondary)
+        frame = Frame(eye, xy, keys, out, GBuffer(gb1, gb2), light, flags[0], flags[1])
+        _block(scene, frame, lanes[nb.get_thread_id()], b * block, min(n, (b + 1) * block))
+
+
+def trace(scene: SceneArgs, frame: Frame, lanes, block: int) -> None:
+    """Radiance of every sample of `frame` into frame.out, blocks of `block` samples handed to the threads
+    (lanes: a numba typed List of one Lane per numba thread). A parallel kernel's arguments cannot nest
+    tuples of arrays (numba builds its gufunc from the flat ones), so the namedtuples travel field by field."""
+    _trace_kernel(*scene, *frame[:4], *frame.gbuffer, frame.light, frame[6:], lanes, block)
