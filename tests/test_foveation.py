@@ -243,7 +243,7 @@ def test_stages_follow_what_the_scene_and_config_need():
     assert "reproject" not in first and "resample_info" not in first  # no previous frame yet
     assert not {"gaze_depth", "coc", "dof_filter"} & stages("weier18?dof=none", "whitted")
     assert {"gaze_depth", "coc", "dof_filter", "taa"} <= stages("weier18", "whitted")
-    assert "combine" not in stages("weier18?contrast=0", "whitted")
+    assert "combine" in stages("weier18?contrast=0&dof=none", "whitted")  # the one pass that writes the image
 
 
 def test_skipped_stages_cost_nothing_and_rays_are_counted():

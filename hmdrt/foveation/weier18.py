@@ -16,28 +16,31 @@ contrast-enhancing combine. Defaults follow section 4.1's benchmark: r0 = 10, r1
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Annotated, Literal
+from dataclasses import dataclass, field
+from typing import Annotated, Literal, NamedTuple
 
 import msgspec
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.base import HISTORY, Configurable, FrameRequest, Stage, pixel_keys, plan
+from hmdrt.foveation.base import HISTORY, Configurable, FrameRequest, Stage, plan
 from hmdrt.foveation.stages.dof import (
     DEPTH_INACCURACY_M,
     DOF_PRESETS,
-    MAX_BLUR_PX,
+    Blur,
     DofPreset,
-    coc_map,
+    Layers,
+    combine,
     focal_lengths,
     gaze_depth,
-    layered_blur,
+    horizontal_pass,
+    lens,
 )
-from hmdrt.foveation.stages.filters import contrast_enhance
+from hmdrt.foveation.stages.filters import Contrast, contrast_levels
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push, quincunx_rgbd
 from hmdrt.foveation.stages.reproject import FAR, camera_arrays, project, world_point
-from hmdrt.foveation.stages.sampling import Foveal, SamplingTables, pixels_per_degree, sampling_tables, table_mask
+from hmdrt.foveation.stages.sampling import Foveal, SampleSet, SamplingTables, pixels_per_degree, sampling_tables
+from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBufferPool
@@ -46,7 +49,7 @@ from hmdrt.trace.integrator import Whitted
 Deg = Annotated[float, msgspec.Meta(ge=0.0, le=180.0)]
 Fraction = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 DOF = "dof"
-CONTRAST = "contrast"
+BLOCK = 1024  # samples per call of the TAA's serial block function
 
 
 class Weier18Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -73,39 +76,70 @@ class Weier18Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         return DofPreset(self.pupil_mm or base.pupil_mm, self.retina or base.retina)
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _taa(pixels, width, cur, prev, depth, rgb, ecc, r0, r1, p_min, pyramid, alpha_min, tol, out):
-    """Blend each traced sample with the previous frame's pyramid around its back-projection."""
-    data, offsets, widths, heights = pyramid
-    pw, ph = widths[0], heights[0]
-    for s in nb.prange(pixels.shape[0]):
+class Traced(NamedTuple):
+    """A frame's traced samples: row-major pixel, footprint level and its quincunx offset, hit distance
+    (inf: miss), radiance."""
+
+    pixels: np.ndarray  # (n,) int64
+    level: np.ndarray  # (n,) float64
+    offset: np.ndarray  # (n,) float64
+    depth: np.ndarray  # (n,) float32
+    rgb: np.ndarray  # (n, 3) float32
+
+
+class Blend(NamedTuple):
+    """TAA's image width and blend settings."""
+
+    width: int
+    alpha_min: float
+    tol: float  # relative depth tolerance of a tap
+
+
+@inline
+def _tap(tap, expected, tol, valid, r, g, b):
+    """Adds a quincunx tap that sees the sample's surface (its depth within tol of the expected one, or both
+    misses) to the count and the colour sums."""
+    d = tap[3]
+    if (math.isinf(expected) and d >= 0.5 * FAR) or abs(d - expected) <= tol * expected:
+        return valid + 1, r + tap[0], g + tap[1], b + tap[2]
+    return valid, r, g, b
+
+
+@serial
+def _taa_block(traced, cur, prev, blend, previous, history, data, start, stop):
+    pixels, levels, offsets, depth, rgb = traced
+    width, alpha_min, tol = blend
+    pw, ph = previous.widths[0], previous.heights[0]
+    for s in range(start, stop):
         i = pixels[s]
-        x, y = i % width + 0.5, i // width + 0.5
-        px, py, pz = world_point(cur, x, y, depth[s])
-        qx, qy, dist = project(prev, px, py, pz)
-        if not (qx >= 0.0 and qy >= 0.0 and qx < pw and qy < ph):
-            for c in range(3):
-                out[s, c] = rgb[s, c]
-            continue
-        e = ecc[i]
-        p = 1.0 if e < r0 else (p_min if e >= r1 else 1.0 - (1.0 - p_min) * (e - r0) / (r1 - r0))
-        level = math.log2(max(1.0 / math.sqrt(max(p, 1e-6)), 1.0))
-        expected = dist if depth[s] < FAR else math.inf
-        valid = 0
-        r = g = b = 0.0
-        for k in range(5):
-            tr, tg, tb, d = quincunx_rgbd(data, offsets, widths, heights, level, qx, qy, k)
-            if (math.isinf(expected) and d >= 0.5 * FAR) or abs(d - expected) <= tol * expected:
-                valid += 1
-                r, g, b = r + tr, g + tg, b + tb
-        if valid == 0:
-            for c in range(3):
-                out[s, c] = rgb[s, c]
-            continue
-        alpha = max(alpha_min, 1.0 - valid / 5.0)
-        out[s, 0] = alpha * rgb[s, 0] + (1.0 - alpha) * r / valid
-        out[s, 1] = alpha * rgb[s, 1] + (1.0 - alpha) * g / valid
-        out[s, 2] = alpha * rgb[s, 2] + (1.0 - alpha) * b / valid
+        r, g, b = rgb[s, 0], rgb[s, 1], rgb[s, 2]
+        if history:
+            px, py, pz = world_point(cur, i % width + 0.5, i // width + 0.5, depth[s])
+            qx, qy, dist = project(prev, px, py, pz)
+            if qx >= 0.0 and qy >= 0.0 and qx < pw and qy < ph:
+                expected = dist if depth[s] < FAR else math.inf
+                t0, t1, t2, t3, t4 = quincunx_rgbd(previous, levels[s], offsets[s], qx, qy)
+                valid, tr, tg, tb = _tap(t0, expected, tol, 0, 0.0, 0.0, 0.0)
+                valid, tr, tg, tb = _tap(t1, expected, tol, valid, tr, tg, tb)
+                valid, tr, tg, tb = _tap(t2, expected, tol, valid, tr, tg, tb)
+                valid, tr, tg, tb = _tap(t3, expected, tol, valid, tr, tg, tb)
+                valid, tr, tg, tb = _tap(t4, expected, tol, valid, tr, tg, tb)
+                if valid > 0:
+                    alpha = max(alpha_min, 1.0 - valid / 5.0)
+                    r = alpha * r + (1.0 - alpha) * tr / valid
+                    g = alpha * g + (1.0 - alpha) * tg / valid
+                    b = alpha * b + (1.0 - alpha) * tb / valid
+        data[i, 0], data[i, 1], data[i, 2], data[i, 3], data[i, 4] = r, g, b, 1.0, min(depth[s], FAR)
+
+
+@kernel
+def _taa(traced, cur, prev, blend, previous, history, pyramid):
+    """Each traced sample into level 0 of `pyramid` (weight 1, depth capped at FAR), blended with the previous
+    frame's pyramid around its back-projection (cameras cur and prev) when there is history."""
+    n = traced.pixels.shape[0]
+    data = pyramid.data
+    for block in nb.prange((n + BLOCK - 1) // BLOCK):
+        _taa_block(traced, cur, prev, blend, previous, history, data, block * BLOCK, min(n, (block + 1) * BLOCK))
 
 
 @dataclass
@@ -114,6 +148,11 @@ class _EyeState:
     pyramids: list[Pyramid]  # [current, previous]; swapped every frame
     tables: SamplingTables | None = None
     tables_for: tuple | None = None  # the (foveal region, table_seed) the tables were drawn for
+    samples: SampleSet = field(default_factory=SampleSet)
+    keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the samples' random-stream keys
+    levels: np.ndarray | None = None  # contrast enhancement's blur level per pixel
+    levels_for: tuple | None = None  # the (gaze, r0) they were computed for
+    layers: Layers | None = None  # the depth of field's buffers
 
 
 class Weier18(Configurable):
@@ -129,7 +168,7 @@ class Weier18(Configurable):
         Stage("gaze_depth", frozenset({DOF})),
         Stage("coc", frozenset({DOF})),
         Stage("dof_filter", frozenset({DOF})),
-        Stage("combine", frozenset({CONTRAST})),
+        Stage("combine"),
     )
 
     def __init__(self, tracer: Whitted, params: Weier18Params):
@@ -145,9 +184,7 @@ class Weier18(Configurable):
         self.params = params
         self.foveal = Foveal(params.r0, params.r1, params.p_min)
         self._tables_for = (self.foveal, params.table_seed)
-        self.features = frozenset({DOF} if params.preset() else set()) | frozenset(
-            {CONTRAST} if params.contrast else set()
-        )
+        self.features = frozenset({DOF} if params.preset() else set())
 
     def _state(self, request: FrameRequest) -> tuple[_EyeState, bool]:
         """This eye's state and whether it holds a previous frame of the same size."""
@@ -162,72 +199,78 @@ class Weier18(Configurable):
             state.tables_for = self._tables_for
         return state, history
 
-    def render(self, request: FrameRequest, stats: FrameStats) -> np.ndarray:
+    def _select(self, state: _EyeState, request: FrameRequest) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The eccentricity map and point of regard; the samples, their keys and the contrast levels for them,
+        recomputed only when the gaze, the frustum or the tables change."""
+        cam, gaze = request.camera, request.gaze
+        ecc = eccentricity_map(cam, gaze)
+        por = cam.gaze_pixel(gaze)
+        view = (cam._frustum(), float(gaze[0]), float(gaze[1]), float(gaze[2]))
+        state.samples.update((view, state.tables_for), ecc, self.foveal, state.tables, por)
+        if state.levels_for != (view, self.params.r0):
+            if state.levels is None or state.levels.shape[:2] != ecc.shape:
+                state.levels = np.empty((*ecc.shape, 2), np.float32)
+            contrast_levels(ecc, self.params.r0, state.levels)
+            state.levels_for = (view, self.params.r0)
+        n = state.samples.count
+        if len(state.keys) < n:
+            state.keys = np.empty(max(n, int(1.25 * len(state.keys))), np.int64)
+        # base.pixel_keys(pixels, seed, frame) without its temporary
+        offset = (np.int64(request.seed) << np.int64(32)) + np.int64(request.frame) * np.int64(1 << 22)
+        keys = np.add(state.samples.pixels, offset, out=state.keys[:n])
+        return ecc, por, keys
+
+    def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         cam, p = request.camera, self.params
         w, h = cam.width, cam.height
         state, history = self._state(request)
         steps = plan(self.stages, self.features | ({HISTORY} if history else set()))
         with stats.stage("sample"):
-            ecc = eccentricity_map(cam, request.gaze)
-            por = cam.gaze_pixel(request.gaze)
-            pixels = np.flatnonzero(table_mask(ecc, self.foveal, state.tables, por))
-            xy = np.empty((len(pixels), 2), np.float32)
-            xy[:, 0] = pixels % w + 0.5
-            xy[:, 1] = pixels // w + 0.5
+            ecc, por, keys = self._select(state, request)
+            samples = state.samples
         with stats.stage("trace"):
-            gbuf = self._gbuffers.rows(len(pixels))
-            rgb = self.tracer.trace_samples(cam, xy, pixel_keys(pixels, request.seed, request.frame), stats, gbuf)
-        depth = gbuf.primary.depth
+            gbuf = self._gbuffers.rows(samples.count)
+            rgb = self.tracer.trace_samples(cam, samples.xy, keys, stats, gbuf)
+        traced = Traced(samples.pixels, samples.level, samples.offset, gbuf.primary.depth, rgb)
         state.pyramids.reverse()
         current, previous = state.pyramids
+        cameras = camera_arrays(cam), camera_arrays(state.camera)
+        blend = Blend(w, p.alpha_min, p.taa_depth)
         if "taa" in steps:
             with stats.stage("taa"):
-                smoothed = np.empty_like(rgb)
-                _taa(
-                    pixels,
-                    w,
-                    camera_arrays(cam),
-                    camera_arrays(state.camera),
-                    depth,
-                    rgb,
-                    ecc.reshape(-1),
-                    p.r0,
-                    p.r1,
-                    p.p_min,
-                    tuple(previous),
-                    p.alpha_min,
-                    p.taa_depth,
-                    smoothed,
-                )
-                rgb = smoothed
+                _taa(traced, *cameras, blend, previous, True, current)
         with stats.stage("ppi"):
-            current.data.fill(0.0)
-            level0 = current.data[: w * h]
-            level0[pixels, :3] = rgb
-            level0[pixels, 3] = 1.0
-            level0[pixels, 4] = np.minimum(depth, FAR)
-            pull_push(current)
-            base = current.level(0)
-            image = np.ascontiguousarray(base[..., :3])
+            if "taa" not in steps:
+                _taa(traced, *cameras, blend, previous, False, current)
+            pull_push(current, samples.mask.reshape(-1))
+        base = current.level(0)
+        color = base[..., :3]
         preset = p.preset()
+        layers = None
+        blur = Blur(p.r0, p.r1)
         if "dof_filter" in steps and preset is not None:
             ppd = sum(pixels_per_degree(cam)) / 2
             with stats.stage("gaze_depth"):
-                dense_depth = np.where(base[..., 4] >= 0.5 * FAR, np.inf, base[..., 4])
-                focus = gaze_depth(dense_depth, por, ppd, request.gaze_depth_m)
+                focus = gaze_depth(base[..., 4], por, ppd, request.gaze_depth_m, miss=0.5 * FAR)
             with stats.stage("coc"):
-                coc = coc_map(dense_depth, focus, preset, ppd, p.depth_inaccuracy_m)
+                if state.layers is None or state.layers.coc.shape != (h, w):
+                    state.layers = Layers.empty(w, h)
+                layers = state.layers
+                layers.compute_coc(base[..., 4], lens(focus, preset, ppd, p.depth_inaccuracy_m), miss=0.5 * FAR)
             with stats.stage("dof_filter"):
-                image = layered_blur(image, coc, ecc, p.r0, p.r1, current)
+                blur = blur._replace(radius=layers.near_radius())
+                horizontal_pass(color, ecc, layers, blur)
             stats.metrics["focus_m"] = focus
             # 1 when focus - t fell below the lens's near limit and d_n was kept at 2 d_i (dof.focal_lengths)
             near_mm = focal_lengths(focus, p.depth_inaccuracy_m)[0]
             stats.metrics["focus_near_clamped"] = int(near_mm > focus * 1000.0 - p.depth_inaccuracy_m * 1000.0)
-            stats.metrics["coc_max_px"] = float(np.abs(coc).max())
-            stats.metrics["coc_capped_pixels"] = int((np.abs(coc) > MAX_BLUR_PX).sum())  # blurred at the cap
-        if "combine" in steps:
-            with stats.stage("combine"):
-                image = contrast_enhance(image, ecc, current, p.contrast, p.r0, p.r1)
+            coc_max, capped = layers.coc_figures()
+            stats.metrics["coc_max_px"] = coc_max
+            stats.metrics["coc_capped_pixels"] = capped  # blurred at the cap
+        with stats.stage("combine"):
+            if out is None:
+                out = np.empty((h, w, 3), np.float32)
+            combine(color, ecc, layers, blur, current, Contrast(p.contrast, p.r0, p.r1, state.levels), out)
         state.camera = cam
-        stats.metrics["sample_fraction"] = len(pixels) / (w * h)
-        return image
+        stats.metrics["sample_fraction"] = samples.count / (w * h)
+        return out

@@ -22,12 +22,15 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
+from hmdrt.foveation.stages.filters import Contrast, enhance
 from hmdrt.foveation.stages.pyramid import Pyramid, sample_rgbd
+from hmdrt.jit import inline, kernel, serial
 
 IMAGE_DISTANCE_MM = 22.4  # d_i, the eye's lens-to-retina distance (Gross 2005)
 DEPTH_INACCURACY_M = 0.2  # t, the mean gaze-depth estimation error over 6 m (Weier et al. 2018)
 REFERENCE_PPD = 14.2  # rift_s pixels per degree at the centre, the density the presets were set at
 MAX_BLUR_PX = 24  # radius cap of the central Gaussian and of the near-field spread
+RAMP_PX = 2.0  # the |CoC| over which the sharp image fades into the far field
 
 
 class DofPreset(NamedTuple):
@@ -55,7 +58,7 @@ def focal_lengths(d_o_m: float, t_m: float = DEPTH_INACCURACY_M) -> tuple[float,
     return d_n, d_f, f(d_n), f(d_f)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def _image_distance(f, g):
     """V(F, G) = F G / (G - F): where a lens of focal length F images an object at G (G > F); F at G = inf."""
     if math.isinf(g):
@@ -63,7 +66,7 @@ def _image_distance(f, g):
     return f * g / (g - f)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def circle_of_confusion(g_mm, d_n, d_f, f_n, f_f, k, e):
     """Equation (3): signed CoC of an object at distance g (mm); 0 inside [d_n, d_f], > 0 near, < 0 far.
 
@@ -80,30 +83,289 @@ def circle_of_confusion(g_mm, d_n, d_f, f_n, f_f, k, e):
     return (vg - _image_distance(f, d)) * (k * vg) * e
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _coc_map(depth_m, d_n, d_f, f_n, f_f, k, e, out):
-    h, w = depth_m.shape
+class Lens(NamedTuple):
+    """Equation (3)'s constants for one focus: the widened range [d_n, d_f] (mm), the focal lengths that image
+    its ends onto the retina (mm), pupil diameter k (mm) and retinal resolution E at the display's density."""
+
+    d_n: float
+    d_f: float
+    f_n: float
+    f_f: float
+    k: float
+    e: float
+
+
+def lens(focus_m: float, preset: DofPreset, ppd: float, t_m: float = DEPTH_INACCURACY_M) -> Lens:
+    return Lens(*focal_lengths(focus_m, t_m), preset.pupil_mm, preset.retina * ppd / REFERENCE_PPD)
+
+
+ROW_MAX, ROW_ABS_MAX, ROW_CAPPED = 0, 1, 2  # the per-row figures of a CoC map (Layers.rows)
+
+
+@inline
+def _row_stats(coc, y, rows):
+    """Row y's largest CoC, largest |CoC| and count of |CoC| beyond MAX_BLUR_PX."""
+    top, size, capped = -math.inf, 0.0, 0
+    for x in range(coc.shape[1]):
+        c = coc[y, x]
+        top, size = max(top, c), max(size, abs(c))
+        capped += abs(c) > MAX_BLUR_PX
+    rows[y, ROW_MAX], rows[y, ROW_ABS_MAX], rows[y, ROW_CAPPED] = top, size, capped
+
+
+@kernel
+def _coc_rows(depth_m, miss, lens, coc, rows):
+    """The CoC of every pixel (hit distances in metres; `miss` and beyond: misses, at infinity) and each row's
+    figures."""
+    d_n, d_f, f_n, f_f, k, e = lens
+    h, w = coc.shape
     for y in nb.prange(h):
         for x in range(w):
-            out[y, x] = circle_of_confusion(depth_m[y, x] * 1000.0, d_n, d_f, f_n, f_f, k, e)
+            d = depth_m[y, x]
+            g = math.inf if d >= miss else d * 1000.0
+            coc[y, x] = circle_of_confusion(g, d_n, d_f, f_n, f_f, k, e)
+        _row_stats(coc, y, rows)
+
+
+@kernel
+def _coc_stats(coc, rows):
+    for y in nb.prange(coc.shape[0]):
+        _row_stats(coc, y, rows)
+
+
+class Layers(NamedTuple):
+    """The layered blur's per-pixel buffers, kept across frames."""
+
+    coc: np.ndarray  # (h, w) float32 signed CoC in pixels
+    far: np.ndarray  # (h, w, 3) float32 the central far-field Gaussian after its horizontal pass
+    near: np.ndarray  # (h, w, 4) float32 the near field after its horizontal pass: mean colour, reach
+    rows: np.ndarray  # (h, 3) float64 each row's ROW_MAX, ROW_ABS_MAX, ROW_CAPPED
+
+    @classmethod
+    def empty(cls, width: int, height: int) -> Layers:
+        return cls(
+            np.zeros((height, width), np.float32),
+            np.zeros((height, width, 3), np.float32),
+            np.zeros((height, width, 4), np.float32),
+            np.zeros((height, 3)),
+        )
+
+    def compute_coc(self, depth_m: np.ndarray, lens: Lens, miss: float = math.inf) -> None:
+        """The CoC map of hit distances depth_m (m; `miss` and beyond, or inf: misses) and its row figures."""
+        _coc_rows(depth_m, miss, lens, self.coc, self.rows)
+
+    def near_radius(self) -> int:
+        """How far the near field spreads: the largest CoC, rounded up, at most MAX_BLUR_PX."""
+        return min(MAX_BLUR_PX, math.ceil(max(float(self.rows[:, ROW_MAX].max()), 0.0)))
+
+    def coc_figures(self) -> tuple[float, int]:
+        """The largest |CoC| (pixels) and how many pixels the blur caps at MAX_BLUR_PX."""
+        return float(self.rows[:, ROW_ABS_MAX].max()), int(self.rows[:, ROW_CAPPED].sum())
 
 
 def coc_map(
     depth_m: np.ndarray, focus_m: float, preset: DofPreset, ppd: float, t_m: float = DEPTH_INACCURACY_M
 ) -> np.ndarray:
     """Per-pixel signed CoC in pixels for hit distances depth_m (m, inf for misses), focus widened by t_m."""
-    d_n, d_f, f_n, f_f = focal_lengths(focus_m, t_m)
-    out = np.empty(depth_m.shape, np.float32)
-    _coc_map(depth_m.astype(np.float64), d_n, d_f, f_n, f_f, preset.pupil_mm, preset.retina * ppd / REFERENCE_PPD, out)
+    depth_m = np.asarray(depth_m, np.float64)
+    layers = Layers(np.empty(depth_m.shape, np.float32), None, None, np.empty((depth_m.shape[0], 3)))
+    layers.compute_coc(depth_m, lens(focus_m, preset, ppd, t_m))
+    return layers.coc
+
+
+class Blur(NamedTuple):
+    """The layered blur's settings: the transition region [r0, r1) between the central Gaussian and the
+    pyramid, the CoC over which the sharp image fades into the far field, the near field's search radius."""
+
+    r0: float
+    r1: float
+    ramp: float = RAMP_PX
+    radius: int = 0
+
+
+@inline
+def _gauss_radius(sigma):
+    """The far Gaussian's reach, capped before the integer conversion, which would overflow for CoCs beyond
+    about 1e18 pixels."""
+    return MAX_BLUR_PX if sigma >= 0.5 * MAX_BLUR_PX else int(math.ceil(2.0 * sigma))
+
+
+@serial
+def _horizontal_row(color, ecc, coc, far, near, y, r1, radius, has_near):
+    """Row y of the first pass: the far-field Gaussian of central pixels over far-field neighbours only, so the
+    focused and near fields do not bleed into the blurred background; and the near field, where each pixel
+    averages the near-field pixels (CoC > 0) whose blur disc reaches it and records the largest such reach."""
+    w = coc.shape[1]
+    for x in range(w):
+        c0 = coc[y, x]
+        if c0 >= 0.0 or not ecc[y, x] < r1:
+            continue
+        sigma = max(-0.5 * c0, 0.5)
+        reach = _gauss_radius(sigma)
+        wsum = r = g = b = 0.0
+        for d in range(-reach, reach + 1):
+            xx = x + d
+            if xx < 0 or xx >= w or coc[y, xx] >= 0.0:
+                continue
+            wt = math.exp(-0.5 * d * d / (sigma * sigma))
+            wsum += wt
+            r, g, b = r + wt * color[y, xx, 0], g + wt * color[y, xx, 1], b + wt * color[y, xx, 2]
+        far[y, x, 0], far[y, x, 1], far[y, x, 2] = r / wsum, g / wsum, b / wsum
+    if not has_near:
+        return
+    for x in range(w):
+        n = reach = r = g = b = 0.0
+        for xx in range(max(0, x - radius), min(w, x + radius + 1)):
+            c = coc[y, xx]
+            if c > 0.0 and abs(xx - x) <= c:
+                n += 1.0
+                reach = max(reach, min(c, MAX_BLUR_PX))
+                r, g, b = r + color[y, xx, 0], g + color[y, xx, 1], b + color[y, xx, 2]
+        if n > 0.0:
+            near[y, x, 0], near[y, x, 1], near[y, x, 2] = r / n, g / n, b / n
+        near[y, x, 3] = reach
+
+
+@kernel
+def _horizontal(color, ecc, layers, blur):
+    coc, far, near, rows = layers.coc, layers.far, layers.near, layers.rows
+    r1, radius = blur.r1, blur.radius
+    for y in nb.prange(coc.shape[0]):
+        _horizontal_row(color, ecc, coc, far, near, y, r1, radius, rows[y, ROW_MAX] > 0.0)
+
+
+@inline
+def _far_vertical(color, ecc, coc, far, y, x, r1, c0):
+    """The second pass of the central far-field Gaussian over the far-field pixels of the column; a
+    neighbour outside central vision took no first pass and contributes its own colour."""
+    h = coc.shape[0]
+    sigma = max(-0.5 * c0, 0.5)
+    reach = _gauss_radius(sigma)
+    wsum = r = g = b = 0.0
+    for d in range(-reach, reach + 1):
+        yy = y + d
+        if yy < 0 or yy >= h or coc[yy, x] >= 0.0:
+            continue
+        wt = math.exp(-0.5 * d * d / (sigma * sigma))
+        wsum += wt
+        src = far if ecc[yy, x] < r1 else color
+        r, g, b = r + wt * src[yy, x, 0], g + wt * src[yy, x, 1], b + wt * src[yy, x, 2]
+    return r / wsum, g / wsum, b / wsum
+
+
+@inline
+def _near_vertical(near, rows, y, x, radius):
+    """The near field's second pass: the average over the rows whose reach covers this pixel, and the
+    coverage: those rows over the disc's full diameter (1 inside a near object, falling off at its edge)."""
+    n = reach = r = g = b = 0.0
+    for yy in range(max(0, y - radius), min(near.shape[0], y + radius + 1)):
+        if rows[yy, ROW_MAX] <= 0.0:  # no near-field pixel in that row: no reach anywhere along it
+            continue
+        c = near[yy, x, 3]
+        if c > 0.0 and abs(yy - y) <= c:
+            n += 1.0
+            reach = max(reach, c)
+            r, g, b = r + near[yy, x, 0], g + near[yy, x, 1], b + near[yy, x, 2]
+    if n == 0.0:
+        return 0.0, 0.0, 0.0, 0.0
+    return r / n, g / n, b / n, min(1.0, n / (2.0 * reach + 1.0))
+
+
+@inline
+def _dof_pixel(color, ecc, layers, blur, pyramid, y, x):
+    """Far field: the central Gaussian, the pyramid blur in the periphery, blended across [r0, r1); the
+    sharp image is interpolated towards it by |CoC|; the near field is alpha-blended over."""
+    coc, far, near, rows = layers
+    r0, r1, ramp, radius = blur
+    c = coc[y, x]
+    r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
+    if c < 0.0:
+        e = ecc[y, x]
+        blend = 0.0 if e < r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+        if e < r1:
+            fr, fg, fb = _far_vertical(color, ecc, coc, far, y, x, r1, c)
+        else:
+            fr, fg, fb = r, g, b
+        if blend > 0.0:
+            level = 0.0 if -c <= 1.0 else math.log2(-c)
+            pr, pg, pb, _ = sample_rgbd(pyramid, level, x + 0.5, y + 0.5)
+            fr, fg, fb = fr + blend * (pr - fr), fg + blend * (pg - fg), fb + blend * (pb - fb)
+        t = min(1.0, -c / ramp)
+        r, g, b = r + t * (fr - r), g + t * (fg - g), b + t * (fb - b)
+    nr, ng, nb_, a = _near_vertical(near, rows, y, x, radius)
+    if a > 0.0:
+        r, g, b = r + a * (nr - r), g + a * (ng - g), b + a * (nb_ - b)
+    return r, g, b
+
+
+@serial
+def _combine_row(color, ecc, layers, blur, pyramid, contrast, dof, y, out):
+    for x in range(out.shape[1]):
+        if dof:
+            r, g, b = _dof_pixel(color, ecc, layers, blur, pyramid, y, x)
+        else:
+            r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
+        if contrast.strength != 0.0:
+            r, g, b = enhance(r, g, b, ecc[y, x], x, y, contrast, pyramid)
+        out[y, x, 0], out[y, x, 1], out[y, x, 2] = r, g, b
+
+
+@kernel
+def _combine(color, ecc, layers, blur, pyramid, contrast, dof, out):
+    for y in nb.prange(out.shape[0]):
+        _combine_row(color, ecc, layers, blur, pyramid, contrast, dof, y, out)
+
+
+def horizontal_pass(color: np.ndarray, ecc: np.ndarray, layers: Layers, blur: Blur) -> None:
+    """The first pass of the layered blur (layers.coc and its rows computed): into layers.far and layers.near."""
+    _horizontal(color, ecc, layers, blur)
+
+
+def combine(
+    color: np.ndarray,
+    ecc: np.ndarray,
+    layers: Layers | None,
+    blur: Blur,
+    pyramid: Pyramid,
+    contrast: Contrast,
+    out: np.ndarray,
+) -> np.ndarray:
+    """weier2018's DoF Combine in one pass over the image, into out: the second pass of the layered blur
+    and its combination with the sharp image when layers are given (after horizontal_pass), then the
+    contrast enhancement (filters.enhance; strength 0: none)."""
+    _combine(color, ecc, _NO_LAYERS if layers is None else layers, blur, pyramid, contrast, layers is not None, out)
     return out
 
 
+_NO_LAYERS = Layers.empty(0, 0)
+
+
+def layered_blur(
+    color: np.ndarray, coc: np.ndarray, ecc: np.ndarray, r0: float, r1: float, pyramid: Pyramid, ramp: float = RAMP_PX
+) -> np.ndarray:
+    """The depth-of-field image: layered near / focused / far blur with the CoC map (pixels, signed)."""
+    h, w = coc.shape
+    layers = Layers.empty(w, h)
+    layers.coc[:] = coc
+    _coc_stats(layers.coc, layers.rows)
+    blur = Blur(r0, r1, ramp, layers.near_radius())
+    horizontal_pass(color, ecc, layers, blur)
+    no_contrast = Contrast(0.0, r0, r1, np.zeros((0, 0), np.float32))
+    return combine(color, ecc, layers, blur, pyramid, no_contrast, np.empty_like(color))
+
+
 def gaze_depth(
-    depth_m: np.ndarray, por: np.ndarray, ppd: float, vergence_m: float | None, radius_deg: float = 1.0
+    depth_m: np.ndarray,
+    por: np.ndarray,
+    ppd: float,
+    vergence_m: float | None,
+    radius_deg: float = 1.0,
+    miss: float = math.inf,
 ) -> float:
     """The focused depth: depth samples at and around the point of regard (weier2018 Figure 4, a centre
     and eight points on a ring), the one nearest the vergence depth when the two eyes' gaze gives one,
-    else their median. (The paper feeds these measures to a per-user trained SVM; this is its stand-in.)"""
+    else their median. Depths at or beyond `miss` are misses. (The paper feeds these measures to a per-user
+    trained SVM; this is its stand-in.)"""
     h, w = depth_m.shape
     angles = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
     r = radius_deg * ppd
@@ -111,122 +373,9 @@ def gaze_depth(
     ys = np.concatenate([[por[1]], por[1] + r * np.sin(angles)])
     inside = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
     samples = depth_m[ys[inside].astype(int), xs[inside].astype(int)]
-    samples = samples[np.isfinite(samples)]
+    samples = samples[samples < miss]
     if len(samples) == 0:
         return vergence_m if vergence_m is not None else 1e3
     if vergence_m is not None and math.isfinite(vergence_m):
         return float(samples[np.argmin(np.abs(samples - vergence_m))])
     return float(np.median(samples))
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _far_gauss(src, coc, central, horizontal, out):
-    """One pass of the separable far-field Gaussian (sigma = |CoC| / 2) in central vision, taking only
-    far-field neighbours: the focused and near fields do not bleed into the blurred background."""
-    h, w = coc.shape
-    for row in nb.prange(h):
-        y = np.int64(row)  # prange's index is unsigned; y + d must stay a signed integer
-        for x in range(w):
-            c0 = coc[y, x]
-            if not central[y, x] or c0 >= 0.0:
-                for ch in range(3):
-                    out[y, x, ch] = src[y, x, ch]
-                continue
-            sigma = max(-0.5 * c0, 0.5)
-            # capped before the integer conversion, which would overflow for CoCs beyond about 1e18 pixels
-            radius = MAX_BLUR_PX if sigma >= 0.5 * MAX_BLUR_PX else int(math.ceil(2.0 * sigma))
-            wsum = r = g = b = 0.0
-            for d in range(-radius, radius + 1):
-                yy, xx = (y, x + d) if horizontal else (y + d, x)
-                if xx < 0 or xx >= w or yy < 0 or yy >= h or coc[yy, xx] >= 0.0:
-                    continue
-                wt = math.exp(-0.5 * d * d / (sigma * sigma))
-                wsum += wt
-                r, g, b = r + wt * src[yy, xx, 0], g + wt * src[yy, xx, 1], b + wt * src[yy, xx, 2]
-            out[y, x, 0], out[y, x, 1], out[y, x, 2] = r / wsum, g / wsum, b / wsum
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _near_h(color, coc, radius, out):
-    """Horizontal near-field pass: each pixel averages the near-field pixels (CoC > 0) of its row whose
-    blur disc reaches it, and records the largest such reach (0 when none does)."""
-    h, w = coc.shape
-    for y in nb.prange(h):
-        for x in range(w):
-            n = reach = r = g = b = 0.0
-            for xx in range(max(0, x - radius), min(w, x + radius + 1)):
-                c = coc[y, xx]
-                if c > 0.0 and abs(xx - x) <= c:
-                    n += 1.0
-                    reach = max(reach, min(c, MAX_BLUR_PX))
-                    r, g, b = r + color[y, xx, 0], g + color[y, xx, 1], b + color[y, xx, 2]
-            if n > 0.0:
-                out[y, x, 0], out[y, x, 1], out[y, x, 2] = r / n, g / n, b / n
-            out[y, x, 3] = reach
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _near_v(hpass, radius, out):
-    """Vertical near-field pass: the average over the rows whose reach covers this pixel, and the
-    coverage: those rows over the disc's full diameter (1 inside a near object, falling off at its edge)."""
-    h, w = hpass.shape[0], hpass.shape[1]
-    for y in nb.prange(h):
-        for x in range(w):
-            n = reach = r = g = b = 0.0
-            for yy in range(max(0, y - radius), min(h, y + radius + 1)):
-                c = hpass[yy, x, 3]
-                if c > 0.0 and abs(yy - y) <= c:
-                    n += 1.0
-                    reach = max(reach, c)
-                    r, g, b = r + hpass[yy, x, 0], g + hpass[yy, x, 1], b + hpass[yy, x, 2]
-            if n > 0.0:
-                out[y, x, 0], out[y, x, 1], out[y, x, 2] = r / n, g / n, b / n
-                out[y, x, 3] = min(1.0, n / (2.0 * reach + 1.0))
-            else:
-                out[y, x, 0] = out[y, x, 1] = out[y, x, 2] = out[y, x, 3] = 0.0
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _combine(color, coc, far_central, ecc, r0, r1, pyramid, near, ramp, out):
-    """Far field: the central Gaussian, the pyramid blur in the periphery, blended across [r0, r1); the
-    sharp image is interpolated towards it by |CoC|; the near field is alpha-blended over."""
-    data, offsets, widths, heights = pyramid
-    h, w = coc.shape
-    for y in nb.prange(h):
-        for x in range(w):
-            c = coc[y, x]
-            r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
-            if c < 0.0:
-                e = ecc[y, x]
-                blend = 0.0 if e < r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
-                fr, fg, fb = far_central[y, x, 0], far_central[y, x, 1], far_central[y, x, 2]
-                if blend > 0.0:
-                    level = math.log2(max(-c, 1.0))
-                    pr, pg, pb, _ = sample_rgbd(data, offsets, widths, heights, level, x + 0.5, y + 0.5)
-                    fr, fg, fb = fr + blend * (pr - fr), fg + blend * (pg - fg), fb + blend * (pb - fb)
-                t = min(1.0, -c / ramp)
-                r, g, b = r + t * (fr - r), g + t * (fg - g), b + t * (fb - b)
-            a = near[y, x, 3]
-            if a > 0.0:
-                r, g, b = r + a * (near[y, x, 0] - r), g + a * (near[y, x, 1] - g), b + a * (near[y, x, 2] - b)
-            out[y, x, 0], out[y, x, 1], out[y, x, 2] = r, g, b
-
-
-def layered_blur(
-    color: np.ndarray, coc: np.ndarray, ecc: np.ndarray, r0: float, r1: float, pyramid: Pyramid, ramp: float = 2.0
-) -> np.ndarray:
-    """The depth-of-field image: layered near / focused / far blur with the CoC map (pixels, signed)."""
-    h, w = coc.shape
-    central = ecc < r1
-    hpass = np.empty_like(color)
-    far = np.empty_like(color)
-    _far_gauss(color, coc, central, True, hpass)
-    _far_gauss(hpass, coc, central, False, far)
-    near_h = np.zeros((h, w, 4), np.float32)
-    near = np.empty((h, w, 4), np.float32)
-    radius = min(MAX_BLUR_PX, int(math.ceil(max(float(coc.max()), 0.0))))
-    _near_h(color, coc, radius, near_h)
-    _near_v(near_h, radius, near)
-    out = np.empty_like(color)
-    _combine(color, coc, far, ecc, r0, r1, tuple(pyramid), near, ramp, out)
-    return out

@@ -3,53 +3,61 @@
 Contrast enhancement for peripheral vision (weier2018 section 3.2, "DoF Combine", after Patney et
 al. 2016): each pixel is pushed away from a blurred version of its surroundings, the blur taken from
 the pyramid with a kernel that widens with eccentricity, five quincunx taps per pixel. It is faded in
-across the transition region, so the fovea stays untouched.
+across the transition region, so the fovea stays untouched. The blur's level depends only on the
+eccentricity, so it is computed once per gaze (contrast_levels); the enhancement itself runs inside
+the final combine pass (dof.combine), pixel by pixel.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.stages.pyramid import Pyramid, quincunx_rgbd
+from hmdrt.foveation.stages.pyramid import quincunx_mean, quincunx_offset
+from hmdrt.jit import inline, kernel
+
+DEGREES_PER_LEVEL = 5.0  # the blur's pyramid level grows by one every 5 degrees beyond r0
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _enhance(color, ecc, r0, r1, strength, degrees_per_level, pyramid, out):
-    data, offsets, widths, heights = pyramid
+class Contrast(NamedTuple):
+    """Contrast enhancement's settings: strength (0: off), the transition region [r0, r1) it fades in
+    across, and the blur's pyramid level per pixel (contrast_levels)."""
+
+    strength: float
+    r0: float
+    r1: float
+    levels: np.ndarray  # (height, width, 2) float32: the blur's pyramid level and quincunx offset per pixel
+
+
+@kernel
+def _levels(ecc, r0, degrees_per_level, out):
     h, w = ecc.shape
     for y in nb.prange(h):
         for x in range(w):
-            e = ecc[y, x]
-            fade = 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
-            if fade <= 0.0:
-                for c in range(3):
-                    out[y, x, c] = color[y, x, c]
-                continue
-            level = math.log2(1.0 + max(e - r0, 0.0) / degrees_per_level)
-            br = bg = bb = 0.0
-            for k in range(5):
-                r, g, b, _ = quincunx_rgbd(data, offsets, widths, heights, level, x + 0.5, y + 0.5, k)
-                br, bg, bb = br + 0.2 * r, bg + 0.2 * g, bb + 0.2 * b
-            gain = strength * fade
-            out[y, x, 0] = max(color[y, x, 0] + gain * (color[y, x, 0] - br), 0.0)
-            out[y, x, 1] = max(color[y, x, 1] + gain * (color[y, x, 1] - bg), 0.0)
-            out[y, x, 2] = max(color[y, x, 2] + gain * (color[y, x, 2] - bb), 0.0)
+            level = math.log2(1.0 + max(ecc[y, x] - r0, 0.0) / degrees_per_level)
+            out[y, x, 0], out[y, x, 1] = level, quincunx_offset(level)
 
 
-def contrast_enhance(
-    color: np.ndarray,
-    ecc: np.ndarray,
-    pyramid: Pyramid,
-    strength: float,
-    r0: float,
-    r1: float,
-    degrees_per_level: float = 5.0,
+def contrast_levels(
+    ecc: np.ndarray, r0: float, out: np.ndarray, degrees_per_level: float = DEGREES_PER_LEVEL
 ) -> np.ndarray:
-    """color + strength x fade(e) x (color - blur_e(color)); the blur's pyramid level grows by one every
-    degrees_per_level beyond r0. Negative results are cut at zero (light cannot be negative)."""
-    out = np.empty_like(color)
-    _enhance(color, ecc, r0, r1, strength, degrees_per_level, tuple(pyramid), out)
+    """The blur's pyramid level at every pixel, log2(1 + max(e - r0, 0) / degrees_per_level), and its quincunx
+    offset, into out (height, width, 2)."""
+    _levels(ecc, r0, degrees_per_level, out)
     return out
+
+
+@inline
+def enhance(r, g, b, e, x, y, contrast, pyramid):
+    """color + strength x fade(e) x (color - blur_e(color)) at pixel (x, y) of eccentricity e, the blur from
+    the pyramid around the pixel's centre. Negative results are cut at zero (light cannot be negative)."""
+    strength, r0, r1, levels = contrast
+    fade = 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+    if fade <= 0.0:
+        return r, g, b
+    br, bg, bb = quincunx_mean(pyramid, levels[y, x, 0], levels[y, x, 1], x + 0.5, y + 0.5)
+    gain = strength * fade
+    return max(r + gain * (r - br), 0.0), max(g + gain * (g - bg), 0.0), max(b + gain * (b - bb), 0.0)

@@ -15,6 +15,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
+from hmdrt.jit import inline, kernel
+
 CHANNELS = 5  # r, g, b, weight, depth
 
 
@@ -23,6 +25,8 @@ class Pyramid(NamedTuple):
     offsets: np.ndarray  # (levels,) int64 first texel of each level
     widths: np.ndarray  # (levels,) int64
     heights: np.ndarray  # (levels,) int64
+    scale_x: np.ndarray  # (levels,) float64 widths[k] / widths[0]: full-resolution x to level-k texels
+    scale_y: np.ndarray  # (levels,) float64 heights[k] / heights[0]
 
     @classmethod
     def empty(cls, width: int, height: int) -> Pyramid:
@@ -30,14 +34,10 @@ class Pyramid(NamedTuple):
         while widths[-1] > 1 or heights[-1] > 1:
             widths.append(max(1, (widths[-1] + 1) // 2))
             heights.append(max(1, (heights[-1] + 1) // 2))
-        sizes = np.array(widths, np.int64) * np.array(heights, np.int64)
+        w, h = np.array(widths, np.int64), np.array(heights, np.int64)
+        sizes = w * h
         offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        return cls(
-            np.zeros((int(sizes.sum()), CHANNELS), np.float32),
-            offsets,
-            np.array(widths, np.int64),
-            np.array(heights, np.int64),
-        )
+        return cls(np.zeros((int(sizes.sum()), CHANNELS), np.float32), offsets, w, h, w / width, h / height)
 
     def level(self, k: int) -> np.ndarray:
         """Level k as a (height, width, 5) view."""
@@ -45,107 +45,177 @@ class Pyramid(NamedTuple):
         return self.data[o : o + self.widths[k] * self.heights[k]].reshape(self.heights[k], self.widths[k], CHANNELS)
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _pull_level(data, o_fine, wf, hf, o_coarse, wc, hc):
+@inline
+def _weight(data, i, mask):
+    """A texel's weight: its weight channel, or 1 / 0 from mask (level 0 only) when one is given."""
+    if mask is None:
+        return data[i, 3]
+    return 1.0 if mask[i] else 0.0
+
+
+@inline
+def _axis(f, n):
+    """The two texels either side of continuous texel coordinate f (centres at k + 0.5), clamped to [0, n),
+    and the weight of the second."""
+    g = f - 0.5
+    k = math.floor(g)
+    i = int(k)
+    if i < 0 or i + 1 >= n:
+        return min(max(i, 0), n - 1), min(max(i + 1, 0), n - 1), g - k
+    return i, i + 1, g - k
+
+
+@inline
+def _bilinear(data, o, w, ax, ay):
+    """Colour and depth of a level (first texel o, width w) between the texels of axes ax and ay, in the
+    pyramid's float32."""
+    i0, i1, a = ax
+    j0, j1, b = ay
+    a, b = np.float32(a), np.float32(b)
+    p, q = np.float32(1.0) - a, np.float32(1.0) - b
+    w00, w01, w10, w11 = p * q, a * q, p * b, a * b
+    k00, k01, k10, k11 = o + j0 * w + i0, o + j0 * w + i1, o + j1 * w + i0, o + j1 * w + i1
+    return (
+        w00 * data[k00, 0] + w01 * data[k01, 0] + w10 * data[k10, 0] + w11 * data[k11, 0],
+        w00 * data[k00, 1] + w01 * data[k01, 1] + w10 * data[k10, 1] + w11 * data[k11, 1],
+        w00 * data[k00, 2] + w01 * data[k01, 2] + w10 * data[k10, 2] + w11 * data[k11, 2],
+        w00 * data[k00, 4] + w01 * data[k01, 4] + w10 * data[k10, 4] + w11 * data[k11, 4],
+    )
+
+
+@kernel
+def _pull_level(pyramid, k, mask):
+    """Level k from level k - 1: the weighted mean of each texel's valid children."""
+    data = pyramid.data
+    o_fine, wf, hf = pyramid.offsets[k - 1], pyramid.widths[k - 1], pyramid.heights[k - 1]
+    o_coarse, wc, hc = pyramid.offsets[k], pyramid.widths[k], pyramid.heights[k]
     for y in nb.prange(hc):
         for x in range(wc):
             wsum = r = g = b = d = 0.0
-            for dy in range(2):
-                for dx in range(2):
-                    fy, fx = 2 * y + dy, 2 * x + dx
-                    if fy < hf and fx < wf:
-                        i = o_fine + fy * wf + fx
-                        w = data[i, 3]
-                        if w > 0.0:
-                            wsum += w
-                            r, g, b, d = r + w * data[i, 0], g + w * data[i, 1], b + w * data[i, 2], d + w * data[i, 4]
+            for fy in range(2 * y, min(2 * y + 2, hf)):
+                for fx in range(2 * x, min(2 * x + 2, wf)):
+                    i = o_fine + fy * wf + fx
+                    w = _weight(data, i, mask)
+                    if w > 0.0:
+                        wsum += w
+                        r, g, b, d = r + w * data[i, 0], g + w * data[i, 1], b + w * data[i, 2], d + w * data[i, 4]
             j = o_coarse + y * wc + x
             if wsum > 0.0:
                 data[j, 0], data[j, 1], data[j, 2], data[j, 4] = r / wsum, g / wsum, b / wsum, d / wsum
             data[j, 3] = min(1.0, wsum)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def level_bilinear(data, o, w, h, x, y, c):
-    """Channel c of a level at continuous texel coordinates (x, y), clamped at the border."""
-    fx, fy = x - 0.5, y - 0.5
-    x0, y0 = math.floor(fx), math.floor(fy)
-    ax, ay = fx - x0, fy - y0
-    ix0, iy0 = min(max(int(x0), 0), w - 1), min(max(int(y0), 0), h - 1)
-    ix1, iy1 = min(max(int(x0) + 1, 0), w - 1), min(max(int(y0) + 1, 0), h - 1)
-    top = data[o + iy0 * w + ix0, c] * (1.0 - ax) + data[o + iy0 * w + ix1, c] * ax
-    bottom = data[o + iy1 * w + ix0, c] * (1.0 - ax) + data[o + iy1 * w + ix1, c] * ax
-    return top * (1.0 - ay) + bottom * ay
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _push_level(data, o_fine, wf, hf, o_coarse, wc, hc):
+@kernel
+def _push_level(pyramid, k, mask):
+    """Fill the missing weight of level k's texels from level k + 1, bilinearly."""
+    data = pyramid.data
+    o_fine, wf, hf = pyramid.offsets[k], pyramid.widths[k], pyramid.heights[k]
+    o_coarse, wc, hc = pyramid.offsets[k + 1], pyramid.widths[k + 1], pyramid.heights[k + 1]
+    sx, sy = wc / wf, hc / hf
     for y in nb.prange(hf):
+        ay = _axis((y + 0.5) * sy, hc)
         for x in range(wf):
             i = o_fine + y * wf + x
-            w = data[i, 3]
+            w = _weight(data, i, mask)
             if w >= 1.0:
                 continue
-            cx, cy = (x + 0.5) * wc / wf, (y + 0.5) * hc / hf
-            for c in (0, 1, 2, 4):
-                up = level_bilinear(data, o_coarse, wc, hc, cx, cy, c)
-                data[i, c] = w * data[i, c] + (1.0 - w) * up if w > 0.0 else up
-            data[i, 3] = 1.0
+            r, g, b, d = _bilinear(data, o_coarse, wc, _axis((x + 0.5) * sx, wc), ay)
+            if w > 0.0:
+                v = 1.0 - w
+                r, g = w * data[i, 0] + v * r, w * data[i, 1] + v * g
+                b, d = w * data[i, 2] + v * b, w * data[i, 4] + v * d
+            data[i, 0], data[i, 1], data[i, 2], data[i, 3], data[i, 4] = r, g, b, 1.0, d
 
 
-def pull_push(pyramid: Pyramid) -> None:
-    """Fill every texel of level 0 from its valid samples (weight > 0), in place, coarse levels too."""
-    d, o, w, h = pyramid.data, pyramid.offsets, pyramid.widths, pyramid.heights
-    for k in range(1, len(o)):
-        _pull_level(d, o[k - 1], w[k - 1], h[k - 1], o[k], w[k], h[k])
-    for k in range(len(o) - 2, -1, -1):
-        _push_level(d, o[k], w[k], h[k], o[k + 1], w[k + 1], h[k + 1])
+def pull_push(pyramid: Pyramid, mask: np.ndarray | None = None) -> None:
+    """Fill every texel of level 0 from its valid samples (weight > 0), in place, coarse levels too.
+
+    mask (level 0's texels, bool), when given, says which texels of level 0 are samples (weight 1, the rest
+    0) in place of level 0's weight channel, so that a frame's samples need not clear the others' weights."""
+    for k in range(1, len(pyramid.offsets)):
+        _pull_level(pyramid, k, mask if k == 1 else None)
+    for k in range(len(pyramid.offsets) - 2, -1, -1):
+        _push_level(pyramid, k, mask if k == 0 else None)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _level_rgbd(data, o, w, h, x, y):
-    """Colour and depth of a level at continuous texel coordinates (x, y), bilinear, clamped."""
-    fx, fy = x - 0.5, y - 0.5
-    x0, y0 = math.floor(fx), math.floor(fy)
-    ax, ay = fx - x0, fy - y0
-    ix0, iy0 = min(max(int(x0), 0), w - 1), min(max(int(y0), 0), h - 1)
-    ix1, iy1 = min(max(int(x0) + 1, 0), w - 1), min(max(int(y0) + 1, 0), h - 1)
-    i00, i01, i10, i11 = o + iy0 * w + ix0, o + iy0 * w + ix1, o + iy1 * w + ix0, o + iy1 * w + ix1
-    w00, w01, w10, w11 = (1.0 - ax) * (1.0 - ay), ax * (1.0 - ay), (1.0 - ax) * ay, ax * ay
-    return (
-        w00 * data[i00, 0] + w01 * data[i01, 0] + w10 * data[i10, 0] + w11 * data[i11, 0],
-        w00 * data[i00, 1] + w01 * data[i01, 1] + w10 * data[i10, 1] + w11 * data[i11, 1],
-        w00 * data[i00, 2] + w01 * data[i01, 2] + w10 * data[i10, 2] + w11 * data[i11, 2],
-        w00 * data[i00, 4] + w01 * data[i01, 4] + w10 * data[i10, 4] + w11 * data[i11, 4],
-    )
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def sample_rgbd(data, offsets, widths, heights, level, x, y):
+@inline
+def sample_rgbd(pyramid, level, x, y):
     """Colour and depth at full-resolution pixel coordinates (x, y) on a (fractional) level, trilinearly."""
+    data, offsets, widths, heights, sx, sy = pyramid
     top = len(offsets) - 1
     level = min(max(level, 0.0), float(top))
-    l0 = int(math.floor(level))
-    r, g, b, d = _level_rgbd(
-        data, offsets[l0], widths[l0], heights[l0], x * widths[l0] / widths[0], y * heights[l0] / heights[0]
-    )
+    l0 = int(level)
+    r, g, b, d = _bilinear(data, offsets[l0], widths[l0], _axis(x * sx[l0], widths[l0]), _axis(y * sy[l0], heights[l0]))
     t = level - l0
     if t == 0.0 or l0 == top:
         return r, g, b, d
     l1 = l0 + 1
-    r1, g1, b1, d1 = _level_rgbd(
-        data, offsets[l1], widths[l1], heights[l1], x * widths[l1] / widths[0], y * heights[l1] / heights[0]
+    r1, g1, b1, d1 = _bilinear(
+        data, offsets[l1], widths[l1], _axis(x * sx[l1], widths[l1]), _axis(y * sy[l1], heights[l1])
     )
     return r + t * (r1 - r), g + t * (g1 - g), b + t * (b1 - b), d + t * (d1 - d)
 
 
-# weier2018 Figure 3: a quincunx of five taps, the centre and the four diagonal half-texel offsets
-QUINCUNX = ((0.0, 0.0), (-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5))
+@inline
+def _quincunx_level(data, o, w, h, x, y, off_x, off_y):
+    """weier2018 Figure 3's five taps on one level around texel coordinates (x, y): the centre and the four
+    diagonal offsets (off_x, off_y) texels away; each one's colour and depth. Taps in line share an axis."""
+    xm, xc, xp = _axis(x - off_x, w), _axis(x, w), _axis(x + off_x, w)
+    ym, yc, yp = _axis(y - off_y, h), _axis(y, h), _axis(y + off_y, h)
+    return (
+        _bilinear(data, o, w, xc, yc),
+        _bilinear(data, o, w, xm, ym),
+        _bilinear(data, o, w, xp, ym),
+        _bilinear(data, o, w, xm, yp),
+        _bilinear(data, o, w, xp, yp),
+    )
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def quincunx_rgbd(data, offsets, widths, heights, level, x, y, k):
-    """Colour and depth of the k-th quincunx tap around full-resolution (x, y) on `level` (offsets in
-    that level's texels)."""
-    scale = 2.0 ** max(level, 0.0)
-    return sample_rgbd(data, offsets, widths, heights, level, x + QUINCUNX[k][0] * scale, y + QUINCUNX[k][1] * scale)
+@inline
+def _lerp4(u, v, t):
+    return u[0] + t * (v[0] - u[0]), u[1] + t * (v[1] - u[1]), u[2] + t * (v[2] - u[2]), u[3] + t * (v[3] - u[3])
+
+
+@inline
+def quincunx_rgbd(pyramid, level, off, x, y):
+    """The five quincunx taps (centre, then the diagonals) around full-resolution pixel coordinates (x, y) on
+    a (fractional) level, `off` = 2^level / 2 full-resolution pixels apart diagonally (half a texel of that
+    level): each one's colour and depth, trilinearly."""
+    data, offsets, widths, heights, sx, sy = pyramid
+    top = len(offsets) - 1
+    level = min(max(level, 0.0), float(top))
+    l0 = int(level)
+    t = level - l0
+    first = _quincunx_level(
+        data, offsets[l0], widths[l0], heights[l0], x * sx[l0], y * sy[l0], off * sx[l0], off * sy[l0]
+    )
+    if t == 0.0 or l0 == top:
+        return first
+    l1 = l0 + 1
+    second = _quincunx_level(
+        data, offsets[l1], widths[l1], heights[l1], x * sx[l1], y * sy[l1], off * sx[l1], off * sy[l1]
+    )
+    return (
+        _lerp4(first[0], second[0], t),
+        _lerp4(first[1], second[1], t),
+        _lerp4(first[2], second[2], t),
+        _lerp4(first[3], second[3], t),
+        _lerp4(first[4], second[4], t),
+    )
+
+
+@inline
+def quincunx_offset(level):
+    """The diagonal offset of the quincunx taps on `level`, in full-resolution pixels: half a texel there."""
+    return 0.5 * 2.0 ** max(level, 0.0)
+
+
+@inline
+def quincunx_mean(pyramid, level, off, x, y):
+    """The mean colour of the five taps of quincunx_rgbd."""
+    a, b, c, d, e = quincunx_rgbd(pyramid, level, off, x, y)
+    return (
+        0.2 * (a[0] + b[0] + c[0] + d[0] + e[0]),
+        0.2 * (a[1] + b[1] + c[1] + d[1] + e[1]),
+        0.2 * (a[2] + b[2] + c[2] + d[2] + e[2]),
+    )

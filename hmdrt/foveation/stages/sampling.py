@@ -16,6 +16,8 @@ import numba as nb
 import numpy as np
 
 from hmdrt.errors import ConfigError
+from hmdrt.foveation.stages.pyramid import quincunx_offset
+from hmdrt.jit import inline, kernel
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.rng import uniform
 
@@ -55,7 +57,7 @@ def foveal_config(frc: str, r0: float | None, r1: float | None, p_min: float | N
     return cfg
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def foveal_probability(e, r0, r1, p_min):
     """weier2016's p(q) at eccentricity e (degrees): 1 below r0, linear to p_min at r1, p_min beyond."""
     if e < r0:
@@ -65,7 +67,7 @@ def foveal_probability(e, r0, r1, p_min):
     return 1.0 - (1.0 - p_min) * (e - r0) / (r1 - r0)
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
+@kernel
 def _bernoulli_mask(ecc, r0, r1, p_min, seed, frame, out):
     h, w = ecc.shape
     for y in nb.prange(h):
@@ -168,23 +170,32 @@ def sampling_tables(camera: EyeCamera, cfg: Foveal, seed: int = 0) -> SamplingTa
     return SamplingTables(s_in, s_out, samples, ppd)
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _table_mask(ecc, r0, r1, s_in, s_out, gx, gy, out):
+@kernel
+def _table_mask(ecc, r0, r1, s_in, s_out, gx, gy, out, counts):
+    """table_mask's rows, and how many pixels of each row it selects."""
     h, w = ecc.shape
     ry, rx = s_in.shape[0] // 2, s_in.shape[1] // 2
     for y in nb.prange(h):
+        n = 0
         for x in range(w):
             e = ecc[y, x]
             if e < r0:
-                out[y, x] = True
+                v = True
             elif e < r1:
                 ty, tx = y - gy + ry, x - gx + rx
                 if 0 <= ty < s_in.shape[0] and 0 <= tx < s_in.shape[1]:
-                    out[y, x] = s_in[ty, tx]
+                    v = s_in[ty, tx]
                 else:  # off S_in (far off-axis, or the point of regard off the image): S_out's p_min
-                    out[y, x] = s_out[y, x]
+                    v = s_out[y, x]
             else:
-                out[y, x] = s_out[y, x]
+                v = s_out[y, x]
+            out[y, x] = v
+            n += v
+        counts[y] = n
+
+
+def _gaze_texel(gaze_pixel: np.ndarray) -> tuple[int, int]:
+    return int(math.floor(gaze_pixel[0])), int(math.floor(gaze_pixel[1]))
 
 
 def table_mask(ecc: np.ndarray, cfg: Foveal, tables: SamplingTables, gaze_pixel: np.ndarray) -> np.ndarray:
@@ -194,9 +205,96 @@ def table_mask(ecc: np.ndarray, cfg: Foveal, tables: SamplingTables, gaze_pixel:
     image plane stretches angles, or with the point of regard off the image) takes S_out, density p_min,
     rather than no sample at all."""
     out = np.empty(ecc.shape, dtype=bool)
-    gx, gy = (int(math.floor(c)) for c in gaze_pixel)
-    _table_mask(ecc, cfg.r0, min(cfg.r1, 180.0), tables.s_in, tables.s_out, gx, gy, out)
+    counts = np.empty(ecc.shape[0], np.int64)
+    _table_mask(ecc, cfg.r0, min(cfg.r1, 180.0), tables.s_in, tables.s_out, *_gaze_texel(gaze_pixel), out, counts)
     return out
+
+
+@inline
+def footprint_level(p):
+    """weier2018 section 3.1: the pyramid level of a sample's footprint, the sample spacing 1 / sqrt(p) at
+    sampling density p (level 0 where every pixel is traced)."""
+    return math.log2(max(1.0 / math.sqrt(max(p, 1e-6)), 1.0))
+
+
+@kernel
+def _list_samples(mask, starts, ecc, cfg, pixels, xy, level, offset):
+    """The selected pixels row by row from starts[y]: row-major index, centre, footprint level and the
+    quincunx offset on that level."""
+    h, w = mask.shape
+    for y in nb.prange(h):
+        s = starts[y]
+        for x in range(w):
+            if mask[y, x]:
+                pixels[s] = y * w + x
+                xy[s, 0], xy[s, 1] = x + 0.5, y + 0.5
+                level[s] = footprint_level(foveal_probability(ecc[y, x], cfg.r0, cfg.r1, cfg.p_min))
+                offset[s] = quincunx_offset(level[s])
+                s += 1
+
+
+class SampleSet:
+    """One eye's weier2018 samples for a point of regard, kept across frames: the mask of traced pixels, their
+    row-major indices, pixel centres, footprint levels and quincunx offsets. update() recomputes them only
+    when its key (what the caller says they depend on: frustum, gaze, tables) changes, into buffers that only
+    grow."""
+
+    def __init__(self) -> None:
+        self.key: object = None
+        self.mask = np.zeros((0, 0), bool)
+        self.count = 0
+        self._starts = np.zeros(1, np.int64)
+        self._pixels = np.zeros(0, np.int64)
+        self._xy = np.zeros((0, 2), np.float32)
+        self._level = np.zeros(0, np.float64)
+        self._offset = np.zeros(0, np.float64)
+
+    def update(self, key: object, ecc: np.ndarray, cfg: Foveal, tables: SamplingTables, gaze_pixel: np.ndarray) -> None:
+        if key == self.key:
+            return
+        h, w = ecc.shape
+        if self.mask.shape != (h, w):
+            self.mask = np.empty((h, w), bool)
+            self._starts = np.zeros(h + 1, np.int64)
+        r1 = min(cfg.r1, 180.0)
+        _table_mask(ecc, cfg.r0, r1, tables.s_in, tables.s_out, *_gaze_texel(gaze_pixel), self.mask, self._starts[1:])
+        np.cumsum(self._starts[1:], out=self._starts[1:])
+        self.count = n = int(self._starts[-1])
+        if len(self._pixels) < n:
+            size = max(n, int(1.25 * len(self._pixels)))
+            self._pixels, self._level, self._offset = np.empty(size, np.int64), np.empty(size), np.empty(size)
+            self._xy = np.empty((size, 2), np.float32)
+        _list_samples(
+            self.mask,
+            self._starts,
+            ecc,
+            Foveal(cfg.r0, r1, cfg.p_min),
+            self._pixels,
+            self._xy,
+            self._level,
+            self._offset,
+        )
+        self.key = key
+
+    @property
+    def pixels(self) -> np.ndarray:
+        """(count,) int64 row-major indices of the traced pixels, ascending."""
+        return self._pixels[: self.count]
+
+    @property
+    def xy(self) -> np.ndarray:
+        """(count, 2) float32 their pixel centres."""
+        return self._xy[: self.count]
+
+    @property
+    def level(self) -> np.ndarray:
+        """(count,) float64 their footprint levels (footprint_level of p(e))."""
+        return self._level[: self.count]
+
+    @property
+    def offset(self) -> np.ndarray:
+        """(count,) float64 the quincunx offsets on those levels (pyramid.quincunx_offset)."""
+        return self._offset[: self.count]
 
 
 def region_index(ecc: np.ndarray, bounds: tuple[float, ...]) -> np.ndarray:
