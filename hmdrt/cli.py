@@ -345,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--scene", required=True, help="built-in scene (e.g. whitted, voxel_city?size=50), .toml or mesh"
     )
     render.add_argument(
-        "--profile", required=True, help="HMD profile (dk2, rift_s, fove0, vive_pro_eye, sim-cpu) or .toml"
+        "--profile", required=True, help="HMD profile (dk2, rift_s, fove0, vive_pro_eye, sim-cpu, sim-cpu-640) or .toml"
     )
     render.add_argument(
         "--method",

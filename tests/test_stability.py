@@ -31,6 +31,7 @@ from hmdrt.foveation.stages.dof import (
 )
 from hmdrt.foveation.stages.gaze import FixationFilter
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push
+from hmdrt.foveation.stages.reproject import MeshImage, camera_arrays
 from hmdrt.foveation.stages.sampling import (
     bernoulli_mask,
     expected_fraction,
@@ -42,7 +43,7 @@ from hmdrt.foveation.stages.sampling import (
     transition_radius,
 )
 from hmdrt.foveation.stages.temporal import History, exponential_smoothing, k_of_age, running_estimate
-from hmdrt.foveation.weier16 import STATE, _cache_update
+from hmdrt.foveation.weier16 import COVERED, TRACED, CacheRule, Final, Samples, Selection, _update
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
 from hmdrt.optics.profiles import HmdProfile
@@ -378,55 +379,44 @@ def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0):
     n = size * size
     rng = np.random.default_rng(seed)
     a, b = rng.random((n, 3), dtype=np.float32), rng.random((n, 3), dtype=np.float32)
-    pixels = np.arange(n)
-    depth = np.full(n, 2.0, np.float32)
-    light = np.zeros((n, 3), np.float32)
-    fresh = np.zeros(n, bool)
-    dist = np.full((size, size), 2.0, np.float32)
-    has = np.empty((size, size), bool)
-    bufs = [
-        (np.zeros((size, size, 3), np.float32), np.zeros((size, size, STATE), np.float32)),
-        (np.zeros((size, size, 3), np.float32), np.zeros((size, size, STATE), np.float32)),
-    ]
-    covered = np.zeros((size, size), bool)
+    cam = camera(size, size)
+    ys, xs = np.mgrid[0:size, 0:size] + 0.5
+    mesh = MeshImage(np.stack([xs, ys]).astype(np.float32), np.full((size, size), 0.5, np.float32))  # unmoved, 2 m
+    tx = cam.tan_left + xs * (cam.tan_right - cam.tan_left) / size
+    ty = cam.tan_up - ys * (cam.tan_up - cam.tan_down) / size
+    depth = (2.0 * np.sqrt(tx * tx + ty * ty + 1.0)).astype(np.float32).reshape(n)  # the mesh's surface
+    zeros = np.zeros((n, 3), np.float32)
+    rows = np.full(size, size)
+    selection = Selection(np.full((size, size), TRACED, np.uint8), rows, np.arange(size + 1) * size, rows * 0, rows * 0)
+    finals = (Final.empty(size, size), Final.empty(size, size))
+    image = np.empty((size, size, 3), np.float32)
+    scratch = np.empty((numba.config.NUMBA_NUM_THREADS, size), np.float32)
     last = []
     threads = numba.get_num_threads()
     numba.set_num_threads(1)  # 16 pixels: starting the thread pool each frame would cost 100x the work
     try:
-        _run_cache_updates(frames, k, a, b, pixels, depth, light, fresh, dist, has, bufs, covered, last)
+        for t in range(frames):
+            previous, final = finals[t % 2], finals[(t + 1) % 2]
+            samples = Samples(a if t % 2 == 0 else b, depth, zeros, zeros)
+            rule = CacheRule(float(t), k, k, 15.0, 0.05, 4, 0, False)
+            _update(
+                selection,
+                mesh,
+                camera_arrays(cam),
+                previous,
+                samples,
+                zeros.reshape(size, size, 3),
+                rule,
+                scratch,
+                final,
+                image,
+            )
+            selection.flags[:] = TRACED | COVERED
+            if t >= frames - 2:
+                last.append((final.color.reshape(n, 3).copy(), final.info.reshape(n, 3).copy()))
     finally:
         numba.set_num_threads(threads)
     return a, b, last
-
-
-def _run_cache_updates(frames, k, a, b, pixels, depth, light, fresh, dist, has, bufs, covered, last) -> None:
-    n = len(pixels)
-    size = dist.shape[0]
-    for t in range(frames):
-        (c_prev, s_prev), (c_out, s_out) = bufs[t % 2], bufs[(t + 1) % 2]
-        sample = a if t % 2 == 0 else b
-        _cache_update(
-            pixels,
-            sample,
-            depth,
-            light,
-            fresh,
-            covered,
-            c_prev,
-            s_prev,
-            dist,
-            float(t),
-            k,
-            k,
-            15.0,
-            0.05,
-            c_out,
-            s_out,
-            has,
-        )
-        covered = np.ones((size, size), bool)
-        if t >= frames - 2:
-            last.append((c_out.reshape(n, 3).copy(), s_out.reshape(n, STATE).copy()))
 
 
 def check_accumulation(frames: int, k: float = 0.1) -> None:

@@ -9,8 +9,6 @@ once the display and the frame writer have let go of them.
 
 from __future__ import annotations
 
-import functools
-import inspect
 import time
 
 import msgspec
@@ -42,13 +40,6 @@ def display_profile(config: RunConfig) -> HmdProfile:
     return profile
 
 
-@functools.cache
-def renders_into(kind: type) -> bool:
-    """Whether a method class takes Method.render's `out`: a method that does not yet (issue 14) allocates its
-    images, and the pools stay unused while it renders."""
-    return "out" in inspect.signature(kind.render).parameters
-
-
 class Session:
     def __init__(self, config: RunConfig):
         self.profile = display_profile(config)
@@ -74,7 +65,6 @@ class Session:
             self.method = method
         camera = next(iter(cameras.values()))
         timewarp(images[0], camera, camera)
-        camera.directions(np.full((1, 2), 0.5, np.float32))  # batches under PARALLEL_MIN rays take a serial kernel
 
     def set_method(self, spec: str) -> None:
         """Use method `spec` from the next frame: retuned in place when only its parameters change."""
@@ -102,12 +92,8 @@ class Session:
         frame = FrameInput(frame_id, 0, head, directions, depth)
         cameras = eye_cameras(self.profile, frame.pose, self.eyes)
         images, start = [], time.perf_counter_ns()
-        into = renders_into(type(self.method))
         for request in frame_requests(frame, cameras, seed):
-            if into:
-                images.append(self.method.render(request, stats, self.pools[request.eye].take()))
-            else:
-                images.append(self.method.render(request, stats))
+            images.append(self.method.render(request, stats, self.pools[request.eye].take()))
         if delay_ns:
             with stats.stage("render_delay"):
                 time.sleep(delay_ns / 1e9)

@@ -350,7 +350,7 @@ def layered_blur(
     _coc_stats(layers.coc, layers.rows)
     blur = Blur(r0, r1, ramp, layers.near_radius())
     horizontal_pass(color, ecc, layers, blur)
-    no_contrast = Contrast(0.0, r0, r1, np.zeros((0, 0), np.float32))
+    no_contrast = Contrast(0.0, r0, r1, np.zeros((0, 0, 2), np.float32))
     return combine(color, ecc, layers, blur, pyramid, no_contrast, np.empty_like(color))
 
 
