@@ -161,7 +161,7 @@ class Kept(NamedTuple):
     rendered: np.ndarray  # (n, 3) float32 the history's colour slot, before smoothing
 
 
-@inline
+@serial
 def _bezier_y_at_x(x0, x1, x2, y0, y1, y2, e):
     """y of the quadratic Bezier at the parameter where x(t) = e; the linear case when a = 0."""
     a = x0 - 2.0 * x1 + x2
@@ -236,7 +236,7 @@ def _foveation(ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
     return central
 
 
-@inline
+@serial
 def _contrast_fails(color, a, b, c, d, tau):
     """Mitchell's contrast (max - min) / (max + min) of rows a, b, c, d of color (n, 3), per channel,
     against tau x (1.36, 1.02, 2.04)."""
@@ -248,7 +248,7 @@ def _contrast_fails(color, a, b, c, d, tau):
     return False
 
 
-@inline
+@serial
 def _pair_contrast_fails(color_a, i, color_b, j, tau):
     """Mitchell's contrast between pixel i of color_a and pixel j of color_b."""
     for ch in range(3):
@@ -369,7 +369,7 @@ def _store(width, color, hits, frustum, frame, view, prev_hits, prev, same, test
     return reused
 
 
-@inline
+@serial
 def _box_contrast_passes(color, x0, x1, y0, y1, width, bound):
     """Whether Mitchell's contrast of the box [x0, x1] x [y0, y1] of color (n, 3) stays within bound x (1.36, 1.02,
     2.04) in every channel, with a margin over float32 rounding. A 2x2 subpixel block inside the box has no more

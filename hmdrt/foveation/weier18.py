@@ -40,7 +40,7 @@ from hmdrt.foveation.stages.filters import Contrast, contrast_levels
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push, quincunx_rgbd
 from hmdrt.foveation.stages.reproject import FAR, camera_arrays, project, world_point
 from hmdrt.foveation.stages.sampling import Foveal, SampleSet, SamplingTables, pixels_per_degree, sampling_tables
-from hmdrt.jit import inline, kernel, serial
+from hmdrt.jit import kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBufferPool
@@ -95,7 +95,7 @@ class Blend(NamedTuple):
     tol: float  # relative depth tolerance of a tap
 
 
-@inline
+@serial
 def _tap(tap, expected, tol, valid, r, g, b):
     """Adds a quincunx tap that sees the sample's surface (its depth within tol of the expected one, or both
     misses) to the count and the colour sums."""

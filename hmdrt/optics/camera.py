@@ -225,10 +225,9 @@ class _EccentricityMaps:
 
 @functools.lru_cache(maxsize=8)
 def pixel_grid(width: int, height: int) -> np.ndarray:
-    """pixel_centres of a whole image, shared and read-only."""
-    xy = pixel_centres(width, height)
-    xy.flags.writeable = False
-    return xy
+    """pixel_centres of a whole image, shared: callers only read it. Writable, so that the kernels it is passed
+    to see the same array type as their other callers' (a read-only array compiles a second specialisation)."""
+    return pixel_centres(width, height)
 
 
 _ECCENTRICITY_MAPS = _EccentricityMaps()

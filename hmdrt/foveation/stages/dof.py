@@ -58,7 +58,7 @@ def focal_lengths(d_o_m: float, t_m: float = DEPTH_INACCURACY_M) -> tuple[float,
     return d_n, d_f, f(d_n), f(d_f)
 
 
-@inline
+@serial
 def _image_distance(f, g):
     """V(F, G) = F G / (G - F): where a lens of focal length F images an object at G (G > F); F at G = inf."""
     if math.isinf(g):
@@ -183,7 +183,7 @@ class Blur(NamedTuple):
     radius: int = 0
 
 
-@inline
+@serial
 def _gauss_radius(sigma):
     """The far Gaussian's reach, capped before the integer conversion, which would overflow for CoCs beyond
     about 1e18 pixels."""

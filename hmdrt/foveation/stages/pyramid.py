@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.jit import inline, kernel
+from hmdrt.jit import inline, kernel, serial
 
 CHANNELS = 5  # r, g, b, weight, depth
 
@@ -45,7 +45,7 @@ class Pyramid(NamedTuple):
         return self.data[o : o + self.widths[k] * self.heights[k]].reshape(self.heights[k], self.widths[k], CHANNELS)
 
 
-@inline
+@serial
 def _weight(data, i, mask):
     """A texel's weight: its weight channel, or 1 / 0 from mask (level 0 only) when one is given."""
     if mask is None:
@@ -53,7 +53,7 @@ def _weight(data, i, mask):
     return 1.0 if mask[i] else 0.0
 
 
-@inline
+@serial
 def _axis(f, n):
     """The two texels either side of continuous texel coordinate f (centres at k + 0.5), clamped to [0, n),
     and the weight of the second."""
@@ -65,7 +65,7 @@ def _axis(f, n):
     return i, i + 1, g - k
 
 
-@inline
+@serial
 def _bilinear(data, o, w, ax, ay):
     """Colour and depth of a level (first texel o, width w) between the texels of axes ax and ay, in the
     pyramid's float32."""
@@ -171,7 +171,7 @@ def _quincunx_level(data, o, w, h, x, y, off_x, off_y):
     )
 
 
-@inline
+@serial
 def _lerp4(u, v, t):
     return u[0] + t * (v[0] - u[0]), u[1] + t * (v[1] - u[1]), u[2] + t * (v[2] - u[2]), u[3] + t * (v[3] - u[3])
 
@@ -204,7 +204,7 @@ def quincunx_rgbd(pyramid, level, off, x, y):
     )
 
 
-@inline
+@serial
 def quincunx_offset(level):
     """The diagonal offset of the quincunx taps on `level`, in full-resolution pixels: half a texel there."""
     return 0.5 * 2.0 ** max(level, 0.0)

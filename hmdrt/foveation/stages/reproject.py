@@ -99,7 +99,7 @@ def backproject(current: EyeCamera, depth: np.ndarray, previous: EyeCamera) -> t
     return xy, dist
 
 
-@inline
+@serial
 def nearest_index(x, y, w, h):
     """Row-major index of the pixel containing continuous (x, y), or -1 outside the image or NaN."""
     if not (x >= 0.0 and y >= 0.0 and x < w and y < h):
@@ -107,7 +107,7 @@ def nearest_index(x, y, w, h):
     return int(y) * w + int(x)
 
 
-@inline
+@serial
 def bilinear3(image, x, y):
     """The three channels of image (h, w, 3) at continuous (x, y), clamped at the border."""
     h, w = image.shape[0], image.shape[1]
@@ -218,7 +218,7 @@ def _mesh_vertices(prev, grid_x, grid_y, depth, cur, vertices):
             attr[j, i, 0], attr[j, i, 1], attr[j, i, 2] = grid_x[i] * zp, grid_y[j] * zp, zp
 
 
-@inline
+@serial
 def _triangle(j, i, t):
     """Grid vertices (row, column) of triangle t (0 or 1) of grid cell (j, i)."""
     if t == 0:
@@ -389,7 +389,7 @@ class CoarseMesh:
         return self.image
 
 
-@inline
+@serial
 def _step(qx, qy, sx, sy, covered):
     """How far a neighbour at (sx, sy) in the previous image lies from (qx, qy) along either axis, if covered."""
     return max(abs(sx - qx), abs(sy - qy)) if covered else np.float32(0.0)
@@ -442,7 +442,7 @@ def gaussian_taps(color, qx, qy, sigma, samples, key):
     return r, g, b
 
 
-@inline
+@serial
 def nearest_texel(x, y, w, h):
     """Row and column of the pixel containing continuous (x, y), clamped to the image (x, y not NaN)."""
     return min(max(int(y), 0), h - 1), min(max(int(x), 0), w - 1)
