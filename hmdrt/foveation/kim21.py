@@ -536,17 +536,20 @@ class _EyeState:
         self.fov = Foveation.empty(n)
         self.fov_key: tuple | None = None
         self.central = 0
+        self.color = np.empty((n, 3), np.float32)  # the presampled colour
         self.sub_mask = np.empty(n, np.uint8)
         self.first = np.empty(height + 1, np.int64)  # per row: the index of its first extra sample
         self.extra_xy = np.empty((0, 2), np.float32)
         self.extra_keys = np.empty(0, np.int64)
+        self.extra_color = np.empty((0, 3), np.float32)
 
-    def extra(self, count: int) -> tuple[np.ndarray, np.ndarray]:
-        """Buffers for `count` extra samples, grown by a quarter at least when too small."""
+    def extra(self, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """xy, keys and colour for `count` extra samples, grown by a quarter at least when too small."""
         if len(self.extra_keys) < count:
             size = max(count, len(self.extra_keys) * 5 // 4)
             self.extra_xy, self.extra_keys = np.empty((size, 2), np.float32), np.empty(size, np.int64)
-        return self.extra_xy[:count], self.extra_keys[:count]
+            self.extra_color = np.empty((size, 3), np.float32)
+        return self.extra_xy[:count], self.extra_keys[:count], self.extra_color[:count]
 
 
 class Kim21(Configurable):
@@ -568,7 +571,6 @@ class Kim21(Configurable):
         self._eyes: dict[str, _EyeState] = {}
         self._keys = np.empty(0, np.int64)
         self._keys_seed: int | None = None
-        self._no_samples = np.empty((0, 3), np.float32)
         self._configure(params)
 
     def _configure(self, params: Kim21Params) -> None:
@@ -633,7 +635,7 @@ class Kim21(Configurable):
         with stats.stage("presample"):
             _clear(w, cur.gbuffer.secondary)
             keys = self._pixel_keys(n, request.seed)
-            color = self.tracer.trace_samples(cam, pixel_grid(w, h), keys, stats, cur.gbuffer)
+            color = self.tracer.trace_samples(cam, pixel_grid(w, h), keys, stats, cur.gbuffer, out=state.color)
         slot, newest = history.begin((h, w)), max(history.newest((h, w)), 0)
         frame = Kept(cur.ref, history.depth[slot].reshape(n), cur.flags, history.color[slot].reshape(n, 3))
         prev = Kept(last.ref, history.depth[newest].reshape(n), last.flags, history.color[newest].reshape(n, 3))
@@ -658,11 +660,11 @@ class Kim21(Configurable):
             problematic = _inspect(w, cur.ref, g1, g2, fov, cur.flags, self.tests, state.sub_mask, state.first)
             state.first[h] = 0
             total = _exclusive_scan(state.first)
-            extra_xy, extra_keys = state.extra(total)
+            extra_xy, extra_keys, extra_color = state.extra(total)
             seed_key = int(pixel_keys(np.zeros(1), request.seed, stream=1)[0])
             _subpixel_samples(w, state.sub_mask, fov.samples, state.first, seed_key, extra_xy, extra_keys)
         with stats.stage("supersample"):
-            extra = self.tracer.trace_samples(cam, extra_xy, extra_keys, stats) if total else self._no_samples
+            extra = self.tracer.trace_samples(cam, extra_xy, extra_keys, stats, out=extra_color)
         with stats.stage("resolve"):
             _resolve(cur.ref.reshape(h, w, 3), state.sub_mask, fov.samples, state.first, extra, frame.rendered)
         image = np.empty((h, w, 3), np.float32) if out is None else out

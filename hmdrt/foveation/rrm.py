@@ -107,6 +107,7 @@ class Samples(NamedTuple):
 
     xy: np.ndarray  # (capacity, 2) float32 pixel centres
     keys: np.ndarray  # (capacity,) int64 random-stream keys (base.pixel_keys of the pixel index)
+    color: np.ndarray  # (capacity, 3) float32: the traced radiance
     row_start: np.ndarray  # (height + 1,) int64: row y's samples are [row_start[y], row_start[y + 1])
 
 
@@ -234,7 +235,10 @@ class Rrm(Configurable):
         s, most = self._samples, most_samples(camera, self.params)
         if s is None or len(s.row_start) != camera.height + 1 or len(s.keys) < most:
             s = self._samples = Samples(
-                np.empty((most, 2), np.float32), np.empty(most, np.int64), np.empty(camera.height + 1, np.int64)
+                np.empty((most, 2), np.float32),
+                np.empty(most, np.int64),
+                np.empty((most, 3), np.float32),
+                np.empty(camera.height + 1, np.int64),
             )
         return s
 
@@ -266,7 +270,7 @@ class Rrm(Configurable):
             samples = self._sample_arrays(cam)
             n = _row_starts(refresh, samples.row_start)
             _fill(refresh, samples, request.seed)
-        rgb = self.tracer.trace_samples(cam, samples.xy[:n], samples.keys[:n], stats)
+        rgb = self.tracer.trace_samples(cam, samples.xy[:n], samples.keys[:n], stats, out=samples.color[:n])
         with stats.stage("update"):
             buffer = self._buffers.get(request.eye)
             if buffer is None or buffer.shape != shape:

@@ -579,8 +579,8 @@ class Weier16(Configurable):
                 sel.flags, sel.row_start, buf.grid_x, buf.grid_y, (request.seed << 32) + t * (1 << 22), xy, keys
             )
         with stats.stage("trace"):
-            gbuf = self._gbuffers.rows(len(xy))
-            rgb = self.tracer.trace_samples(cam, xy, keys, stats, gbuf, light if stochastic else None)
+            gbuf, rgb = self._gbuffers.rows(len(xy), most=w * h + sw * sh)
+            self.tracer.trace_samples(cam, xy, keys, stats, gbuf, light if stochastic else None, rgb)
         samples = Samples(rgb, gbuf.primary.depth, light.irradiance, light.albedo)
         with stats.stage("cache_update"):
             support = eye.support

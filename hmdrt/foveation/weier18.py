@@ -229,8 +229,8 @@ class Weier18(Configurable):
             ecc, por, keys = self._select(state, request)
             samples = state.samples
         with stats.stage("trace"):
-            gbuf = self._gbuffers.rows(samples.count)
-            rgb = self.tracer.trace_samples(cam, samples.xy, keys, stats, gbuf)
+            gbuf, rgb = self._gbuffers.rows(samples.count)
+            self.tracer.trace_samples(cam, samples.xy, keys, stats, gbuf, out=rgb)
         traced = Traced(samples.pixels, samples.level, samples.offset, gbuf.primary.depth, rgb)
         state.pyramids.reverse()
         current, previous = state.pyramids

@@ -190,12 +190,15 @@ class _EccentricityMaps:
     """The eccentricity maps of the last few (frustum, gaze) pairs, read-only, recomputed only on a change.
 
     A map depends only on the eye's frustum, its pixel grid and the head-frame gaze, not on the head pose,
-    so a still gaze reuses it while the head moves. An evicted map's buffer takes the next map of its size.
+    so a still gaze reuses it while the head moves. The first map of a size reserves buffers for `size` maps
+    of that size (pages untouched until used) and an evicted map's buffer takes the next map of its size, so a
+    moving gaze allocates nothing once running.
     """
 
     def __init__(self, size: int = 4):
         self._size = size
         self._maps: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._spare: dict[tuple[int, int], list[np.ndarray]] = {}
         self._lock = threading.Lock()
 
     def get(self, camera: EyeCamera, gaze: np.ndarray) -> np.ndarray:
@@ -205,12 +208,14 @@ class _EccentricityMaps:
             if cached is not None:
                 self._maps.move_to_end(key)
                 return cached
-            out = None
+            shape = (camera.height, camera.width)
             if len(self._maps) >= self._size:
                 _, old = self._maps.popitem(last=False)
-                out = old if old.shape == (camera.height, camera.width) else None
-            if out is None:
-                out = np.empty((camera.height, camera.width), np.float32)
+                self._spare.setdefault(old.shape, []).append(old)
+            spare = self._spare.get(shape)
+            if not spare:
+                spare = self._spare[shape] = list(np.empty((self._size, *shape), np.float32))
+            out = spare.pop()
             out.flags.writeable = True
             _eccentricity(
                 pixel_grid(camera.width, camera.height),

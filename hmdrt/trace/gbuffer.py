@@ -66,20 +66,23 @@ class GBuffer(NamedTuple):
 
 
 class GBufferPool:
-    """One G-buffer kept across frames and grown when a frame needs more samples, so that frames with
-    varying sample counts do not allocate (and first-touch) fresh memory every time."""
+    """One G-buffer and one colour array kept across frames and grown when a frame needs more samples (to
+    `most` at once where the caller knows a frame's bound), so that frames with varying sample counts do
+    not allocate (and first-touch) fresh memory every time. Pages beyond what frames fill stay untouched."""
 
     def __init__(self):
         self._buffer = GBuffer.empty(0)
+        self._color = np.empty((0, 3), np.float32)
 
-    def rows(self, n: int) -> GBuffer:
-        """A G-buffer of n samples backed by the pooled arrays; the tracer writes every primary row and
-        the secondary rows start as misses."""
-        if len(self._buffer.primary.depth) < n:
-            self._buffer = GBuffer.empty(max(n, int(1.25 * len(self._buffer.primary.depth))))
+    def rows(self, n: int, most: int = 0) -> tuple[GBuffer, np.ndarray]:
+        """A G-buffer of n samples and their (n, 3) float32 colour, backed by the pooled arrays; the tracer
+        writes every primary row and colour, and the secondary rows start as misses."""
+        if len(self._color) < n:
+            size = max(n, most, int(1.25 * len(self._color)))
+            self._buffer, self._color = GBuffer.empty(size), np.empty((size, 3), np.float32)
         view = self._buffer.rows(n)
         view.secondary.clear()
-        return view
+        return view, self._color[:n]
 
 
 class LightBuffer(NamedTuple):
