@@ -23,6 +23,7 @@ import zmq
 
 from drivers.base import MONOTONIC, Clock, DeviceLost, Driver, DriverError, DriverUrl, Sample
 from hmdrt.bus.messages import Gaze
+from hmdrt.ranges import Finite
 from hmdrt.spatial import mean_direction
 
 DEFAULT_PORT = 50020
@@ -35,7 +36,6 @@ TIME_PROBES = 3  # `t` round trips per offset measurement; the fastest is kept
 MAX_TIME_NS = 2**62  # the bus's time range
 MAX_DEPTH_M = 1e6  # the bus's vergence depth range (hmdrt.bus.messages.Gaze.depth_m)
 
-Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
 Vec3 = tuple[Finite, Finite, Finite]
 
 

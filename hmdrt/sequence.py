@@ -23,8 +23,6 @@ from replay import load_trace
 from replay.trace import Gaze, TraceReading, usable
 from replay.trace import Pose as PoseSample
 
-FORWARD = np.array([0.0, 0.0, -1.0])
-
 
 @dataclass(frozen=True)
 class FrameInput:

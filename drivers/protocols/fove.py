@@ -86,9 +86,9 @@ class Result(enum.IntEnum):
 
 LOST_GAZE = (0.0, 0.0, 1.0)  # FOVE's gaze vector when tracking is lost
 
-Finite = Annotated[float, msgspec.Meta(ge=-1e6, le=1e6)]
-Vec3 = tuple[Finite, Finite, Finite]
-Quat = tuple[Finite, Finite, Finite, Finite]
+Component = Annotated[float, msgspec.Meta(ge=-1e6, le=1e6)]  # of a vector or quaternion FOVE sends: finite
+Vec3 = tuple[Component, Component, Component]
+Quat = tuple[Component, Component, Component, Component]
 U64 = Annotated[int, msgspec.Meta(ge=0)]
 Caps = Annotated[int, msgspec.Meta(ge=0, lt=2**32)]
 Rate = Annotated[float, msgspec.Meta(gt=0, le=10_000)]

@@ -19,11 +19,12 @@ from typing import Annotated
 import msgspec
 import numpy as np
 
+from hmdrt.ranges import Finite
+
 SCHEMA_VERSION = 1
 MAX_PAYLOAD_BYTES = 64 * 1024
 MAX_TOPIC_BYTES = 256  # "status." and a device name; refused before the topic is decoded
 
-Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
 Vec3 = tuple[Finite, Finite, Finite]
 Quat = tuple[Finite, Finite, Finite, Finite]
 TimeNs = Annotated[int, msgspec.Meta(ge=-(2**62), le=2**62)]

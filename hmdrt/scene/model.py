@@ -13,12 +13,11 @@ from typing import Annotated, Literal
 import msgspec
 import numpy as np
 
+from hmdrt.ranges import Finite, Fraction
 from hmdrt.spatial import Pose
 
-Unit = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
-Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
 NonNegative = Annotated[float, msgspec.Meta(ge=0.0, le=1e12)]
-Colour = tuple[Unit, Unit, Unit]
+Colour = tuple[Fraction, Fraction, Fraction]
 Radiance = tuple[NonNegative, NonNegative, NonNegative]
 Vec3 = tuple[Finite, Finite, Finite]
 Mapping = Literal["uv", "world"]
@@ -61,10 +60,10 @@ class Material(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """Phong/Lambert surface with optional mirror reflection and Fresnel dielectric transmission."""
 
     diffuse: Colour = (0.8, 0.8, 0.8)
-    specular: Unit = 0.0
+    specular: Fraction = 0.0
     shininess: Annotated[float, msgspec.Meta(ge=1.0, le=1e4)] = 32.0
-    reflectance: Unit = 0.0
-    transmittance: Unit = 0.0
+    reflectance: Fraction = 0.0
+    transmittance: Fraction = 0.0
     ior: Annotated[float, msgspec.Meta(ge=1.0, le=4.0)] = 1.5
     emission: Radiance = (0.0, 0.0, 0.0)
     texture: Texture | None = None

@@ -40,10 +40,6 @@ class FrameStats:
             self._open.pop()
             self.stages_ms[key] = self.stages_ms.get(key, 0.0) + (time.perf_counter_ns() - start) / 1e6
 
-    def top_level_ms(self) -> float:
-        """The sum of the outermost stages: each millisecond counted once."""
-        return sum(v for k, v in self.stages_ms.items() if "/" not in k)
-
     def count(self, kind: str, n: int) -> None:
         self.rays[kind] += int(n)
 
