@@ -21,7 +21,7 @@ from hmdrt.atomic import check_writable, write_atomic
 from hmdrt.bus import CONTROL, INGEST
 from hmdrt.bus.security import ClientKeys, is_loopback, write_keypair
 from hmdrt.errors import ConfigError, HmdrtError
-from hmdrt.foveation import METHODS, make_method
+from hmdrt.foveation import METHODS, MethodChoice
 from hmdrt.optics import get_profile
 from hmdrt.present.encode import linear_to_srgb8, write_png
 from hmdrt.scene import load_scene
@@ -77,11 +77,11 @@ def cmd_render(args: argparse.Namespace) -> int:
     profile = get_profile(args.profile)
     if args.resolution:
         profile = profile.with_resolution_text(args.resolution)
-    options = {}
+    choice = MethodChoice.parse(args.method)
     if args.spp is not None:
-        if args.method.partition("?")[0] != "regular":
+        if choice.name != "regular":
             raise ConfigError(f"--spp applies to method regular, not {args.method!r}")
-        options["spp"] = args.spp
+        choice = choice.with_options(spp=args.spp)
     if args.threads is not None and args.threads < 1:
         raise ConfigError(f"--threads must be at least 1, got {args.threads}")
     if args.frames is not None and args.frames < 1:
@@ -95,7 +95,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     eyes = ("left", "right") if args.eye == "both" else (args.eye,)
     records, out = [], Path(args.out)
     with Whitted(scene, threads=args.threads) as tracer:
-        method = make_method(args.method, tracer, **options)
+        method = choice.make(tracer)
         setup_ms = (time.perf_counter() - t0) * 1e3
         frames = render_frames(method, profile, inputs, eyes, args.seed)
         while True:
@@ -123,7 +123,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             raise HmdrtError(f"cannot write {out / 'frames.jsonl'}: {exc.strerror}") from None
     summary = _summary(records) if sequence else records[0]
     summary.update(
-        method_spec=args.method,
+        method_spec=str(choice),
         profile=profile.name,
         eye=args.eye,
         seed=args.seed,

@@ -2,29 +2,24 @@
 recovery without hunting, foveal widening, and handing the configured parameters back at level 1."""
 
 import math
+from typing import Annotated
 
 import msgspec
+import numpy as np
 import pytest
 
-from hmdrt.compositor.controller import (
-    KNOBS,
-    LOGGED,
-    BudgetController,
-    ControllerConfig,
-    configured_values,
-    field_range,
-    spans,
-)
+from hmdrt.compositor.controller import LOGGED, BudgetController, ControllerConfig, field_range, spans
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import METHODS, make_method
-from hmdrt.foveation.base import NoParams
-from hmdrt.foveation.kim21 import Kim21Params
-from hmdrt.foveation.rrm import RrmParams
-from hmdrt.foveation.weier16 import Weier16Params
+from hmdrt.foveation.base import Configurable, Knob, NoParams, Stage
+from hmdrt.foveation.kim21 import Kim21, Kim21Params
+from hmdrt.foveation.rrm import Rrm, RrmParams
+from hmdrt.foveation.weier16 import Weier16, Weier16Params
 from hmdrt.foveation.weier18 import Weier18Params
 from hmdrt.trace.integrator import Whitted
 
 BUDGET_NS = 10_000_000
+TUNABLE = [name for name, method in METHODS.items() if method.knobs]  # weier16, weier18, rrm, kim21
 # headroom 0.5 makes the target 5 ms, so r = 1.25 is exact; with raise_below 0.5 (aim 0.75) and gain 0.5 a
 # drop at r = 1.25 is exactly 0.25: the levels run 1, 0.75, 0.5, 0.25, 0
 EXACT = {"headroom": 0.5, "raise_below": 0.5, "gain": 0.5}
@@ -137,18 +132,18 @@ def test_every_bad_setting_is_named_at_once_and_the_edges_are_valid():
 # the level
 
 
-@pytest.mark.parametrize("name", list(KNOBS))
+@pytest.mark.parametrize("name", TUNABLE)
 def test_it_starts_at_level_one_with_the_configured_parameters_and_holds_on_target(tracer, name):
     run = Run(tracer, name)
     base = run.method.params
     ctl = run.ctl
     assert ctl.base is base and ctl.level == 1.0 and not ctl.at_floor
-    assert ctl.knobs == tuple(k.field for k in KNOBS[name])
+    assert ctl.knobs == tuple(k.field for k in METHODS[name].knobs)
     assert ctl.trajectory == [
         {
             "frame": None,
             "level": 1.0,
-            "knobs": {k: pytest.approx(v) for k, v in configured_values(base).items() if k in ctl.knobs},
+            "knobs": {k: pytest.approx(v) for k, v in METHODS[name].knob_values(base).items() if k in ctl.knobs},
             "widen_deg": 0.0,
             "reason": "start",
         }
@@ -181,15 +176,15 @@ def test_sustained_overload_lowers_the_level_step_by_step_after_settling(tracer)
     assert run.ctl.at_floor and run.ctl.level == 0.0
 
 
-@pytest.mark.parametrize("name", list(KNOBS))
+@pytest.mark.parametrize("name", TUNABLE)
 def test_every_knob_moves_monotonically_from_its_configured_value_to_its_floor(tracer, name):
     run = Run(tracer, name, min_step=0.05, gain=0.1)  # small steps: many intermediate levels
-    configured = {k: v for k, v in configured_values(run.ctl.base).items() if k in run.ctl.knobs}
+    configured = {k: v for k, v in run.method.knob_values(run.ctl.base).items() if k in run.ctl.knobs}
     run.until_floor(r=1.1)
     trail = [configured] + [e["knobs"] for e in run.changes()]
     assert len(trail) > 10
     assert [e["level"] for e in run.changes()] == sorted((e["level"] for e in run.changes()), reverse=True)
-    for knob in KNOBS[name]:
+    for knob in METHODS[name].knobs:
         values = [t[knob.field] for t in trail]
         cheaper = values if knob.cheaper == "higher" else [-v for v in values]
         assert cheaper == sorted(cheaper), knob.field  # never back towards the configured value
@@ -321,6 +316,45 @@ def test_a_method_without_knobs_is_left_alone_and_says_so(tracer, spec):
     assert run.ctl.widen_deg == 0.0 and run.ctl.widenings == 0
 
 
+class ToyParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    cost: Annotated[int, msgspec.Meta(ge=1, le=16)] = 8
+    radius: Annotated[float, msgspec.Meta(ge=0.0, le=90.0)] = 20.0
+    gain: float = 1.0  # not a knob: never moved
+
+
+class Toy(Configurable):
+    """A method from outside the package: one module and its registry line, no word in the controller."""
+
+    name = "toy"
+    Params = ToyParams
+    stages = (Stage("paint"),)
+    knobs = (Knob("cost", 2), Knob("radius", 5.0, foveal=True))
+
+    def __init__(self, tracer: Whitted, params: ToyParams):
+        self.tracer = tracer
+        self._configure(params)
+
+    def _configure(self, params: ToyParams) -> None:
+        self.params = params
+
+    def render(self, request, stats, out=None):
+        image = np.empty((request.camera.height, request.camera.width, 3), np.float32) if out is None else out
+        image[:] = self.params.cost
+        return image
+
+
+def test_a_registered_method_is_tuned_by_the_knobs_it_declares(tracer, monkeypatch):
+    monkeypatch.setitem(METHODS, "toy", Toy)
+    run = Run(tracer, "toy?cost=12&radius=30", widen_latency_ms=50.0, **EXACT)
+    assert run.ctl.knobs == ("cost", "radius") and run.ctl.trajectory[0]["knobs"] == {"cost": 12, "radius": 30.0}
+    run.feed(6, 1.25)
+    assert run.ctl.level == 0.75 and (run.method.params.cost, run.method.params.radius) == (10, 23.75)
+    run.until_floor()
+    assert run.method.params == ToyParams(cost=2, radius=5.0)  # the declared floors; gain untouched
+    run.feed(1, 0.1, speed=100.0)  # a saccade widens the foveal knob only
+    assert run.method.params.cost == 2 and run.method.params.radius > 5.0
+
+
 def test_a_budget_that_is_not_positive_is_refused(tracer):
     ctl = Run(tracer, "weier16").ctl
     for budget in (0, -1):
@@ -351,10 +385,10 @@ def test_gaze_speed_and_accuracy_widen_the_fovea_at_once_rounded_up(tracer, spee
     assert run.feed(10, 0.9, speed=speed) == [None] * 10 and len(run.calls) == 1
 
 
-@pytest.mark.parametrize("name", list(KNOBS))
+@pytest.mark.parametrize("name", TUNABLE)
 def test_widening_moves_the_foveal_knobs_only(tracer, name):
     run = Run(tracer, name, accuracy_deg=2.0)
-    configured = configured_values(run.ctl.base)
+    configured = run.method.knob_values(run.ctl.base)
     out = run.feed(1, 0.9)[0]
     assert out == pytest.approx({k: configured[k] + (2.0 if k in FOVEAL[name] else 0.0) for k in run.ctl.knobs})
     params = msgspec.structs.asdict(run.method.params)
@@ -430,34 +464,34 @@ def test_rrm_groups_grow_until_n_reaches_20_but_never_shrink(tracer, group_h, fl
 
 
 def test_spans_resolve_the_weier16_preset_and_the_fields_ranges():
-    assert configured_values(Weier16Params()) == {
+    assert Weier16.knob_values(Weier16Params()) == {
         **msgspec.structs.asdict(Weier16Params()),
         "r0": 10.0,
         "r1": 20.0,
         "p_min": 0.05,
     }
-    assert [configured_values(Weier16Params(frc=f))["r0"] for f in ("small", "medium", "large", "full")] == [
+    assert [Weier16.knob_values(Weier16Params(frc=f))["r0"] for f in ("small", "medium", "large", "full")] == [
         5.0,
         10.0,
         15.0,
         math.inf,
     ]
-    v = configured_values(Weier16Params(frc="small", r1=12.0))
+    v = Weier16.knob_values(Weier16Params(frc="small", r1=12.0))
     assert (v["r0"], v["r1"], v["p_min"]) == (5.0, 12.0, 0.01)
-    assert configured_values(RrmParams()) == msgspec.structs.asdict(RrmParams())
+    assert Rrm.knob_values(RrmParams()) == msgspec.structs.asdict(RrmParams())
 
     assert field_range(Weier16Params, "r0") == (0.0, 180.0, False)  # optional field: its number type
     assert field_range(RrmParams, "group_w") == (1, 64, True)
     assert field_range(Kim21Params, "n_f") == (1, 16, True)
     assert field_range(Weier18Params, "pupil_mm") == (0.0, 20.0, False)
 
-    large = {s.field: s for s in spans(Weier16Params(frc="large"), KNOBS["weier16"])}
+    large = {s.field: s for s in spans(Weier16, Weier16Params(frc="large"))}
     assert {k: (s.top, s.bottom) for k, s in large.items()} == {"r0": (15, 5), "r1": (30, 10), "p_min": (0.1, 0.01)}
-    full = {s.field: s for s in spans(Weier16Params(frc="full"), KNOBS["weier16"])}
+    full = {s.field: s for s in spans(Weier16, Weier16Params(frc="full"))}
     assert {k: (s.top, s.bottom) for k, s in full.items()} == {"r0": (180, 5), "r1": (180, 10), "p_min": (1.0, 0.01)}
-    rrm = {s.field: s for s in spans(RrmParams(group_h=5), KNOBS["rrm"])}
+    rrm = {s.field: s for s in spans(Rrm, RrmParams(group_h=5))}
     assert (rrm["group_w"].top, rrm["group_w"].bottom, rrm["group_w"].integer) == (3, 4, True)
-    kim = {s.field: s for s in spans(Kim21Params(), KNOBS["kim21"])}
+    kim = {s.field: s for s in spans(Kim21, Kim21Params())}
     assert kim["e_f"].top == kim["e_f"].bottom == 3.3 and kim["e_f"].foveal and not kim["n_f"].foveal
 
 

@@ -17,6 +17,7 @@ from hmdrt.errors import ConfigError
 from hmdrt.evaluate.config import load_eval_config
 from hmdrt.evaluate.runner import pareto_front, summarise
 from hmdrt.evaluate.truth import TruthCache, scene_digest
+from hmdrt.foveation import MethodChoice
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.quality import BANDS, BandScores, ssim_map
 from hmdrt.scene import load_scene
@@ -160,8 +161,8 @@ def test_hmdrt_eval_writes_one_row_per_cell_with_band_scores_plots_and_a_summary
     assert len(rows) == len(result["rows"]) == 2 * 3  # two traces x (full + two rrm settings)
     assert {r["params"] for r in rows} == {
         "full",
-        "rrm?group_w=1&group_h=1&fovea_deg=5.0",
-        "rrm?group_w=1&group_h=1&fovea_deg=20.0",
+        "rrm?fovea_deg=5.0&group_w=1&group_h=1",  # as MethodChoice writes it: the fields in their order
+        "rrm?fovea_deg=20.0&group_w=1&group_h=1",
     }
     for r in result["rows"]:
         assert r["frames"] == 3 and r["ms_per_frame"] > 0 and r["width"] == 48 and r["height"] == 54
@@ -323,33 +324,30 @@ def test_paper_tables_are_filled_from_the_labelled_cells_of_each_scene(tmp_path)
     assert int(every[-1].replace(",", "")) == 48 * 54 > int(foveated[-1].replace(",", ""))
 
 
-def test_full_and_regular_skip_the_warm_up_frames(tmp_path):
+def test_full_and_regular_skip_the_warm_up_frames(tmp_path, monkeypatch):
     config = tmp_path / "e.toml"
     config.write_text(EVAL.replace("frames = 4\nwarmup_frames = 1", "frames = 5\nwarmup_frames = 3"))
     load = load_eval_config(config)
     from hmdrt.evaluate import runner
 
     calls: dict[str, int] = {}
-    real = runner.make_method
+    real = MethodChoice.make
 
-    def counting(spec, tracer):
-        method = real(spec, tracer)
+    def counting(choice, tracer):
+        method = real(choice, tracer)
         render = method.render
 
         def counted(request, stats):
-            calls[spec] = calls.get(spec, 0) + 1
+            calls[str(choice)] = calls.get(str(choice), 0) + 1
             return render(request, stats)
 
         method.render = counted
         return method
 
-    runner.make_method = counting
-    try:
-        runner.evaluate(load, progress=False)
-    finally:
-        runner.make_method = real
+    monkeypatch.setattr(MethodChoice, "make", counting)
+    runner.evaluate(load, progress=False)
     assert calls["full"] == 2 * 2  # two traces x the two timed frames
-    assert calls["rrm?group_w=1&group_h=1&fovea_deg=5.0"] == 2 * 5
+    assert calls["rrm?fovea_deg=5.0&group_w=1&group_h=1"] == 2 * 5
 
 
 def test_jod_without_the_eval_extra_is_a_one_line_error(tmp_path, monkeypatch):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from hmdrt.errors import ConfigError
-from hmdrt.foveation import METHODS, FrameRequest, make_method
+from hmdrt.foveation import METHODS, FrameRequest, MethodChoice, make_method
 from hmdrt.foveation.base import EYES, pixel_keys
 from hmdrt.foveation.rrm import Rrm, RrmParams, foveal_rectangle, refresh_phase
 from hmdrt.optics import EyeCamera, get_profile
@@ -305,6 +305,34 @@ def test_bad_method_options_are_refused(spec, message):
     scene = load_scene("whitted")
     with Whitted(scene) as tracer, pytest.raises(ConfigError, match=message):
         make_method(spec, tracer)
+
+
+@pytest.mark.parametrize(
+    "spec,written",
+    [
+        ("full", "full"),
+        ("rrm?fovea_deg=10.0", "rrm"),  # the default is not written
+        ("rrm?group_w=2&fovea_deg=8", "rrm?fovea_deg=8.0&group_w=2"),  # field order, typed values
+        ("weier16?frc=small&post=false", "weier16?frc=small&post=false"),
+        ("regular?spp=4", "regular?spp=4"),
+    ],
+)
+def test_a_method_choice_is_parsed_once_and_written_back_as_it_reads(spec, written):
+    choice = MethodChoice.parse(spec)
+    assert str(choice) == written and MethodChoice.parse(written) == choice
+    assert choice.params == METHODS[choice.name].Params(**msgspec.structs.asdict(choice.params))
+
+
+def test_a_method_choice_changes_its_options_with_the_same_checks():
+    choice = MethodChoice.parse("weier16?frc=small")
+    assert str(choice.with_options(post=False)) == "weier16?frc=small&post=false"
+    assert choice.with_options(r1=12.0).params.frc == "small"
+    with pytest.raises(ConfigError, match="p_min"):
+        choice.with_options(p_min=2.0)
+    with pytest.raises(ConfigError, match="unknown method 'magic'"):
+        MethodChoice.parse("magic?x=1")
+    with pytest.raises(ConfigError, match="must look like"):
+        MethodChoice.parse("rrm?fovea_deg")
 
 
 def test_every_method_is_registered():

@@ -29,7 +29,7 @@ import zmq
 from PIL import Image
 
 from hmdrt.cli import main
-from hmdrt.compositor.config import load_config
+from hmdrt.compositor.config import load_config, reload_plan
 from hmdrt.compositor.daemon import Compositor
 from hmdrt.compositor.endpoints import request
 from hmdrt.errors import ConfigError
@@ -678,6 +678,27 @@ def test_load_config_rejects_bad_files_in_one_line(tmp_path, text, message):
     assert message in str(info.value) and str(path) in str(info.value)
 
 
+def test_a_reload_plan_keeps_what_needs_a_restart_and_names_it(tmp_path):
+    old = load_config(write_config(tmp_path / "old.toml", output={"video": "run.mp4"}))
+    same, restart = reload_plan(old, old)
+    assert same == old and restart == []
+    new = load_config(
+        write_config(
+            tmp_path / "new.toml",
+            method={"options": {"group_w": 2}},
+            eyes="left",
+            output={"video": "other.mp4", "every": 2},
+            pacing={"margin_ms": 3.0},
+            run={"seed": 7},
+        )
+    )
+    config, restart = reload_plan(old, new)
+    assert restart == ["display", "output.video and output.every"]
+    assert (config.display, config.bus, config.run) == (old.display, old.bus, old.run)
+    assert (config.output.video, config.output.every) == (old.output.video, old.output.every)
+    assert config.pacing.margin_ms == 3.0 and str(config.method_choice) == "rrm?group_w=2"
+
+
 def test_load_config_of_a_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="config not found: .*missing.toml"):
         load_config(tmp_path / "missing.toml")
@@ -739,7 +760,7 @@ def test_the_warm_up_compiles_every_kernel_a_frame_uses():
     code = (
         "import sys, numpy as np\n"
         "from numba.core.registry import CPUDispatcher\n"
-        "from hmdrt.compositor.config import load_config; from hmdrt.compositor.session import Session\n"
+        "from hmdrt.compositor.config import load_config, reload_plan; from hmdrt.compositor.session import Session\n"
         "from hmdrt.compositor.samples import GazeEstimate; from hmdrt.telemetry.stats import FrameStats\n"
         "def signatures():\n"
         "    return {(m, k): len(v.signatures) for m, mod in list(sys.modules.items()) if m.startswith('hmdrt')\n"

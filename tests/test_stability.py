@@ -18,7 +18,7 @@ from drivers.fusion import GRAVITY, OrientationFusion
 from hmdrt.bus.messages import Gaze, Pose
 from hmdrt.compositor.samples import SampleStore
 from hmdrt.errors import ConfigError, SceneError
-from hmdrt.foveation import METHODS, FrameRequest, make_method, method_params
+from hmdrt.foveation import METHODS, FrameRequest, MethodChoice, make_method
 from hmdrt.foveation.kim21 import Kim21Params, bezier_controls, tau_fov_array
 from hmdrt.foveation.rrm import RrmParams, foveal_rectangle
 from hmdrt.foveation.stages.dof import (
@@ -31,7 +31,7 @@ from hmdrt.foveation.stages.dof import (
 )
 from hmdrt.foveation.stages.gaze import FixationFilter
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push
-from hmdrt.foveation.stages.reproject import MeshImage, camera_arrays
+from hmdrt.foveation.stages.reproject import MeshImage
 from hmdrt.foveation.stages.sampling import (
     bernoulli_mask,
     expected_fraction,
@@ -47,6 +47,7 @@ from hmdrt.foveation.weier16 import COVERED, TRACED, CacheRule, Final, Samples, 
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
 from hmdrt.optics.profiles import HmdProfile
+from hmdrt.optics.projection import camera_arrays
 from hmdrt.scene import Scene, load_scene
 from hmdrt.scene.model import Material, Mesh, PointLight
 from hmdrt.scene.pack import pack
@@ -138,7 +139,7 @@ def test_foveal_function_with_r0_greater_than_r1_is_an_error():
     with pytest.raises(ConfigError, match="must not exceed"):
         foveal_config("medium", 30.0, 20.0, None)
     with pytest.raises(ConfigError, match="r0 must not exceed r1"):
-        method_params("weier18", r0=30.0, r1=20.0)
+        MethodChoice.parse("weier18", r0=30.0, r1=20.0)
     with Whitted(empty_scene()) as tracer, pytest.raises(ConfigError, match="must not exceed"):
         make_method("weier16", tracer, r0=30.0, r1=20.0)
 
@@ -155,7 +156,7 @@ def test_foveal_function_with_nan_negative_or_out_of_range_values_is_an_error(r0
 def test_method_options_with_nan_radii_are_an_error():
     for method in ("weier16", "weier18"):
         with pytest.raises(ConfigError):
-            method_params(f"{method}?r0=nan")
+            MethodChoice.parse(f"{method}?r0=nan")
 
 
 def test_foveal_function_with_r0_0_falls_off_from_the_gaze_itself():
@@ -519,7 +520,7 @@ def test_kim21_smoothing_with_alpha_0_averages_the_frames_and_with_alpha_1_keeps
 
 def test_kim21_alpha_above_1_is_an_error_and_alpha_0_renders_finite_frames():
     with pytest.raises(ConfigError, match="alpha"):
-        method_params("kim21", alpha=[2.0, 0.8, 0.7, 0.5, 0.2, 0.1])
+        MethodChoice.parse("kim21", alpha=[2.0, 0.8, 0.7, 0.5, 0.2, 0.1])
     images, _ = render_frames(load_scene("whitted"), "kim21", [FORWARD] * 3, alpha=[0.0] * 6, reuse=False)
     assert all(np.isfinite(im).all() for im in images)
 

@@ -15,7 +15,7 @@ import msgspec
 from hmdrt.bus import CONTROL, INGEST, TELEMETRY
 from hmdrt.configfile import convert, read_toml
 from hmdrt.errors import ConfigError
-from hmdrt.foveation import method_spec
+from hmdrt.foveation import MethodChoice
 
 Ms = Annotated[float, msgspec.Meta(ge=0.0, le=10_000.0)]
 Eyes = Literal["left", "right", "both"]
@@ -126,9 +126,25 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     source: str = ""  # the file it was read from (set on load)
 
     @property
-    def method_spec(self) -> str:
-        """The method as one "name?key=value&..." string."""
-        return method_spec(self.method.name, self.method.options)
+    def method_choice(self) -> MethodChoice:
+        """The [method] section parsed: its name (with any "?key=value&...") and options (ConfigError if bad)."""
+        return MethodChoice.parse(self.method.name, **self.method.options)
+
+
+RESTART_ONLY = ("scene", "display", "drivers", "bus", "security")  # a running compositor cannot change these
+
+
+def reload_plan(old: RunConfig, new: RunConfig) -> tuple[RunConfig, list[str]]:
+    """What a reload of `new` over the running `old` applies, and the changes it cannot apply that need a
+    restart: the restart-only sections and the video with its rate (its encoder is fixed) stay as they run, and
+    so does [run] (seed, threads, limits)."""
+    restart = [k for k in RESTART_ONLY if getattr(new, k) != getattr(old, k)]
+    output = new.output
+    if output.video != old.output.video or (old.output.video and output.every != old.output.every):
+        restart.append("output.video and output.every")
+        output = msgspec.structs.replace(output, video=old.output.video, every=old.output.every)
+    kept = {k: getattr(old, k) for k in (*RESTART_ONLY, "run")}
+    return msgspec.structs.replace(new, output=output, **kept), restart
 
 
 def _relative(url: str, base: Path) -> str:

@@ -2,18 +2,11 @@
 configured rate, and widens the fovea for gaze speed and tracker error.
 
 The compositor calls update() once per presented frame. One quality level in [0, 1] drives the method's
-cost knobs (KNOBS): 1 is the parameters the method was configured with, 0 a floor from the papers, and
-each knob moves linearly between the two (integer knobs rounded), so every knob is monotonic in the
-level and one number tells the story in the run report. A floor never asks for more than the configured
-value: a knob configured below its floor stays where it is.
-
-- weier16, weier18: r0, r1, p_min down to weier2016's small foveal region configuration (section 4.2,
-  RQ2: r0 5, r1 10, p_min 0.01), the fovea's own size with a steep falloff.
-- rrm: fovea_deg down to the same 5 deg, and group_w up until N = group_w x group_h reaches 20, the
-  largest N whose fragmentation smith2013's user study (section 4, Figure 10) did not find noticeable.
-- kim21: the samples per problematic subpixel n_f, n_p, n_m, n_np down to 1 (section 4.6.2); its band
-  edges move only with the widening below (shrinking them changes tau_fov's shape, which may not hold).
-- full, regular: no cost knobs; the controller does nothing and says so in its trajectory.
+cost knobs (Method.knobs, each method's own declaration): 1 is the parameters the method was configured
+with, 0 a floor from the papers, and each knob moves linearly between the two (integer knobs rounded), so
+every knob is monotonic in the level and one number tells the story in the run report. A floor never asks
+for more than the configured value: a knob configured below its floor stays where it is. A method without
+knobs (full, regular) is left alone, and the trajectory says so.
 
 Control law, with r = render time / (headroom x budget) per frame:
 - after a level change, wait settle_frames frames (temporal methods need them to settle); then
@@ -25,31 +18,26 @@ Control law, with r = render time / (headroom x budget) per frame:
   that band, aim = (1 + raise_below) / 2, so that render-time noise does not push it out again.
 At level 0 the controller can do no more: at_floor is set and the compositor reports the rate achieved.
 
-Foveal widening: each foveal radius knob (weier16/18 r0 and r1, rrm fovea_deg, kim21's band edges e_f to
-e_max) is its level value + gaze speed x widen_latency_ms + accuracy_deg, clamped to the field's valid
-range, so the fovea still covers where the eye is when the frame is shown, as far as the tracker knows.
-The widening rounds up to widen_step_deg, grows at once and shrinks only once it has not grown for
-settle_frames frames: every change can cost the method a rebuild (weier18 redraws its sampling tables).
+Foveal widening: each foveal radius knob (Knob.foveal) is its level value + gaze speed x widen_latency_ms +
+accuracy_deg, clamped to the field's valid range, so the fovea still covers where the eye is when the frame
+is shown, as far as the tracker knows. The widening rounds up to widen_step_deg, grows at once and shrinks
+only once it has not grown for settle_frames frames: every change can cost the method a rebuild (weier18
+redraws its sampling tables).
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass
 from itertools import islice
-from typing import Any, Literal, NamedTuple
+from typing import NamedTuple
 
 import msgspec
 
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import Method
-from hmdrt.foveation.stages.sampling import FRC_PRESETS
-from hmdrt.foveation.weier16 import Weier16Params
 
-SMALL_R0, SMALL_R1, SMALL_P_MIN = FRC_PRESETS["small"]
-RRM_MAX_CYCLE = 20
 # trajectory entries kept after the start, the newest: the `stats` topic sends them every second, and a daemon
 # runs for hours; `changes` counts them all, and every frame record carries the knobs it was rendered with
 LOGGED = 100
@@ -95,35 +83,6 @@ class ControllerConfig:
             raise ConfigError(f"controller settings out of range: {', '.join(bad)}")
 
 
-Floor = float | Callable[[dict[str, Any]], float] | None
-
-
-@dataclass(frozen=True)
-class Knob:
-    """A Params field the level moves: from its configured value (level 1) to `floor` (level 0), a number
-    or a function of the configured values; None leaves it to the widening alone."""
-
-    field: str
-    floor: Floor
-    cheaper: Literal["lower", "higher"] = "lower"
-    foveal: bool = False  # a foveal radius, widened for gaze speed and tracker accuracy
-
-
-FOVEAL_REGION = (Knob("r0", SMALL_R0, foveal=True), Knob("r1", SMALL_R1, foveal=True), Knob("p_min", SMALL_P_MIN))
-KNOBS: dict[str, tuple[Knob, ...]] = {
-    "weier16": FOVEAL_REGION,
-    "weier18": FOVEAL_REGION,
-    "rrm": (
-        Knob("fovea_deg", SMALL_R0, foveal=True),
-        Knob("group_w", lambda v: RRM_MAX_CYCLE // v["group_h"], cheaper="higher"),
-    ),
-    "kim21": (
-        *(Knob(f"n_{band}", 1) for band in ("f", "p", "m", "np")),
-        *(Knob(f"e_{band}", None, foveal=True) for band in ("f", "p", "m", "np", "max")),
-    ),
-}
-
-
 class _Span(NamedTuple):
     """One knob resolved for the configured parameters: its values at level 1 and 0 and its valid range."""
 
@@ -152,18 +111,11 @@ def field_range(params_type: type[msgspec.Struct], name: str) -> tuple[float, fl
     return lo, hi, isinstance(kind, msgspec.inspect.IntType)
 
 
-def configured_values(params: msgspec.Struct) -> dict[str, Any]:
-    """The configured value of every field; weier16's r0, r1 and p_min as its frc preset resolves them."""
-    values = msgspec.structs.asdict(params)
-    if isinstance(params, Weier16Params):
-        values.update(params.foveal()._asdict())
-    return values
-
-
-def spans(params: msgspec.Struct, knobs: tuple[Knob, ...]) -> tuple[_Span, ...]:
-    values = configured_values(params)
+def spans(method: type[Method] | Method, params: msgspec.Struct) -> tuple[_Span, ...]:
+    """The method's knobs resolved for `params`."""
+    values = method.knob_values(params)
     out = []
-    for knob in knobs:
+    for knob in method.knobs:
         lo, hi, integer = field_range(type(params), knob.field)
         top = min(max(values[knob.field], lo), hi)  # frc=full's infinite radii: the largest valid ones
         floor = knob.floor(values) if callable(knob.floor) else knob.floor
@@ -183,7 +135,7 @@ class BudgetController:
         self.method = method
         self.config = config
         self.base = method.params
-        self._spans = spans(self.base, KNOBS.get(method.name, ()))
+        self._spans = spans(method, self.base)
         self.knobs = tuple(s.field for s in self._spans)
         self._level = 1.0
         self._ratios: deque[float] = deque(maxlen=config.raise_after)

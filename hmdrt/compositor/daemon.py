@@ -7,20 +7,20 @@ or, when it is late, shows the last frame again timewarped to the newest head po
 out per VSync (`frame`) and each second (`stats`); the run report is written at the end, also after
 SIGTERM. In real time the render loop and the display run on their own threads against the host
 clock; with virtual_time the clock moves one period per frame, drivers are polled against it, and
-runs reproduce bit for bit.
+runs reproduce bit for bit. The control socket's commands are hmdrt.compositor.control's, the frames on disk
+hmdrt.present.output's, and what a reload may change hmdrt.compositor.config.reload_plan's.
 """
 
 from __future__ import annotations
 
 import gc
-import queue
 import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
-from pathlib import Path
+from functools import partial
 
 import msgspec
 import numba
@@ -30,22 +30,23 @@ import zmq
 from drivers.base import MONOTONIC, Clock
 from hmdrt import __version__
 from hmdrt.bus.security import Guard, ServerKeys, check_binds
+from hmdrt.compositor import control
 from hmdrt.compositor.buffers import counts
 from hmdrt.compositor.clock import VirtualClock, VsyncClock
-from hmdrt.compositor.config import RunConfig, load_config
+from hmdrt.compositor.config import RunConfig, load_config, reload_plan
+from hmdrt.compositor.control import MUTATING
 from hmdrt.compositor.controller import BudgetController, ControllerConfig
 from hmdrt.compositor.display import Display, Frame
 from hmdrt.compositor.endpoints import ControlServer, Ingest, Telemetry
 from hmdrt.compositor.fallback import Outages
 from hmdrt.compositor.pacer import FrameTiming, Pacer
-from hmdrt.compositor.samples import GazeEstimate, SampleStore
+from hmdrt.compositor.samples import GazeEstimate, PoseEstimate, SampleStore
 from hmdrt.compositor.session import Session
 from hmdrt.compositor.sources import Sources
 from hmdrt.errors import ConfigError, HmdrtError
-from hmdrt.foveation import method_params, method_spec
+from hmdrt.foveation import MethodChoice
 from hmdrt.optics import EyeCamera
-from hmdrt.present.encode import side_by_side_srgb8, write_png
-from hmdrt.present.video import VideoWriter
+from hmdrt.present.output import FrameWriter, check_folder
 from hmdrt.sequence import compose_pose, eye_cameras
 from hmdrt.telemetry.report import FrameRecord, RunReport, SampleUse
 from hmdrt.telemetry.stats import FrameStats
@@ -53,7 +54,6 @@ from hmdrt.telemetry.stats import FrameStats
 FIRST_PRESENT_NS = 50_000_000  # Monado's fake pacer: the first present is assumed 50 ms out
 CONNECT_WAIT_S = 3.0  # how long the start waits for its drivers to connect (a device may come later)
 MAX_AHEAD = 4  # frames the renderer may hand over before the display has shown them (the pacer remembers 16)
-WRITE_QUEUE = 8  # presented frames waiting to be written as PNG; more are skipped and counted
 # A thread waiting for the GIL gets it within this (Python's default is 5 ms, a sixth of a 30 Hz frame): the
 # display and the hand-over of a finished frame must not wait behind the ingest or a driver for that long.
 SWITCH_INTERVAL_S = 0.0005
@@ -75,16 +75,11 @@ class Compositor:
         self.report = RunReport(self.session.profile.refresh_hz, config.run.warmup_s)
         self.controller = self._make_controller()
         self.outages = Outages(config.fallback)
-        self._widen_deg = 0.0  # the fallback's foveal widening, handed to the controller
         self._lock = threading.Lock()  # pacer and report: the render and display threads share them
         self._pending: list[tuple[str, object]] = []  # control changes applied between frames
         # (frame id, frame ms, missed) for the controller: appended by the display thread, taken by the render thread
         self._presents: deque[tuple[int, float, bool]] = deque()
-        self._writes: queue.Queue = queue.Queue(WRITE_QUEUE)
-        self.writes_skipped = 0  # frames the writer had no room for
-        self.writes_failed = 0  # frames the writer could not write
-        self._video: VideoWriter | None = None
-        self._writer_thread = threading.Thread(target=self._writer, name="frame-writer", daemon=True)
+        self.writer: FrameWriter | None = None
         self.shown_images: list[np.ndarray] | None = None
         self.stop = threading.Event()
         self._context = context or zmq.Context.instance()
@@ -109,13 +104,14 @@ class Compositor:
             gc.freeze()
             self.vsync = VsyncClock(self.session.profile.period_ns, self.clock.now_ns() + FIRST_PRESENT_NS)
             self.pacer = Pacer(self.vsync, **self._pacing(config))
-            self._frames_dir(config)
-            if config.output.video:
-                self._video = VideoWriter(config.output.video, self.session.profile.refresh_hz / config.output.every)
+            out = config.output
+            self.writer = FrameWriter(out.frames_dir, out.video, out.every, self.session.profile.refresh_hz)
             self.display = Display(
                 self.vsync, self.clock, self._warp_target, self._shown, self._dropped, warp_deadline=not virtual
             )
-            self.control = ControlServer(self._context, config.bus.control, self._handle, self.guard)
+            self.control = ControlServer(
+                self._context, config.bus.control, partial(control.handle, self), MUTATING, self.guard
+            )
         except (HmdrtError, ValueError):
             self.close()
             raise
@@ -151,15 +147,6 @@ class Compositor:
             "tail_window": p.tail_window,
         }
 
-    @staticmethod
-    def _frames_dir(config: RunConfig) -> None:
-        folder = config.output.frames_dir
-        if folder:
-            try:
-                Path(folder).mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                raise ConfigError(f"output.frames_dir: cannot create {folder}: {exc.strerror}") from None
-
     def _make_controller(self) -> BudgetController | None:
         """The hold-budget controller; without one, a controller that only widens the fovea while the gaze
         tracker is silent (when the fallback widens at all)."""
@@ -178,16 +165,16 @@ class Compositor:
 
     # --- sampling -------------------------------------------------------------------------------------------------
 
-    def _estimates(self, t_display: int, now: int):
-        """Gaze and pose for the display time; while the gaze device is silent, the fallback's gaze (the last
-        good one, widened by the controller, then none: the screen centre)."""
+    def _estimates(self, t_display: int, now: int) -> tuple[GazeEstimate | None, PoseEstimate | None, float]:
+        """Gaze and pose for the display time, and the fallback's foveal widening in degrees: while the gaze
+        device is silent, the fallback's gaze (the last good one, widened by the controller, then none: the
+        screen centre)."""
         p = self.config.prediction
         gaze = self.store.gaze_at(t_display, now, p.gaze_device or None)
         pose = self.store.pose_at(t_display, now, p.pose_device or None)
         device = p.gaze_device or (gaze.device if gaze is not None else None)
         fallback = self.outages.judge(self.store.last_received(device) if device else None, now)
-        self._widen_deg = fallback.widen_deg
-        return (None if fallback.centre else gaze), pose
+        return (None if fallback.centre else gaze), pose, fallback.widen_deg
 
     @staticmethod
     def _use(estimate) -> SampleUse | None:
@@ -210,8 +197,8 @@ class Compositor:
         """One frame's work from its wake-up: estimates, the controller's step, the method's render; its
         frame_ms adds loop_ns, the render loop's own work for it (planning, and handing over the frame before)."""
         t0 = time.perf_counter_ns()
-        gaze, pose = self._estimates(timing.predicted_display_ns, woke)
-        self._tune(None if gaze is None else gaze.speed_deg_s)
+        gaze, pose, widen_deg = self._estimates(timing.predicted_display_ns, woke)
+        self._tune(None if gaze is None else gaze.speed_deg_s, widen_deg)
         stats = FrameStats()
         start = self.clock.now_ns()
         delay = int(self.config.pacing.render_delay_ms * 1e6)
@@ -247,12 +234,7 @@ class Compositor:
             self.report.add(record)
         self.shown_images = images
         self.telemetry.publish("frame", record.to_dict())
-        out = self.config.output
-        if (out.frames_dir or self._video) and record.vsync % out.every == 0:
-            try:
-                self._writes.put_nowait((record.vsync, images))
-            except queue.Full:
-                self.writes_skipped += 1
+        self.writer.offer(record.vsync, images)
 
     def _dropped(self, frame: Frame, t_vsync: int) -> None:
         with self._lock:
@@ -261,10 +243,10 @@ class Compositor:
             self.report.drop(t_vsync)
         self._presents.append((frame.timing.frame_id, frame.frame_ms, True))
 
-    def _tune(self, gaze_speed_deg_s: float | None) -> None:
+    def _tune(self, gaze_speed_deg_s: float | None, widen_deg: float) -> None:
         """Feed the controller the frames shown or dropped since the last call: their work on the wall clock
         (also in virtual time) against one period less the margin, the budget of the display's own rate; it
-        widens the fovea for the gaze speed of the frame about to be rendered."""
+        widens the fovea for the gaze speed of the frame about to be rendered and the fallback's widen_deg."""
         while self._presents:  # only this thread takes from it: not empty stays not empty
             frame_id, frame_ms, missed = self._presents.popleft()
             if self.controller is None:
@@ -275,7 +257,7 @@ class Compositor:
                 self.vsync.period_ns - self.pacer.margin_ns,
                 missed,
                 gaze_speed_deg_s,
-                self._widen_deg,
+                widen_deg,
             )
 
     def _apply_pending(self) -> None:
@@ -356,42 +338,9 @@ class Compositor:
             self.display.latch(index)
             index += 1
 
-    def _writer(self) -> None:
-        """Writes queued frames as PNG and to the video, encoded into one reused buffer; one that cannot be written
-        is counted, the first failure said once."""
-        srgb8 = None
-        while True:
-            item = self._writes.get()
-            if item is None:
-                return
-            vsync, images = item
-            width = sum(image.shape[1] for image in images)
-            if srgb8 is None or srgb8.shape != (images[0].shape[0], width, 3):
-                srgb8 = np.empty((images[0].shape[0], width, 3), np.uint8)
-            side_by_side_srgb8(images, srgb8)
-            del item, images  # the shown images' buffers go back to their pools while this one waits
-            folder = self.config.output.frames_dir
-            try:
-                if folder:
-                    write_png(Path(folder) / f"vsync_{vsync:06d}.png", srgb8)
-                if self._video is not None:
-                    self._video.append(srgb8)
-            except HmdrtError as exc:
-                if not self.writes_failed:
-                    print(f"hmdrt: {exc}; later frames that cannot be written are counted", file=sys.stderr)
-                self.writes_failed += 1
-
-    def _finish_video(self) -> None:
-        video, self._video = self._video, None
-        if video is not None:
-            try:
-                video.close()
-            except HmdrtError as exc:
-                print(f"hmdrt: {exc}", file=sys.stderr)
-
     def run(self) -> dict:
         """Run until stopped, the frame count or the duration; returns the run report."""
-        self._writer_thread.start()
+        self.writer.start()
         stats = threading.Thread(target=self._stats_loop, name="stats", daemon=True)
         stats.start()
         switch = sys.getswitchinterval()
@@ -411,9 +360,7 @@ class Compositor:
         finally:
             sys.setswitchinterval(switch)
             self.stop.set()
-            self._writes.put(None)
-            self._writer_thread.join()
-            self._finish_video()
+            self.writer.close()
         return self.summary()
 
     def _stats_loop(self) -> None:
@@ -422,47 +369,10 @@ class Compositor:
 
     # --- control --------------------------------------------------------------------------------------------------
 
-    def _handle(self, request: dict) -> dict:
-        cmd = request["cmd"]
-        try:
-            if cmd == "status":
-                return {"ok": True, **self.status()}
-            if cmd == "stats":
-                return {"ok": True, "report": self.summary()}
-            if cmd == "set":
-                return self._set(request)
-            if cmd == "snapshot":
-                return self._snapshot(request)
-            if cmd == "shutdown":
-                self.stop.set()
-                return {"ok": True}
-        except HmdrtError as exc:
-            return {"ok": False, "error": str(exc)}
-        return {"ok": False, "error": f"unknown command {cmd!r}; commands: status, stats, set, snapshot, shutdown"}
-
-    def _set(self, request: dict) -> dict:
-        spec, params = request.get("method"), request.get("params", {})
-        if not (isinstance(spec, str) or spec is None) or not isinstance(params, dict) or (spec is None and not params):
-            return {"ok": False, "error": 'set takes "method": "name?key=value" and/or "params": {key: value}'}
-        if spec is None:
-            spec = method_spec(self.session.method.name, {**self.session.params(), **params})
-        elif params:
-            name, current = method_params(spec)
-            spec = method_spec(name, {**msgspec.to_builtins(current), **params})
-        method_params(spec)  # a bad name or value is answered now, not failed on later
+    def request_method(self, choice: MethodChoice) -> None:
+        """Render with `choice` from the next frame on (applied between frames, with a new controller)."""
         with self._lock:
-            self._pending.append(("method", spec))
-        return {"ok": True, "method": spec}
-
-    def _snapshot(self, request: dict) -> dict:
-        path = request.get("path")
-        images = self.shown_images
-        if not isinstance(path, str) or not path.endswith(".png"):
-            return {"ok": False, "error": 'snapshot takes "path": "out.png"'}
-        if images is None:
-            return {"ok": False, "error": "nothing has been shown yet"}
-        write_png(Path(path), side_by_side_srgb8(images))
-        return {"ok": True, "path": path}
+            self._pending.append(("method", choice))
 
     def reload(self) -> None:
         """Re-read the config file (SIGHUP); applied between frames, the bus stays up."""
@@ -473,32 +383,15 @@ class Compositor:
         """Apply a re-read config's method, controller, prediction, fallback, pacing and output; a change of scene,
         display, drivers, bus or security needs a restart and is reported as such."""
         try:
-            config = load_config(source)
-            restart = [
-                k
-                for k in ("scene", "display", "drivers", "bus", "security")
-                if getattr(config, k) != getattr(self.config, k)
-            ]
-            old, new = self.config.output, config.output
-            if new.video != old.video or (old.video and new.every != old.every):  # the video's rate is fixed
-                restart.append("output.video and output.every")
-                kept = msgspec.structs.replace(new, video=old.video, every=old.every)
-                config = msgspec.structs.replace(config, output=kept)
+            config, restart = reload_plan(self.config, load_config(source))
             pacing = self._pacing(config)
-            self._frames_dir(config)
-            self.session.set_method(config.method_spec)
+            check_folder(config.output.frames_dir)
+            self.session.set_method(config.method_choice)
         except HmdrtError as exc:
             self.telemetry.publish("log", {"level": "error", "message": f"reload failed: {exc}"})
             return
-        self.config = msgspec.structs.replace(
-            config,
-            scene=self.config.scene,
-            display=self.config.display,
-            drivers=self.config.drivers,
-            bus=self.config.bus,
-            security=self.config.security,
-            run=self.config.run,
-        )
+        self.config = config
+        self.writer.configure(config.output.frames_dir, config.output.every)
         with self._lock:
             self.pacer.configure(**pacing)
         self.store.horizon_ns = int(config.prediction.horizon_ms * 1e6)
@@ -583,7 +476,7 @@ class Compositor:
             ingest_malformed=self.ingest.malformed,
             outages=self.outages.to_dict(),
             devices_refused=self.store.devices_refused,
-            frames_not_written=self.writes_skipped + self.writes_failed,
+            frames_not_written=self.writer.skipped + self.writer.failed,
             config=self.config.source,
             hmdrt=__version__,
             security=self.security(),
@@ -602,7 +495,8 @@ class Compositor:
     def close(self) -> None:
         self.stop.set()
         gc.unfreeze()  # a process that goes on (tests, a caller) collects them again
-        self._finish_video()
+        if self.writer is not None:
+            self.writer.close()
         for part in ("sources", "control", "ingest", "telemetry", "guard"):  # the guard last: it answers the others
             if getattr(self, part, None) is not None:
                 getattr(self, part).close()

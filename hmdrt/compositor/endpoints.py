@@ -8,8 +8,8 @@ gap), malformed messages are counted, and control requests over 64 KiB or unread
 reply rather than a crash. Endpoints ending in ":*" bind a free port; `address` says which.
 
 With a Guard (hmdrt.bus.security) every socket is a CURVE server that admits only allowed client keys,
-and the control socket answers the commands that change the compositor (MUTATING) only for a client
-that authenticated; without one the sockets bind loopback only and a local client is trusted.
+and the control socket answers the commands that change the compositor (hmdrt.compositor.control says which)
+only for a client that authenticated; without one the sockets bind loopback only and a local client is trusted.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ from hmdrt.errors import ConfigError
 
 POLL_MS = 50
 INGEST_HWM = 10_000  # messages: several seconds of every driver at its full rate
-MUTATING = ("set", "shutdown", "snapshot")  # control commands that change the compositor or write a file
 
 
 def _bind(context: zmq.Context, kind: int, endpoint: str, guard: Guard | None = None) -> tuple[zmq.Socket, str]:
@@ -111,16 +110,22 @@ class Telemetry:
 
 class ControlServer:
     """Answers control requests ({"cmd": ...} msgpack maps) with handler(request) -> reply map; with a guard,
-    a MUTATING command from a client without a CURVE identity is refused and counted."""
+    a command in `mutating` from a client without a CURVE identity is refused and counted."""
 
     def __init__(
-        self, context: zmq.Context, endpoint: str, handler: Callable[[dict], dict], guard: Guard | None = None
+        self,
+        context: zmq.Context,
+        endpoint: str,
+        handler: Callable[[dict], dict],
+        mutating: frozenset[str],
+        guard: Guard | None = None,
     ):
         self._sock, self.address = _bind(context, zmq.REP, endpoint, guard)
         self._handler = handler
+        self._mutating = mutating
         self._require_identity = guard is not None
         self.bad_requests = 0
-        self.unauthorised = 0  # MUTATING commands refused for want of an identity
+        self.unauthorised = 0  # mutating commands refused for want of an identity
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="control", daemon=True)
         self._thread.start()
@@ -144,7 +149,7 @@ class ControlServer:
         if not isinstance(request, dict) or not isinstance(request.get("cmd"), str):
             self.bad_requests += 1
             return {"ok": False, "error": 'a request is a msgpack map with a "cmd" string'}
-        if self._require_identity and request["cmd"] in MUTATING and not self.identity(frames[0]):
+        if self._require_identity and request["cmd"] in self._mutating and not self.identity(frames[0]):
             self.unauthorised += 1
             return {"ok": False, "error": f"{request['cmd']} needs an authenticated (CURVE) client"}
         return self._handler(request)

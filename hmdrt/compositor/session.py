@@ -17,7 +17,7 @@ import numpy as np
 from hmdrt.compositor.buffers import BufferPool
 from hmdrt.compositor.config import RunConfig
 from hmdrt.errors import ConfigError
-from hmdrt.foveation import make_method, method_params
+from hmdrt.foveation import MethodChoice
 from hmdrt.foveation.base import EYES, Method
 from hmdrt.optics import HmdProfile, get_profile
 from hmdrt.present.timewarp import timewarp
@@ -47,9 +47,9 @@ class Session:
         self.pools = {eye: BufferPool((self.profile.height, self.profile.width, 3)) for eye in self.eyes}
         self.scene = load_scene(config.scene)
         self.tracer = Whitted(self.scene, threads=config.run.threads or None)
-        self.spec = config.method_spec
+        self.choice = config.method_choice
         try:
-            self.method: Method = make_method(self.spec, self.tracer)
+            self.method: Method = self.choice.make(self.tracer)
         except ConfigError:
             self.tracer.close()
             raise
@@ -58,7 +58,7 @@ class Session:
         """Render one frame with a throwaway instance of the method and timewarp it, so that the kernels are
         compiled and the tracer's buffers allocated before the first VSync (a compile on the display thread would
         stall it for seconds); the method itself starts without history."""
-        method, self.method = self.method, make_method(self.spec, self.tracer)
+        method, self.method = self.method, self.choice.make(self.tracer)
         try:
             images, cameras, _ = self.render(0, None, None, 0, FrameStats())
         finally:
@@ -66,17 +66,25 @@ class Session:
         camera = next(iter(cameras.values()))
         timewarp(images[0], camera, camera)
 
-    def set_method(self, spec: str) -> None:
-        """Use method `spec` from the next frame: retuned in place when only its parameters change."""
-        name, params = method_params(spec)
-        if name == self.method.name:
-            self.method.set_params(params)
+    @property
+    def spec(self) -> str:
+        """The method chosen last (by the config, a reload or the control socket), as "name?key=value&..."."""
+        return str(self.choice)
+
+    def set_method(self, choice: MethodChoice) -> None:
+        """Use `choice` from the next frame: the method retuned in place when only its parameters change."""
+        if choice.name == self.method.name:
+            self.method.set_params(choice.params)
         else:
-            self.method = make_method(spec, self.tracer)
-        self.spec = spec
+            self.method = choice.make(self.tracer)
+        self.choice = choice
 
     def params(self) -> dict:
         return msgspec.to_builtins(self.method.params)
+
+    def current(self) -> MethodChoice:
+        """The method as it renders now, with the parameters the budget controller may have changed."""
+        return MethodChoice(self.method.name, self.method.params)
 
     def render(
         self, frame_id: int, gaze, pose, seed: int, stats: FrameStats, delay_ns: int = 0

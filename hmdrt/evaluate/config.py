@@ -15,7 +15,7 @@ import msgspec
 from hmdrt.configfile import convert, read_toml
 from hmdrt.errors import ConfigError
 from hmdrt.evaluate import perceptual
-from hmdrt.foveation import method_params, method_spec
+from hmdrt.foveation import MethodChoice
 from hmdrt.spatial import parse_gaze
 
 Scalar = str | int | float | bool
@@ -69,16 +69,16 @@ class MethodSweep(_Table):
         if count > MAX_CELLS:
             raise ValueError(f"method {self.name!r}: its sweep makes {count} cells, more than {MAX_CELLS}")
 
-    def cells(self) -> list[tuple[str, str]]:
-        """(spec, label) of each cell."""
+    def cells(self) -> list[tuple[MethodChoice, str]]:
+        """(choice, label) of each cell; ConfigError for a bad name or value."""
         keys = list(self.sweep)
         combos = itertools.product(*(self.sweep[k] for k in keys)) if keys else [()]
         out = []
         for combo in combos:
             swept = dict(zip(keys, combo, strict=True))
-            spec = method_spec(self.name, {**self.options, **swept})
-            label = " ".join([self.label, *(f"{k}={v}" for k, v in swept.items())]) if self.label else spec
-            out.append((spec, label))
+            choice = MethodChoice.parse(self.name, **self.options, **swept)
+            label = " ".join([self.label, *(f"{k}={v}" for k, v in swept.items())]) if self.label else str(choice)
+            out.append((choice, label))
         return out
 
 
@@ -113,9 +113,8 @@ class EvalConfig(_Table):
             if unknown := set(m.scenes) - set(self.scenes):
                 raise ValueError(f"method {m.name!r} names scenes not in scenes: {', '.join(sorted(unknown))}")
 
-    def cells(self, scene: str | None = None) -> dict[str, str]:
-        """Every method cell (on `scene`; None: on any) as "name?key=value&..." and its label, in config order,
-        without repeats."""
+    def cells(self, scene: str | None = None) -> dict[MethodChoice, str]:
+        """Every method cell (on `scene`; None: on any) and its label, in config order, without repeats."""
         return dict(
             cell for m in self.methods if scene is None or not m.scenes or scene in m.scenes for cell in m.cells()
         )
@@ -133,8 +132,7 @@ def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
         for t in config.traces
     ]
     cache = str(base / config.cache_dir) if config.cache_dir else default_cache_dir()
-    for spec in config.cells():
-        method_params(spec)
+    config.cells()  # every method choice parsed: a bad one fails here
     if config.jod:
         perceptual.require()
     return msgspec.structs.replace(config, traces=traces, cache_dir=cache, source=str(path))

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from hmdrt.evaluate.config import EvalConfig
 from hmdrt.evaluate.perceptual import JodScorer
 from hmdrt.evaluate.truth import TruthCache, scene_digest
-from hmdrt.foveation import Method, make_method
+from hmdrt.foveation import Method, MethodChoice
 from hmdrt.optics import get_profile
 from hmdrt.optics.camera import eccentricity_map
 from hmdrt.quality import BandScores
@@ -37,7 +37,7 @@ REFERENCES = ("full", "regular")  # not foveated (never the "best foveated" cell
 
 @dataclass
 class _Cell:
-    spec: str
+    choice: MethodChoice
     label: str
     method: Method
     scores: BandScores = field(default_factory=BandScores)
@@ -120,8 +120,7 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
                         seed=config.seed,
                     )
                     cells = [
-                        _Cell(spec, label, make_method(spec, tracer))
-                        for spec, label in config.cells(scene_name).items()
+                        _Cell(choice, label, choice.make(tracer)) for choice, label in config.cells(scene_name).items()
                     ]
                     jod = JodScorer(profile, config.eye) if config.jod else None
                     last = _render(inputs, cells, profile, truth, config, bar.update, jod)
@@ -175,8 +174,8 @@ def _rows(group: dict, cells: list[_Cell], profile) -> list[dict]:
                 **group,
                 "width": profile.width,
                 "height": profile.height,
-                "method": cell.spec.partition("?")[0],
-                "params": cell.spec,
+                "method": cell.choice.name,
+                "params": str(cell.choice),
                 "label": cell.label,
                 "frames": len(cell.ms),
                 "ms_per_frame": round(statistics.median(cell.ms), 3),

@@ -3,6 +3,7 @@ shared stages (foveation.stages); "name?key=value&..." selects a method with opt
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from urllib.parse import parse_qsl
 
 import msgspec
@@ -18,34 +19,61 @@ from hmdrt.trace.integrator import Whitted
 
 METHODS: dict[str, type] = {m.name: m for m in (Full, Regular, Rrm, Kim21, Weier16, Weier18)}
 
-__all__ = ["METHODS", "FrameRequest", "Method", "make_method", "method_params", "method_spec"]
+__all__ = ["METHODS", "FrameRequest", "Method", "MethodChoice", "make_method"]
 
 
-def method_spec(spec: str, options: dict) -> str:
-    """`spec` ("name" or "name?key=value") with `options` appended as key=value; None values are left out."""
-    items = "&".join(f"{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in options.items() if v is not None)
-    return f"{spec}{'&' if '?' in spec else '?'}{items}" if items else spec
+def _text(value) -> str:
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
-def method_params(spec: str, **options) -> tuple[str, msgspec.Struct]:
-    """The method name and validated parameters of "name?key=value&..." plus keyword options."""
-    name, _, query = spec.partition("?")
-    if name not in METHODS:
-        raise ConfigError(f"unknown method {name!r}; methods: {', '.join(METHODS)}")
-    try:
-        merged = dict(parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)))
-    except ValueError:
-        raise ConfigError(f"method options must look like ?key=value&key=value, got {query!r}") from None
-    merged.update(options)
-    params_type = METHODS[name].Params
-    try:
-        return name, msgspec.convert(merged, params_type, strict=False)
-    except msgspec.ValidationError as exc:
-        fields = ", ".join(params_type.__struct_fields__) or "none"
-        raise ConfigError(f"method {name!r}: {exc} (options: {fields})") from None
+@dataclass(frozen=True)
+class MethodChoice:
+    """A method by name and its validated parameters. Strings ("name?key=value&...", as the CLI, TOML files and
+    the control socket give them) are parsed once, by parse(), and the choice travels as it is from there;
+    str() writes it back with the fields that differ from the method's defaults, which parse() reads again."""
+
+    name: str
+    params: msgspec.Struct
+
+    @classmethod
+    def parse(cls, spec: str, **options) -> MethodChoice:
+        """The choice of "name?key=value&..." with keyword options over the spec's; ConfigError names what is wrong."""
+        name, _, query = spec.partition("?")
+        try:
+            given = dict(parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)))
+        except ValueError:
+            raise ConfigError(f"method options must look like ?key=value&key=value, got {query!r}") from None
+        return cls._of(name, {**given, **options})
+
+    @classmethod
+    def _of(cls, name: str, fields: dict) -> MethodChoice:
+        if name not in METHODS:
+            raise ConfigError(f"unknown method {name!r}; methods: {', '.join(METHODS)}")
+        params_type = METHODS[name].Params
+        try:
+            return cls(name, msgspec.convert(fields, params_type, strict=False))
+        except msgspec.ValidationError as exc:
+            names = ", ".join(params_type.__struct_fields__) or "none"
+            raise ConfigError(f"method {name!r}: {exc} (options: {names})") from None
+
+    def with_options(self, **options) -> MethodChoice:
+        """The same method with these fields changed, validated as parse() validates them."""
+        return self._of(self.name, {**msgspec.to_builtins(self.params), **options})
+
+    def make(self, tracer: Whitted) -> Method:
+        return METHODS[self.name](tracer, self.params)
+
+    def __str__(self) -> str:
+        defaults = METHODS[self.name].Params()
+        fields = ((f, getattr(self.params, f)) for f in self.params.__struct_fields__)
+        changed = [f"{f}={_text(v)}" for f, v in fields if v != getattr(defaults, f)]
+        return f"{self.name}?{'&'.join(changed)}" if changed else self.name
 
 
-def make_method(spec: str, tracer: Whitted, **options) -> Method:
-    """The method of `spec` ("weier16", "weier16?frc=small", ...) over `tracer`; options override the spec."""
-    name, params = method_params(spec, **options)
-    return METHODS[name](tracer, params)
+def make_method(choice: MethodChoice | str, tracer: Whitted, **options) -> Method:
+    """The method of a choice, or of a spec string ("weier16", "weier16?frc=small", ...) with options over it."""
+    if isinstance(choice, str):
+        choice = MethodChoice.parse(choice, **options)
+    elif options:
+        choice = choice.with_options(**options)
+    return choice.make(tracer)

@@ -7,14 +7,17 @@ state (a previous frame to reproject) meet, so stages that cannot change the ima
 Parameters can change between frames (Method.set_params): a method derives everything that depends on
 its parameters in one _configure(params), which its constructor calls too, and keeps its temporal state
 (caches, history, persistent buffers, fixation filters) wherever the new parameters leave it meaningful.
+A method also declares its cost knobs (Method.knobs): the parameters the compositor's budget controller
+may trade for time, each with a floor from its paper, so that the controller knows no method by name.
 """
 
 from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Literal, Protocol
 
 import msgspec
 import numpy as np
@@ -78,11 +81,31 @@ def plan(stages: tuple[Stage, ...], features: frozenset[str]) -> tuple[str, ...]
     return tuple(s.name for s in stages if s.needs <= features)
 
 
+Floor = float | Callable[[dict[str, Any]], float] | None
+
+
+@dataclass(frozen=True)
+class Knob:
+    """A Params field the budget controller moves: from its configured value (level 1) to `floor` (level 0), a
+    number or a function of the configured values (Method.knob_values); None leaves it to the foveal widening."""
+
+    field: str
+    floor: Floor
+    cheaper: Literal["lower", "higher"] = "lower"
+    foveal: bool = False  # a foveal radius, widened for gaze speed and tracker accuracy
+
+
 class Method(Protocol):
     name: ClassVar[str]
     Params: ClassVar[type[msgspec.Struct]]
     stages: ClassVar[tuple[Stage, ...]]
+    knobs: ClassVar[tuple[Knob, ...]]  # the cost knobs the budget controller may move; () for none
     params: msgspec.Struct  # the parameters the next frame is rendered with
+
+    @classmethod
+    def knob_values(cls, params: msgspec.Struct) -> dict[str, Any]:
+        """Every field's configured value as the knobs read it (level 1)."""
+        ...
 
     def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         """Linear RGB image (height, width, 3) float32 of this eye's frame, written into `out` when given (a
@@ -103,7 +126,12 @@ class Configurable(ABC):
 
     name: ClassVar[str]
     Params: ClassVar[type[msgspec.Struct]]
+    knobs: ClassVar[tuple[Knob, ...]] = ()
     params: msgspec.Struct
+
+    @classmethod
+    def knob_values(cls, params: msgspec.Struct) -> dict[str, Any]:
+        return msgspec.structs.asdict(params)
 
     def set_params(self, params: msgspec.Struct) -> None:
         if not isinstance(params, self.Params):

@@ -28,13 +28,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.errors import ConfigError
-from hmdrt.foveation.base import HISTORY, Configurable, FrameRequest, Stage, pixel_keys, plan
-from hmdrt.foveation.stages.reproject import (
-    FAR,
-    bilinear3,
-    camera_arrays,
-    nearest_index,
-)
+from hmdrt.foveation.base import HISTORY, Configurable, FrameRequest, Knob, Stage, pixel_keys, plan
 from hmdrt.foveation.stages.temporal import (
     History,
     exponential_smoothing,
@@ -45,6 +39,8 @@ from hmdrt.foveation.stages.temporal import (
 )
 from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map, pixel_grid
+from hmdrt.optics.projection import FAR, bilinear3, camera_arrays, nearest_index
+from hmdrt.ranges import Deg
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBuffer
 from hmdrt.trace.integrator import Whitted
@@ -53,7 +49,6 @@ from hmdrt.trace.sampling import DIM_PIXEL, grid_dims, stratified
 Positive = Annotated[float, msgspec.Meta(gt=0.0, le=1e3)]
 Threshold = Annotated[float, msgspec.Meta(ge=0.0, le=10.0)]
 Samples = Annotated[int, msgspec.Meta(ge=1, le=16)]
-Deg = Annotated[float, msgspec.Meta(ge=0.0, le=180.0)]
 Weight = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]  # a blending factor: above 1, (1 - a)^i changes sign
 MAX_SUBPIXEL_SAMPLES = 16
 
@@ -557,6 +552,12 @@ class Kim21(Configurable):
 
     name = "kim21"
     Params = Kim21Params
+    # the samples per problematic subpixel down to 1 (section 4.6.2); the band edges move only with the foveal
+    # widening (shrinking them changes tau_fov's shape, which may not hold)
+    knobs = (
+        *(Knob(f"n_{band}", 1) for band in ("f", "p", "m", "np")),
+        *(Knob(f"e_{band}", None, foveal=True) for band in ("f", "p", "m", "np", "max")),
+    )
     stages = (
         Stage("presample"),
         Stage("reuse", frozenset({HISTORY})),

@@ -23,9 +23,9 @@ import msgspec
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.base import Configurable, FrameRequest, Stage
+from hmdrt.foveation.base import Configurable, FrameRequest, Knob, Stage
 from hmdrt.foveation.stages.gaze import FixationFilter
-from hmdrt.foveation.stages.sampling import pixels_per_degree
+from hmdrt.foveation.stages.sampling import SMALL_R0, pixels_per_degree
 from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.telemetry.stats import FrameStats
@@ -33,6 +33,7 @@ from hmdrt.trace.integrator import Whitted
 
 Order = Literal["horizontal", "serpentine", "scattered"]
 UPDATE_ROWS = 16  # rows per block of the update kernel
+MAX_CYCLE = 20  # the budget controller's largest N = group_w x group_h (Rrm.knobs)
 
 
 class RrmParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -208,6 +209,12 @@ class Rrm(Configurable):
 
     name = "rrm"
     Params = RrmParams
+    # the fovea down to weier2016's small region (5 deg), and group_w up until N = group_w x group_h reaches 20,
+    # the largest N whose fragmentation smith2013's user study (section 4, Figure 10) did not find noticeable
+    knobs = (
+        Knob("fovea_deg", SMALL_R0, foveal=True),
+        Knob("group_w", lambda v: MAX_CYCLE // v["group_h"], cheaper="higher"),
+    )
     stages = (Stage("fixation_filter"), Stage("schedule"), Stage("trace"), Stage("update"))
 
     def __init__(self, tracer: Whitted, params: RrmParams):

@@ -28,7 +28,7 @@ max(alpha', k), the lower bound the text describes (see stages.temporal.running_
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal, NamedTuple
+from typing import Annotated, Any, Literal, NamedTuple
 
 import msgspec
 import numba as nb
@@ -43,30 +43,18 @@ from hmdrt.foveation.base import (
     plan,
     scene_features,
 )
-from hmdrt.foveation.stages.reproject import (
-    FAR,
-    ROWS,
-    CoarseMesh,
-    bilinear3,
-    camera_arrays,
-    dynamic,
-    gaussian_taps,
-    nearest_texel,
-    row_footprints,
-    view_distance,
-    view_point,
-)
-from hmdrt.foveation.stages.sampling import Foveal, foveal_config, foveal_probability
+from hmdrt.foveation.stages.reproject import ROWS, CoarseMesh, dynamic, gaussian_taps, nearest_texel, row_footprints
+from hmdrt.foveation.stages.sampling import FOVEAL_REGION_KNOBS, Foveal, foveal_config, foveal_probability
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
 from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
+from hmdrt.optics.projection import FAR, bilinear3, camera_arrays, view_distance, view_point
+from hmdrt.ranges import Deg, Fraction
 from hmdrt.rng import uniform
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBufferPool, LightBuffer
 from hmdrt.trace.integrator import Whitted
 
-Deg = Annotated[float, msgspec.Meta(ge=0.0, le=180.0)]
-Fraction = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 DK2_SUPPORT = (256, 318, 1182, 1464)  # section 4.1: a 256 x 318 support image at 1182 x 1464
 INFO = 3  # cache info per pixel: alpha, rho and the frame it was last touched
 TRACED, FRESH, RESAMPLE, COVERED = 1, 2, 4, 8  # a pixel's flags: traced this frame; its sample replaces the
@@ -499,6 +487,7 @@ class Weier16(Configurable):
 
     name = "weier16"
     Params = Weier16Params
+    knobs = FOVEAL_REGION_KNOBS
     stages = (
         Stage("reproject", frozenset({HISTORY})),
         Stage("resample_info", frozenset({HISTORY})),
@@ -507,6 +496,11 @@ class Weier16(Configurable):
         Stage("cache_update"),  # with the reprojected frame's gather and the merge, in one pass
         Stage("post", frozenset({HISTORY, STOCHASTIC})),
     )
+
+    @classmethod
+    def knob_values(cls, params: Weier16Params) -> dict[str, Any]:
+        """The fields, with r0, r1 and p_min as the frc preset resolves them."""
+        return msgspec.structs.asdict(params) | params.foveal()._asdict()
 
     def __init__(self, tracer: Whitted, params: Weier16Params):
         self.tracer = tracer

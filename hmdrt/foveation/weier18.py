@@ -38,16 +38,22 @@ from hmdrt.foveation.stages.dof import (
 )
 from hmdrt.foveation.stages.filters import Contrast, contrast_levels
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push, quincunx_rgbd
-from hmdrt.foveation.stages.reproject import FAR, camera_arrays, project, world_point
-from hmdrt.foveation.stages.sampling import Foveal, SampleSet, SamplingTables, pixels_per_degree, sampling_tables
+from hmdrt.foveation.stages.sampling import (
+    FOVEAL_REGION_KNOBS,
+    Foveal,
+    SampleSet,
+    SamplingTables,
+    pixels_per_degree,
+    sampling_tables,
+)
 from hmdrt.jit import kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
+from hmdrt.optics.projection import FAR, camera_arrays, project, world_point
+from hmdrt.ranges import Deg, Fraction
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBufferPool
 from hmdrt.trace.integrator import Whitted
 
-Deg = Annotated[float, msgspec.Meta(ge=0.0, le=180.0)]
-Fraction = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 DOF = "dof"
 BLOCK = 1024  # samples per call of the TAA's serial block function
 
@@ -160,6 +166,7 @@ class Weier18(Configurable):
 
     name = "weier18"
     Params = Weier18Params
+    knobs = FOVEAL_REGION_KNOBS
     stages = (
         Stage("sample"),
         Stage("trace"),

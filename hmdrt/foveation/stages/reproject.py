@@ -1,7 +1,7 @@
-"""Moving information between frames: back-projection of surface points into an earlier eye camera,
-and image lookups at the continuous pixel coordinates it yields.
+"""Moving information between frames: back-projection of each pixel's hit into an earlier eye camera, and
+weier2016's coarse mesh (section 3.2), which reprojects a whole earlier frame through its support G-buffer.
 
-World points come from a pixel's view ray and hit distance; a miss (infinite depth) is a point at
+World points and their projections come from hmdrt.optics.projection; a miss (infinite depth) is a point at
 infinity, so the sky reprojects by rotation alone. Used by kim2021 (sections 4.4, 4.7), weier2016
 (section 3.2) and weier2018 (section 3.1, TAA).
 """
@@ -16,65 +16,8 @@ import numpy as np
 
 from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera
+from hmdrt.optics.projection import FAR, NEAR, bilinear3, camera_arrays, project, project_view, world_point
 from hmdrt.rng import uniform
-
-FAR = 1e7  # metres: where a miss is placed so that it reprojects as a direction
-
-
-class CameraArrays(NamedTuple):
-    """An EyeCamera as plain numbers for the kernels."""
-
-    position: np.ndarray  # (3,) float64
-    rotation: np.ndarray  # (3, 3) float64, world-from-eye
-    frustum: np.ndarray  # (6,) tan_left, tan_right, tan_up, tan_down, width, height
-
-
-def camera_arrays(camera: EyeCamera, width: int | None = None, height: int | None = None) -> CameraArrays:
-    """The camera's arrays; width and height: its frustum over a pixel grid of that size instead of its own."""
-    w, h = width or camera.width, height or camera.height
-    frustum = np.array([camera.tan_left, camera.tan_right, camera.tan_up, camera.tan_down, w, h], np.float64)
-    return CameraArrays(np.asarray(camera.position, np.float64), np.asarray(camera.rotation, np.float64), frustum)
-
-
-@inline
-def ray_direction(cam, x, y):
-    """World unit direction of the view ray through continuous pixel (x, y)."""
-    f = cam.frustum
-    tx = f[0] + x * (f[1] - f[0]) / f[4]
-    ty = f[2] - y * (f[2] - f[3]) / f[5]
-    inv = 1.0 / math.sqrt(tx * tx + ty * ty + 1.0)
-    r = cam.rotation
-    ex, ey, ez = tx * inv, ty * inv, -inv
-    return (
-        r[0, 0] * ex + r[0, 1] * ey + r[0, 2] * ez,
-        r[1, 0] * ex + r[1, 1] * ey + r[1, 2] * ez,
-        r[2, 0] * ex + r[2, 1] * ey + r[2, 2] * ez,
-    )
-
-
-@inline
-def project(cam, px, py, pz):
-    """Continuous pixel coordinates and distance from the camera of world point p; x is NaN behind it."""
-    dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
-    r = cam.rotation
-    lx = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
-    ly = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
-    lz = r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz
-    dist = math.sqrt(dx * dx + dy * dy + dz * dz)
-    if lz >= 0.0:
-        return math.nan, math.nan, dist
-    f = cam.frustum
-    x = (lx / -lz - f[0]) / (f[1] - f[0]) * f[4]
-    y = (f[2] - ly / -lz) / (f[2] - f[3]) * f[5]
-    return x, y, dist
-
-
-@inline
-def world_point(cam, x, y, depth):
-    """The point at hit distance `depth` along the view ray of pixel (x, y); FAR for a miss."""
-    dx, dy, dz = ray_direction(cam, x, y)
-    d = depth if depth < FAR else FAR
-    return cam.position[0] + d * dx, cam.position[1] + d * dy, cam.position[2] + d * dz
 
 
 @kernel
@@ -99,34 +42,8 @@ def backproject(current: EyeCamera, depth: np.ndarray, previous: EyeCamera) -> t
     return xy, dist
 
 
-@serial
-def nearest_index(x, y, w, h):
-    """Row-major index of the pixel containing continuous (x, y), or -1 outside the image or NaN."""
-    if not (x >= 0.0 and y >= 0.0 and x < w and y < h):
-        return -1
-    return int(y) * w + int(x)
-
-
-@serial
-def bilinear3(image, x, y):
-    """The three channels of image (h, w, 3) at continuous (x, y), clamped at the border."""
-    h, w = image.shape[0], image.shape[1]
-    fx, fy = x - 0.5, y - 0.5
-    x0, y0 = math.floor(fx), math.floor(fy)
-    ax, ay = fx - x0, fy - y0
-    ix0, iy0 = min(max(int(x0), 0), w - 1), min(max(int(y0), 0), h - 1)
-    ix1, iy1 = min(max(int(x0) + 1, 0), w - 1), min(max(int(y0) + 1, 0), h - 1)
-    w00, w01, w10, w11 = (1.0 - ax) * (1.0 - ay), ax * (1.0 - ay), (1.0 - ax) * ay, ax * ay
-    return (
-        w00 * image[iy0, ix0, 0] + w01 * image[iy0, ix1, 0] + w10 * image[iy1, ix0, 0] + w11 * image[iy1, ix1, 0],
-        w00 * image[iy0, ix0, 1] + w01 * image[iy0, ix1, 1] + w10 * image[iy1, ix0, 1] + w11 * image[iy1, ix1, 1],
-        w00 * image[iy0, ix0, 2] + w01 * image[iy0, ix1, 2] + w10 * image[iy1, ix0, 2] + w11 * image[iy1, ix1, 2],
-    )
-
-
 # -- weier2016 section 3.2: reprojection through a coarse mesh built from the support G-buffer --
 
-NEAR = 1e-4  # metres: mesh vertices closer to (or behind) the current eye drop their triangles
 VERTEX_ATTRS = 3  # previous pixel x z, y z and z (z: previous view depth): linear in the world on a planar
 # facet, so perspective-correct interpolation recovers x and y exactly
 ROWS = 4  # rows of a block, the unit of work of the row-parallel kernels (see hmdrt/trace/blocks.py)
@@ -168,42 +85,6 @@ class MeshImage(NamedTuple):
 
     prev: np.ndarray  # (2, h, w) float32: x and y planes
     zinv: np.ndarray  # (h, w) float32
-
-
-@inline
-def view_point(cam, x, y, z):
-    """The world point at view depth z (along -Z) on the view ray through continuous pixel (x, y)."""
-    f, r = cam.frustum, cam.rotation
-    tx = f[0] + x * (f[1] - f[0]) / f[4]
-    ty = f[2] - y * (f[2] - f[3]) / f[5]
-    return (
-        cam.position[0] + z * (r[0, 0] * tx + r[0, 1] * ty - r[0, 2]),
-        cam.position[1] + z * (r[1, 0] * tx + r[1, 1] * ty - r[1, 2]),
-        cam.position[2] + z * (r[2, 0] * tx + r[2, 1] * ty - r[2, 2]),
-    )
-
-
-@inline
-def view_distance(cam, x, y, z):
-    """The distance from the eye of the point at view depth z on the view ray through pixel (x, y)."""
-    f = cam.frustum
-    tx = f[0] + x * (f[1] - f[0]) / f[4]
-    ty = f[2] - y * (f[2] - f[3]) / f[5]
-    return z * math.sqrt(tx * tx + ty * ty + 1.0)
-
-
-@inline
-def project_view(cam, px, py, pz):
-    """Continuous pixel coordinates and view depth (along -Z, positive in front) of world point p."""
-    dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
-    r = cam.rotation
-    lx = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
-    ly = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
-    z = -(r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz)
-    if z <= NEAR:
-        return 0.0, 0.0, z
-    f = cam.frustum
-    return (lx / z - f[0]) / (f[1] - f[0]) * f[4], (f[2] - ly / z) / (f[2] - f[3]) * f[5], z
 
 
 @kernel

@@ -9,20 +9,17 @@ with the point of regard, and the static uniform table S_out of density p_min.
 from __future__ import annotations
 
 import math
-from typing import Annotated, NamedTuple
+from typing import NamedTuple
 
-import msgspec
 import numba as nb
 import numpy as np
 
 from hmdrt.errors import ConfigError
+from hmdrt.foveation.base import Knob
 from hmdrt.foveation.stages.pyramid import quincunx_offset
 from hmdrt.jit import inline, kernel
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.rng import uniform
-
-Degrees = Annotated[float, msgspec.Meta(ge=0.0, le=180.0)]
-Probability = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 
 # weier2016 section 4.2, RQ2: the foveal region configurations (r0, r1, p_min); full traces every pixel
 FRC_PRESETS: dict[str, tuple[float, float, float]] = {
@@ -31,6 +28,14 @@ FRC_PRESETS: dict[str, tuple[float, float, float]] = {
     "large": (15.0, 30.0, 0.1),
     "full": (math.inf, math.inf, 1.0),
 }
+SMALL_R0, SMALL_R1, SMALL_P_MIN = FRC_PRESETS["small"]
+# the budget controller's knobs of a foveal region (weier2016, weier2018): down to the small configuration,
+# the fovea's own size with a steep falloff
+FOVEAL_REGION_KNOBS = (
+    Knob("r0", SMALL_R0, foveal=True),
+    Knob("r1", SMALL_R1, foveal=True),
+    Knob("p_min", SMALL_P_MIN),
+)
 
 
 class Foveal(NamedTuple):
@@ -295,8 +300,3 @@ class SampleSet:
     def offset(self) -> np.ndarray:
         """(count,) float64 the quincunx offsets on those levels (pyramid.quincunx_offset)."""
         return self._offset[: self.count]
-
-
-def region_index(ecc: np.ndarray, bounds: tuple[float, ...]) -> np.ndarray:
-    """Which eccentricity band each pixel falls in: 0 below bounds[0], k in [bounds[k-1], bounds[k])."""
-    return np.searchsorted(np.asarray(bounds, dtype=np.float64), ecc, side="right").astype(np.int8)

@@ -14,9 +14,9 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.stages.reproject import FAR, bilinear3, camera_arrays
 from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera
+from hmdrt.optics.projection import FAR, bilinear3, camera_arrays
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

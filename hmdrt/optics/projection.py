@@ -1,0 +1,139 @@
+"""Camera projection for the kernels: an EyeCamera as plain arrays, view rays through continuous pixel
+coordinates, world points at a hit distance or view depth, their projection into a camera, and lookups at
+the continuous pixel coordinates that yields.
+
+A miss (infinite depth) becomes a point at FAR, so that it reprojects as a direction. Continuous pixel
+coordinates put pixel (i, j)'s centre at (i + 0.5, j + 0.5), as EyeCamera does.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from hmdrt.jit import inline, serial
+from hmdrt.optics.camera import EyeCamera
+
+FAR = 1e7  # metres: where a miss is placed so that it reprojects as a direction
+
+
+class CameraArrays(NamedTuple):
+    """An EyeCamera as plain numbers for the kernels."""
+
+    position: np.ndarray  # (3,) float64
+    rotation: np.ndarray  # (3, 3) float64, world-from-eye
+    frustum: np.ndarray  # (6,) tan_left, tan_right, tan_up, tan_down, width, height
+
+
+def camera_arrays(camera: EyeCamera, width: int | None = None, height: int | None = None) -> CameraArrays:
+    """The camera's arrays; width and height: its frustum over a pixel grid of that size instead of its own."""
+    w, h = width or camera.width, height or camera.height
+    frustum = np.array([camera.tan_left, camera.tan_right, camera.tan_up, camera.tan_down, w, h], np.float64)
+    return CameraArrays(np.asarray(camera.position, np.float64), np.asarray(camera.rotation, np.float64), frustum)
+
+
+@inline
+def ray_direction(cam, x, y):
+    """World unit direction of the view ray through continuous pixel (x, y)."""
+    f = cam.frustum
+    tx = f[0] + x * (f[1] - f[0]) / f[4]
+    ty = f[2] - y * (f[2] - f[3]) / f[5]
+    inv = 1.0 / math.sqrt(tx * tx + ty * ty + 1.0)
+    r = cam.rotation
+    ex, ey, ez = tx * inv, ty * inv, -inv
+    return (
+        r[0, 0] * ex + r[0, 1] * ey + r[0, 2] * ez,
+        r[1, 0] * ex + r[1, 1] * ey + r[1, 2] * ez,
+        r[2, 0] * ex + r[2, 1] * ey + r[2, 2] * ez,
+    )
+
+
+@inline
+def project(cam, px, py, pz):
+    """Continuous pixel coordinates and distance from the camera of world point p; x is NaN behind it."""
+    dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
+    r = cam.rotation
+    lx = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
+    ly = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
+    lz = r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz
+    dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if lz >= 0.0:
+        return math.nan, math.nan, dist
+    f = cam.frustum
+    x = (lx / -lz - f[0]) / (f[1] - f[0]) * f[4]
+    y = (f[2] - ly / -lz) / (f[2] - f[3]) * f[5]
+    return x, y, dist
+
+
+@inline
+def world_point(cam, x, y, depth):
+    """The point at hit distance `depth` along the view ray of pixel (x, y); FAR for a miss."""
+    dx, dy, dz = ray_direction(cam, x, y)
+    d = depth if depth < FAR else FAR
+    return cam.position[0] + d * dx, cam.position[1] + d * dy, cam.position[2] + d * dz
+
+
+@serial
+def nearest_index(x, y, w, h):
+    """Row-major index of the pixel containing continuous (x, y), or -1 outside the image or NaN."""
+    if not (x >= 0.0 and y >= 0.0 and x < w and y < h):
+        return -1
+    return int(y) * w + int(x)
+
+
+@serial
+def bilinear3(image, x, y):
+    """The three channels of image (h, w, 3) at continuous (x, y), clamped at the border."""
+    h, w = image.shape[0], image.shape[1]
+    fx, fy = x - 0.5, y - 0.5
+    x0, y0 = math.floor(fx), math.floor(fy)
+    ax, ay = fx - x0, fy - y0
+    ix0, iy0 = min(max(int(x0), 0), w - 1), min(max(int(y0), 0), h - 1)
+    ix1, iy1 = min(max(int(x0) + 1, 0), w - 1), min(max(int(y0) + 1, 0), h - 1)
+    w00, w01, w10, w11 = (1.0 - ax) * (1.0 - ay), ax * (1.0 - ay), (1.0 - ax) * ay, ax * ay
+    return (
+        w00 * image[iy0, ix0, 0] + w01 * image[iy0, ix1, 0] + w10 * image[iy1, ix0, 0] + w11 * image[iy1, ix1, 0],
+        w00 * image[iy0, ix0, 1] + w01 * image[iy0, ix1, 1] + w10 * image[iy1, ix0, 1] + w11 * image[iy1, ix1, 1],
+        w00 * image[iy0, ix0, 2] + w01 * image[iy0, ix1, 2] + w10 * image[iy1, ix0, 2] + w11 * image[iy1, ix1, 2],
+    )
+
+
+NEAR = 1e-4  # metres: mesh vertices closer to (or behind) the current eye drop their triangles
+
+
+@inline
+def view_point(cam, x, y, z):
+    """The world point at view depth z (along -Z) on the view ray through continuous pixel (x, y)."""
+    f, r = cam.frustum, cam.rotation
+    tx = f[0] + x * (f[1] - f[0]) / f[4]
+    ty = f[2] - y * (f[2] - f[3]) / f[5]
+    return (
+        cam.position[0] + z * (r[0, 0] * tx + r[0, 1] * ty - r[0, 2]),
+        cam.position[1] + z * (r[1, 0] * tx + r[1, 1] * ty - r[1, 2]),
+        cam.position[2] + z * (r[2, 0] * tx + r[2, 1] * ty - r[2, 2]),
+    )
+
+
+@inline
+def view_distance(cam, x, y, z):
+    """The distance from the eye of the point at view depth z on the view ray through pixel (x, y)."""
+    f = cam.frustum
+    tx = f[0] + x * (f[1] - f[0]) / f[4]
+    ty = f[2] - y * (f[2] - f[3]) / f[5]
+    return z * math.sqrt(tx * tx + ty * ty + 1.0)
+
+
+@inline
+def project_view(cam, px, py, pz):
+    """Continuous pixel coordinates and view depth (along -Z, positive in front) of world point p."""
+    dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
+    r = cam.rotation
+    lx = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
+    ly = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
+    z = -(r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz)
+    if z <= NEAR:
+        return 0.0, 0.0, z
+    f = cam.frustum
+    return (lx / z - f[0]) / (f[1] - f[0]) * f[4], (f[2] - ly / z) / (f[2] - f[3]) * f[5], z
