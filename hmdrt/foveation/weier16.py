@@ -43,7 +43,15 @@ from hmdrt.foveation.base import (
     plan,
     scene_features,
 )
-from hmdrt.foveation.stages.reproject import ROWS, CoarseMesh, dynamic, gaussian_taps, nearest_texel, row_footprints
+from hmdrt.foveation.stages.reproject import (
+    ROWS,
+    CoarseMesh,
+    MeshImage,
+    dynamic,
+    gaussian_taps,
+    nearest_texel,
+    row_footprints,
+)
 from hmdrt.foveation.stages.sampling import FOVEAL_REGION_KNOBS, Foveal, foveal_config, foveal_probability
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
 from hmdrt.jit import inline, kernel, serial
@@ -473,6 +481,22 @@ class _EyeState:
         self.support = Support.empty(sw, sh)
 
 
+class _Frame(NamedTuple):
+    """What the stages of one frame share: its request, sizes (w, h, sw, sh), buffers, eye state and plan."""
+
+    request: FrameRequest
+    size: tuple[int, int, int, int]
+    buf: _Buffers
+    eye: _EyeState
+    history: bool
+    steps: tuple[str, ...]
+    image: np.ndarray
+
+    @property
+    def camera(self) -> EyeCamera:
+        return self.request.camera
+
+
 def _output(out: np.ndarray | None, w: int, h: int) -> np.ndarray:
     """The caller's image buffer, checked, or a new one."""
     if out is None:
@@ -519,91 +543,117 @@ class Weier16(Configurable):
         self.params, self.foveal = params, foveal
 
     def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
-        cam, p, t = request.camera, self.params, request.frame
-        w, h = cam.width, cam.height
-        sw, sh = support_size(p, w, h)
-        image = _output(out, w, h)
-        if self._buffers is None or self._buffers.size != (w, h, sw, sh):
-            self._buffers = _Buffers(w, h, sw, sh)
-        buf, eye = self._buffers, self._eyes.get(request.eye)
-        history = eye is not None and eye.size == (w, h, sw, sh) and eye.camera is not None
+        f = self._frame(request, out)
+        mesh = self._reproject(f, stats)
+        resample = self._resample_info(f, stats)
+        n, xy, keys, light = self._sample(f, mesh, resample, stats)
+        samples, normals = self._trace(f, xy, keys, light, stats)
+        self._cache_update(f, mesh, n, samples, normals, stats)
+        self._post(f, samples, stats)
+        f.eye.camera, f.eye.newest = f.request.camera, 1 - f.eye.newest
+        sel = f.buf.selection
+        stats.metrics["sample_fraction"] = n / (f.size[0] * f.size[1])
+        stats.metrics["resampled_pixels"] = int(sel.resampled.sum())
+        stats.metrics["support_rays"] = f.size[2] * f.size[3]
+        stats.metrics["merged_pixels"] = int(sel.merged.sum())
+        return f.image
+
+    def _frame(self, request: FrameRequest, out: np.ndarray | None) -> _Frame:
+        """The frame's buffers and history: an eye without a previous frame of this size starts afresh."""
+        cam = request.camera
+        size = (cam.width, cam.height, *support_size(self.params, cam.width, cam.height))
+        image = _output(out, cam.width, cam.height)
+        if self._buffers is None or self._buffers.size != size:
+            self._buffers = _Buffers(*size)
+        eye = self._eyes.get(request.eye)
+        history = eye is not None and eye.size == size and eye.camera is not None
         if not history:
-            eye = self._eyes[request.eye] = _EyeState(w, h, sw, sh)
+            eye = self._eyes[request.eye] = _EyeState(*size)
         steps = plan(self.stages, self.features | ({HISTORY} if history else set()))
-        previous, final = eye.finals[eye.newest], eye.finals[1 - eye.newest]
-        mesh, resample = buf.mesh.image, buf.no_resample
-        if "reproject" in steps:
-            with stats.stage("reproject"):
-                mesh = buf.mesh.reproject(eye.camera, buf.grid_x, buf.grid_y, eye.support.depth, cam, w, h)
-        if "resample_info" in steps:
-            with stats.stage("resample_info"):
-                low = buf.low_mesh.reproject(eye.camera, buf.grid_x, buf.grid_y, eye.support.depth, cam, sw, sh)
-                eps = Thresholds(p.eps_depth, p.eps_lum, p.eps_edge)
-                low_cam = camera_arrays(cam, sw, sh)
-                _resampling_info(
-                    low,
-                    low_cam,
-                    eye.support,
-                    eye.camera.position,
-                    float(w),
-                    float(h),
-                    eps,
-                    buf.low_scratch,
-                    buf.resample,
-                )
-                resample = buf.resample
-        sel, stochastic = buf.selection, STOCHASTIC in self.features
-        with stats.stage("sample"):
-            ecc = eccentricity_map(cam, request.gaze)
-            dynamic(
-                _select,
-                ecc,
-                self.foveal,
-                request.seed,
-                t,
-                mesh.zinv if history else buf.no_zinv,
-                resample,
-                buf.low_cols,
-                sel,
+        return _Frame(request, size, self._buffers, eye, history, steps, image)
+
+    def _reproject(self, f: _Frame, stats: FrameStats) -> MeshImage:
+        """Section 3.2: the previous frame through the coarse mesh of its support G-buffer, at full resolution."""
+        if "reproject" not in f.steps:
+            return f.buf.mesh.image
+        w, h = f.size[:2]
+        with stats.stage("reproject"):
+            return f.buf.mesh.reproject(f.eye.camera, f.buf.grid_x, f.buf.grid_y, f.eye.support.depth, f.camera, w, h)
+
+    def _resample_info(self, f: _Frame, stats: FrameStats) -> np.ndarray:
+        """Section 3.3: the support cells to sample afresh (the no-history stand-in without a previous frame)."""
+        if "resample_info" not in f.steps:
+            return f.buf.no_resample
+        w, h, sw, sh = f.size
+        buf, eye, p = f.buf, f.eye, self.params
+        with stats.stage("resample_info"):
+            low = buf.low_mesh.reproject(eye.camera, buf.grid_x, buf.grid_y, eye.support.depth, f.camera, sw, sh)
+            eps = Thresholds(p.eps_depth, p.eps_lum, p.eps_edge)
+            low_cam = camera_arrays(f.camera, sw, sh)
+            _resampling_info(
+                low, low_cam, eye.support, eye.camera.position, float(w), float(h), eps, buf.low_scratch, buf.resample
             )
+            return buf.resample
+
+    def _sample(
+        self, f: _Frame, mesh: MeshImage, resample: np.ndarray, stats: FrameStats
+    ) -> tuple[int, np.ndarray, np.ndarray, LightBuffer]:
+        """Section 3.4: how many pixels to trace (foveal probability, resampling info, uncovered pixels), and
+        the tracer's sample list: those pixels, then the support grid."""
+        buf, request, sel = f.buf, f.request, f.buf.selection
+        sw, sh = f.size[2:]
+        with stats.stage("sample"):
+            ecc = eccentricity_map(f.camera, request.gaze)
+            zinv = mesh.zinv if f.history else buf.no_zinv
+            dynamic(_select, ecc, self.foveal, request.seed, request.frame, zinv, resample, buf.low_cols, sel)
             np.cumsum(sel.counts, out=sel.row_start[1:])
             n = int(sel.row_start[-1])
             xy, keys, light = buf.sample_list(n + sw * sh)
-            _fill_samples(
-                sel.flags, sel.row_start, buf.grid_x, buf.grid_y, (request.seed << 32) + t * (1 << 22), xy, keys
-            )
+            key = (request.seed << 32) + request.frame * (1 << 22)
+            _fill_samples(sel.flags, sel.row_start, buf.grid_x, buf.grid_y, key, xy, keys)
+            return n, xy, keys, light
+
+    def _trace(
+        self, f: _Frame, xy: np.ndarray, keys: np.ndarray, light: LightBuffer, stats: FrameStats
+    ) -> tuple[Samples, np.ndarray]:
+        """The samples' colour, depth and light buffer, and their geometric normals (n, 3)."""
+        w, h, sw, sh = f.size
+        stochastic = STOCHASTIC in self.features
         with stats.stage("trace"):
             gbuf, rgb = self._gbuffers.rows(len(xy), most=w * h + sw * sh)
-            self.tracer.trace_samples(cam, xy, keys, stats, gbuf, light if stochastic else None, rgb)
-        samples = Samples(rgb, gbuf.primary.depth, light.irradiance, light.albedo)
+            self.tracer.trace_samples(f.camera, xy, keys, stats, gbuf, light if stochastic else None, rgb)
+        return Samples(rgb, gbuf.primary.depth, light.irradiance, light.albedo), gbuf.primary.normal_geometric
+
+    def _cache_update(
+        self, f: _Frame, mesh: MeshImage, n: int, samples: Samples, normals: np.ndarray, stats: FrameStats
+    ) -> None:
+        """Sections 3.1 and 3.4: the new support image and G-buffer, then the reprojected frame's gather, the
+        merge of the new samples and the running estimate, in one pass into the final colour and the image."""
+        p, t, support = self.params, f.request.frame, f.eye.support
+        sw, sh = f.size[2:]
+        previous, final = f.eye.finals[f.eye.newest], f.eye.finals[1 - f.eye.newest]
         with stats.stage("cache_update"):
-            support = eye.support
-            np.copyto(support.depth, gbuf.primary.depth[n:].reshape(sh, sw))
-            np.copyto(support.normal, gbuf.primary.normal_geometric[n:].reshape(sh, sw, 3))
-            np.copyto(support.color, rgb[n:].reshape(sh, sw, 3))
+            np.copyto(support.depth, samples.depth[n:].reshape(sh, sw))
+            np.copyto(support.normal, normals[n:].reshape(sh, sw, 3))
+            np.copyto(support.color, samples.rgb[n:].reshape(sh, sw, 3))
+            stochastic = STOCHASTIC in self.features
             rule = CacheRule(
-                float(t), p.k_min, p.k_max, p.t_max, p.eps_cache, p.footprint_samples, request.seed + t, stochastic
+                float(t), p.k_min, p.k_max, p.t_max, p.eps_cache, p.footprint_samples, f.request.seed + t, stochastic
             )
-            cam_arrays = camera_arrays(cam)
+            footprints = f.buf.footprints
             dynamic(
-                _update, sel, mesh, cam_arrays, previous, samples, support.color, rule, buf.footprints, final, image
+                _update, f.buf.selection, mesh, camera_arrays(f.camera), previous, samples, support.color, rule,
+                footprints, final, f.image,
+            )  # fmt: skip
+
+    def _post(self, f: _Frame, samples: Samples, stats: FrameStats) -> None:
+        """Section 3.5: the post filter over the stochastic light buffer, outside the samples traced this frame."""
+        p = self.params
+        if not (p.post and "post" in f.steps):
+            return
+        final = f.eye.finals[1 - f.eye.newest]
+        with stats.stage("post"):
+            seed = f.request.seed + f.request.frame
+            dynamic(
+                _post, f.buf.selection, samples, final.light, p.post_radius, p.post_samples, seed, final.color, f.image
             )
-        if p.post and "post" in steps:
-            with stats.stage("post"):
-                dynamic(
-                    _post,
-                    sel,
-                    samples,
-                    final.light,
-                    p.post_radius,
-                    p.post_samples,
-                    request.seed + t,
-                    final.color,
-                    image,
-                )
-        eye.camera, eye.newest = cam, 1 - eye.newest
-        stats.metrics["sample_fraction"] = n / (w * h)
-        stats.metrics["resampled_pixels"] = int(sel.resampled.sum())
-        stats.metrics["support_rays"] = sw * sh
-        stats.metrics["merged_pixels"] = int(sel.merged.sum())
-        return image
