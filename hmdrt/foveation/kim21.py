@@ -547,6 +547,25 @@ class _EyeState:
         return self.extra_xy[:count], self.extra_keys[:count], self.extra_color[:count]
 
 
+class _Frame(NamedTuple):
+    """What the stages of one frame share: its request, the eye's state and foveation, this frame's and the
+    previous frame's buffers, the history slot it is written to and both frames' kept colours, and its plan."""
+
+    request: FrameRequest
+    state: _EyeState
+    fov: Foveation
+    cur: _Buffers
+    last: _Buffers
+    slot: int
+    kept: Kept
+    prev: Kept
+    steps: tuple[str, ...]
+
+    @property
+    def camera(self) -> EyeCamera:
+        return self.request.camera
+
+
 class Kim21(Configurable):
     """Selective foveated supersampling, reuse and smoothing on top of Whitted presampling."""
 
@@ -623,66 +642,95 @@ class Kim21(Configurable):
         return self._keys
 
     def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
-        cam, p = request.camera, self.params
-        h, w = cam.height, cam.width
+        f = self._frame(request, stats)
+        color = self._presample(f, stats)
+        reused = self._reuse(f, color, stats)
+        problematic, extra_xy, extra_keys, extra_color = self._inspect_subpixels(f, stats)
+        with stats.stage("supersample"):
+            extra = self.tracer.trace_samples(f.camera, extra_xy, extra_keys, stats, out=extra_color)
+        with stats.stage("resolve"):
+            h, w = f.state.shape
+            _resolve(f.cur.ref.reshape(h, w, 3), f.state.sub_mask, f.fov.samples, f.state.first, extra, f.kept.rendered)
+        image = self._smooth(f, out, stats)
+        f.state.history.commit(f.camera)
+        f.state.previous = f.camera
         n = h * w
+        stats.metrics["central_pixels"] = f.state.central
+        stats.metrics["reused_pixels"] = reused
+        stats.metrics["problematic_subpixels"] = problematic
+        stats.metrics["extra_samples"] = len(extra)
+        stats.metrics["sample_fraction"] = (n + len(extra)) / n
+        return image
+
+    def _frame(self, request: FrameRequest, stats: FrameStats) -> _Frame:
+        """The eye's state and this frame's foveation, buffers (this frame's and the previous one's) and history
+        slot, with the plan of its stages."""
+        cam = request.camera
+        h, w, n = cam.height, cam.width, cam.height * cam.width
         state = self._state(request.eye, h, w)
-        history = state.history
         steps = plan(self.stages, frozenset({HISTORY}) if state.previous is not None else frozenset())
         with stats.stage("eccentricity"):
             fov = self._foveation(state, cam, request.gaze)
         state.buffers.reverse()
         cur, last = state.buffers
-        with stats.stage("presample"):
-            _clear(w, cur.gbuffer.secondary)
-            keys = self._pixel_keys(n, request.seed)
-            color = self.tracer.trace_samples(cam, pixel_grid(w, h), keys, stats, cur.gbuffer, out=state.color)
+        history = state.history
         slot, newest = history.begin((h, w)), max(history.newest((h, w)), 0)
-        frame = Kept(cur.ref, history.depth[slot].reshape(n), cur.flags, history.color[slot].reshape(n, 3))
+        kept = Kept(cur.ref, history.depth[slot].reshape(n), cur.flags, history.color[slot].reshape(n, 3))
         prev = Kept(last.ref, history.depth[newest].reshape(n), last.flags, history.color[newest].reshape(n, 3))
-        reuse = p.reuse and "reuse" in steps
+        return _Frame(request, state, fov, cur, last, slot, kept, prev, steps)
+
+    def _presample(self, f: _Frame, stats: FrameStats) -> np.ndarray:
+        """Section 4.3: one sample at every pixel centre, with the G-buffer (Table 1) the inspection reads."""
+        h, w = f.state.shape
+        with stats.stage("presample"):
+            _clear(w, f.cur.gbuffer.secondary)
+            keys = self._pixel_keys(h * w, f.request.seed)
+            return self.tracer.trace_samples(f.camera, pixel_grid(w, h), keys, stats, f.cur.gbuffer, out=f.state.color)
+
+    def _reuse(self, f: _Frame, color: np.ndarray, stats: FrameStats) -> int:
+        """Section 4.4: each pixel's presample stored, its supersampled colour reused from the previous frame where
+        the back-projection finds the same surface; returns how many pixels reused theirs."""
+        cam, state = f.camera, f.state
+        reuse = self.params.reuse and "reuse" in f.steps
         with stats.stage("reuse" if reuse else "store"):
-            reused = _store(
-                w,
+            return _store(
+                state.shape[1],
                 color,
-                cur.gbuffer.primary,
+                f.cur.gbuffer.primary,
                 camera_arrays(cam).frustum,
-                frame,
+                f.kept,
                 relative_view(state.previous or cam, cam),
-                last.gbuffer.primary,
-                prev,
+                f.last.gbuffer.primary,
+                f.prev,
                 same_camera(state.previous, cam),
                 self.tests,
                 reuse,
-                fov.samples,
+                f.fov.samples,
             )
+
+    def _inspect_subpixels(self, f: _Frame, stats: FrameStats) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+        """Sections 3 and 4.6: the disparity test per subpixel, then the extra samples of the problematic ones
+        (xy, keys and a colour buffer), after how many subpixels were problematic."""
+        state, (h, w) = f.state, f.state.shape
         with stats.stage("inspect"):
-            g1, g2 = cur.gbuffer
-            problematic = _inspect(w, cur.ref, g1, g2, fov, cur.flags, self.tests, state.sub_mask, state.first)
+            g1, g2 = f.cur.gbuffer
+            problematic = _inspect(w, f.cur.ref, g1, g2, f.fov, f.cur.flags, self.tests, state.sub_mask, state.first)
             state.first[h] = 0
             total = _exclusive_scan(state.first)
             extra_xy, extra_keys, extra_color = state.extra(total)
-            seed_key = int(pixel_keys(np.zeros(1), request.seed, stream=1)[0])
-            _subpixel_samples(w, state.sub_mask, fov.samples, state.first, seed_key, extra_xy, extra_keys)
-        with stats.stage("supersample"):
-            extra = self.tracer.trace_samples(cam, extra_xy, extra_keys, stats, out=extra_color)
-        with stats.stage("resolve"):
-            _resolve(cur.ref.reshape(h, w, 3), state.sub_mask, fov.samples, state.first, extra, frame.rendered)
+            seed_key = int(pixel_keys(np.zeros(1), f.request.seed, stream=1)[0])
+            _subpixel_samples(w, state.sub_mask, f.fov.samples, state.first, seed_key, extra_xy, extra_keys)
+        return problematic, extra_xy, extra_keys, extra_color
+
+    def _smooth(self, f: _Frame, out: np.ndarray | None, stats: FrameStats) -> np.ndarray:
+        """Section 4.7: exponential smoothing over the history by eccentricity; the frame as resolved without it."""
+        p, history, (h, w) = self.params, f.state.history, f.state.shape
         image = np.empty((h, w, 3), np.float32) if out is None else out
-        if p.smooth and p.smooth_frames and "smooth" in steps:
-            with stats.stage("smooth"):
-                alpha = fov.alpha.reshape(h, w)
-                depth = history.depth[slot]
-                exponential_smoothing(
-                    cam, depth, history.color[slot], alpha, history, p.smooth_frames, p.depth_tolerance, image
-                )
-        else:
-            image[:] = history.color[slot]
-        history.commit(cam)
-        state.previous = cam
-        stats.metrics["central_pixels"] = state.central
-        stats.metrics["reused_pixels"] = reused
-        stats.metrics["problematic_subpixels"] = problematic
-        stats.metrics["extra_samples"] = total
-        stats.metrics["sample_fraction"] = (n + total) / n
+        if not (p.smooth and p.smooth_frames and "smooth" in f.steps):
+            image[:] = history.color[f.slot]
+            return image
+        with stats.stage("smooth"):
+            alpha = f.fov.alpha.reshape(h, w)
+            depth, color = history.depth[f.slot], history.color[f.slot]
+            exponential_smoothing(f.camera, depth, color, alpha, history, p.smooth_frames, p.depth_tolerance, image)
         return image
