@@ -228,56 +228,82 @@ class Weier18(Configurable):
         return ecc, por, keys
 
     def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
-        cam, p = request.camera, self.params
-        w, h = cam.width, cam.height
         state, history = self._state(request)
         steps = plan(self.stages, self.features | ({HISTORY} if history else set()))
         with stats.stage("sample"):
             ecc, por, keys = self._select(state, request)
-            samples = state.samples
+        traced = self._trace(state, request, keys, stats)
+        current = self._reconstruct(state, request.camera, traced, steps, stats)
+        layers, blur = self._depth_of_field(state, request, current, ecc, por, steps, stats)
+        with stats.stage("combine"):
+            cam, p = request.camera, self.params
+            if out is None:
+                out = np.empty((cam.height, cam.width, 3), np.float32)
+            color = current.level(0)[..., :3]
+            combine(color, ecc, layers, blur, current, Contrast(p.contrast, p.r0, p.r1, state.levels), out)
+        state.camera = request.camera
+        stats.metrics["sample_fraction"] = state.samples.count / (cam.width * cam.height)
+        return out
+
+    def _trace(self, state: _EyeState, request: FrameRequest, keys: np.ndarray, stats: FrameStats) -> Traced:
+        samples = state.samples
         with stats.stage("trace"):
             gbuf, rgb = self._gbuffers.rows(samples.count)
-            self.tracer.trace_samples(cam, samples.xy, keys, stats, gbuf, out=rgb)
-        traced = Traced(samples.pixels, samples.level, samples.offset, gbuf.primary.depth, rgb)
+            self.tracer.trace_samples(request.camera, samples.xy, keys, stats, gbuf, out=rgb)
+        return Traced(samples.pixels, samples.level, samples.offset, gbuf.primary.depth, rgb)
+
+    def _reconstruct(
+        self, state: _EyeState, cam: EyeCamera, traced: Traced, steps: tuple[str, ...], stats: FrameStats
+    ) -> Pyramid:
+        """Section 3.1: the samples blended into the reprojected previous frame (TAA), then pull-push fills the
+        pixels no sample reached (PPI); returns this frame's pyramid."""
+        p = self.params
         state.pyramids.reverse()
         current, previous = state.pyramids
         cameras = camera_arrays(cam), camera_arrays(state.camera)
-        blend = Blend(w, p.alpha_min, p.taa_depth)
+        blend = Blend(cam.width, p.alpha_min, p.taa_depth)
         if "taa" in steps:
             with stats.stage("taa"):
                 _taa(traced, *cameras, blend, previous, True, current)
         with stats.stage("ppi"):
             if "taa" not in steps:
                 _taa(traced, *cameras, blend, previous, False, current)
-            pull_push(current, samples.mask.reshape(-1))
+            pull_push(current, state.samples.mask.reshape(-1))
+        return current
+
+    def _depth_of_field(
+        self,
+        state: _EyeState,
+        request: FrameRequest,
+        current: Pyramid,
+        ecc: np.ndarray,
+        por: np.ndarray,
+        steps: tuple[str, ...],
+        stats: FrameStats,
+    ) -> tuple[Layers | None, Blur]:
+        """Section 3.2: the focus at the gaze, the circles of confusion and the first (horizontal) pass of the
+        layered blur; no layers when the preset is none."""
+        p, cam = self.params, request.camera
+        preset, blur = p.preset(), Blur(p.r0, p.r1)
+        if "dof_filter" not in steps or preset is None:
+            return None, blur
         base = current.level(0)
-        color = base[..., :3]
-        preset = p.preset()
-        layers = None
-        blur = Blur(p.r0, p.r1)
-        if "dof_filter" in steps and preset is not None:
-            ppd = sum(pixels_per_degree(cam)) / 2
-            with stats.stage("gaze_depth"):
-                focus = gaze_depth(base[..., 4], por, ppd, request.gaze_depth_m, miss=0.5 * FAR)
-            with stats.stage("coc"):
-                if state.layers is None or state.layers.coc.shape != (h, w):
-                    state.layers = Layers.empty(w, h)
-                layers = state.layers
-                layers.compute_coc(base[..., 4], lens(focus, preset, ppd, p.depth_inaccuracy_m), miss=0.5 * FAR)
-            with stats.stage("dof_filter"):
-                blur = blur._replace(radius=layers.near_radius())
-                horizontal_pass(color, ecc, layers, blur)
-            stats.metrics["focus_m"] = focus
-            # 1 when focus - t fell below the lens's near limit and d_n was kept at 2 d_i (dof.focal_lengths)
-            near_mm = focal_lengths(focus, p.depth_inaccuracy_m)[0]
-            stats.metrics["focus_near_clamped"] = int(near_mm > focus * 1000.0 - p.depth_inaccuracy_m * 1000.0)
-            coc_max, capped = layers.coc_figures()
-            stats.metrics["coc_max_px"] = coc_max
-            stats.metrics["coc_capped_pixels"] = capped  # blurred at the cap
-        with stats.stage("combine"):
-            if out is None:
-                out = np.empty((h, w, 3), np.float32)
-            combine(color, ecc, layers, blur, current, Contrast(p.contrast, p.r0, p.r1, state.levels), out)
-        state.camera = cam
-        stats.metrics["sample_fraction"] = samples.count / (w * h)
-        return out
+        ppd = sum(pixels_per_degree(cam)) / 2
+        with stats.stage("gaze_depth"):
+            focus = gaze_depth(base[..., 4], por, ppd, request.gaze_depth_m, miss=0.5 * FAR)
+        with stats.stage("coc"):
+            if state.layers is None or state.layers.coc.shape != (cam.height, cam.width):
+                state.layers = Layers.empty(cam.width, cam.height)
+            layers = state.layers
+            layers.compute_coc(base[..., 4], lens(focus, preset, ppd, p.depth_inaccuracy_m), miss=0.5 * FAR)
+        with stats.stage("dof_filter"):
+            blur = blur._replace(radius=layers.near_radius())
+            horizontal_pass(base[..., :3], ecc, layers, blur)
+        stats.metrics["focus_m"] = focus
+        # 1 when focus - t fell below the lens's near limit and d_n was kept at 2 d_i (dof.focal_lengths)
+        near_mm = focal_lengths(focus, p.depth_inaccuracy_m)[0]
+        stats.metrics["focus_near_clamped"] = int(near_mm > focus * 1000.0 - p.depth_inaccuracy_m * 1000.0)
+        coc_max, capped = layers.coc_figures()
+        stats.metrics["coc_max_px"] = coc_max
+        stats.metrics["coc_capped_pixels"] = capped  # blurred at the cap
+        return layers, blur
