@@ -1,9 +1,10 @@
-"""The long runs of the numerical stability suite (issue 6), marked slow; test_stability.py runs each of them
-100 times shorter by default."""
+"""The long runs of the numerical stability suite (issue 6), marked slow; the other files in this folder run
+each of them 100 times shorter by default."""
 
 import pytest
 
-from .test_stability import check_accumulation, check_quaternion_norm_drift
+from tests.stability.test_dynamics import check_quaternion_norm_drift
+from tests.stability.test_running_estimate import check_accumulation
 
 pytestmark = pytest.mark.slow
 
