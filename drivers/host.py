@@ -11,7 +11,7 @@ restarted the same way and counted; configuration errors are not retried. A full
 
 from __future__ import annotations
 
-import sys
+import logging
 import threading
 import time
 
@@ -23,6 +23,8 @@ from hmdrt.bus import INGEST
 from hmdrt.bus.messages import encode
 from hmdrt.bus.security import ClientKeys
 from hmdrt.errors import HmdrtError
+
+log = logging.getLogger(__name__)
 
 
 class DriverHost:
@@ -104,13 +106,13 @@ class DriverHost:
         self.driver.counters.reconnects += 1
 
     def _crashed(self, exc: Exception) -> None:
-        """Count a crash and say what it was on stderr (the status says "crashed"). The backoff starts afresh
+        """Count a crash and log what it was (the status says "crashed"). The backoff starts afresh
         when the driver had run longer than the longest backoff; a driver that crashes again at once waits longer
         each time."""
         self.driver.counters.crashes += 1
         self.driver.state = "crashed"
         self._status(force=True)
-        print(f"hmdrt driver {self.driver.device}: crashed ({type(exc).__name__}: {exc}); restarting", file=sys.stderr)
+        log.warning("driver %s crashed (%s: %s); restarting", self.driver.device, type(exc).__name__, exc)
         if self._opened_at is not None and time.monotonic() - self._opened_at > self.backoff_s[1]:
             self._delay = self.backoff_s[0]
         try:

@@ -1,4 +1,4 @@
-"""The hmdrt command line (DESIGN.md "Command line"). Errors reach the user as one line, never a traceback."""
+"""The hmdrt command line (docs/architecture.md, Command line). Errors reach the user as one line, never a traceback."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import numpy as np
 import zmq
 
 from drivers.emulators import EMULATORS
-from hmdrt import __version__
+from hmdrt import __version__, logs
 from hmdrt.atomic import check_writable, write_atomic
 from hmdrt.bus import CONTROL, INGEST
 from hmdrt.bus.security import ClientKeys, is_loopback, write_keypair
@@ -55,7 +55,7 @@ def _record(stats: FrameStats, ms: float, width: int, height: int, method: str, 
 
 
 def _summary(records: list[dict]) -> dict:
-    """The per-frame means of a sequence, with the DESIGN.md render keys."""
+    """The per-frame means of a sequence, with the render stats keys of docs/architecture.md."""
     n = len(records)
     stages: dict[str, float] = {}
     for r in records:
@@ -339,6 +339,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="hmdrt", description="A simulated HMD runtime with foveated ray tracing.")
     parser.add_argument("--version", action="version", version=f"hmdrt {__version__}")
+    parser.add_argument(
+        "--log-level", choices=logs.LEVELS, default="warning", help="log records shown on stderr (default warning)"
+    )
+    parser.add_argument(
+        "-v", "--verbose", dest="log_level", action="store_const", const="info", help="the same as --log-level info"
+    )
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     render = sub.add_parser("render", help="render a frame or a sequence to PNG and a stats JSON")
     render.add_argument(
@@ -427,6 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    logs.configure(args.log_level)
     try:
         return args.run(args)
     except HmdrtError as exc:

@@ -14,6 +14,7 @@ hmdrt.present.output's, and what a reload may change hmdrt.compositor.config.rel
 from __future__ import annotations
 
 import gc
+import logging
 import sys
 import threading
 import time
@@ -45,11 +46,14 @@ from hmdrt.compositor.session import Session
 from hmdrt.compositor.sources import Sources
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.foveation import MethodChoice
+from hmdrt.logs import TelemetryHandler
 from hmdrt.optics import EyeCamera
 from hmdrt.present.output import FrameWriter, check_folder
 from hmdrt.sequence import compose_pose, eye_cameras
 from hmdrt.telemetry.report import FrameRecord, RunReport, SampleUse
 from hmdrt.telemetry.stats import FrameStats
+
+log = logging.getLogger(__name__)
 
 FIRST_PRESENT_NS = 50_000_000  # Monado's fake pacer: the first present is assumed 50 ms out
 CONNECT_WAIT_S = 3.0  # how long the start waits for its drivers to connect (a device may come later)
@@ -86,6 +90,8 @@ class Compositor:
         try:
             self.guard = Guard(self._context, self._server_keys) if self._server_keys else None  # before any bind
             self.telemetry = Telemetry(self._context, config.bus.telemetry, self.guard)
+            self._log = TelemetryHandler(self.telemetry.publish)
+            self._log.attach()
             self.ingest = Ingest(self._context, config.bus.ingest, self.store.add, self.clock, self.guard)
             self.sources = Sources(
                 [d.url for d in config.drivers],
@@ -388,7 +394,7 @@ class Compositor:
             check_folder(config.output.frames_dir)
             self.session.set_method(config.method_choice)
         except HmdrtError as exc:
-            self.telemetry.publish("log", {"level": "error", "message": f"reload failed: {exc}"})
+            log.error("reload failed: %s", exc)
             return
         self.config = config
         self.writer.configure(config.output.frames_dir, config.output.every)
@@ -397,8 +403,10 @@ class Compositor:
         self.store.horizon_ns = int(config.prediction.horizon_ms * 1e6)
         self.outages.config = config.fallback
         self.controller = self._make_controller()
-        message = f"reloaded {source}" + (f"; restart to change {', '.join(restart)}" if restart else "")
-        self.telemetry.publish("log", {"level": "warning" if restart else "info", "message": message})
+        if restart:
+            log.warning("reloaded %s; restart to change %s", source, ", ".join(restart))
+        else:
+            log.info("reloaded %s", source)
 
     def status(self) -> dict:
         with self._lock:
@@ -497,6 +505,8 @@ class Compositor:
         gc.unfreeze()  # a process that goes on (tests, a caller) collects them again
         if self.writer is not None:
             self.writer.close()
+        if getattr(self, "_log", None) is not None:
+            self._log.detach()  # before the telemetry socket closes
         for part in ("sources", "control", "ingest", "telemetry", "guard"):  # the guard last: it answers the others
             if getattr(self, part, None) is not None:
                 getattr(self, part).close()

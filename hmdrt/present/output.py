@@ -7,8 +7,8 @@ Frames wait in a short queue; one that finds it full is skipped and one that can
 
 from __future__ import annotations
 
+import logging
 import queue
-import sys
 import threading
 from pathlib import Path
 
@@ -17,6 +17,8 @@ import numpy as np
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.present.encode import side_by_side_srgb8, write_png
 from hmdrt.present.video import VideoWriter
+
+log = logging.getLogger(__name__)
 
 QUEUE = 8  # shown frames waiting to be written; more are skipped and counted
 
@@ -79,7 +81,7 @@ class FrameWriter:
                     self._video.append(srgb8)
             except HmdrtError as exc:
                 if not self.failed:
-                    print(f"hmdrt: {exc}; later frames that cannot be written are counted", file=sys.stderr)
+                    log.error("%s; later frames that cannot be written are counted", exc)
                 self.failed += 1
 
     def close(self) -> None:
@@ -92,4 +94,4 @@ class FrameWriter:
             try:
                 video.close()
             except HmdrtError as exc:
-                print(f"hmdrt: {exc}", file=sys.stderr)
+                log.error("%s", exc)

@@ -1,0 +1,60 @@
+"""Logging: the standard `logging` module, a logger per module (`logging.getLogger(__name__)` under hmdrt,
+drivers and replay), configured once by the command line (`hmdrt -v`, `--log-level`).
+
+While a compositor runs, its process's records also go out on the telemetry `log` topic as {"level", "message",
+"logger"} (as Pupil Capture publishes its log on its IPC backbone), at INFO and above whatever the console
+shows. A user's mistake stays a one-line error on stderr from the CLI, not a log record.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+LEVELS = ("debug", "info", "warning", "error")
+PACKAGES = ("hmdrt", "drivers", "replay")
+FORMAT = "hmdrt: %(levelname)s: %(name)s: %(message)s"
+
+
+_console: logging.Handler | None = None
+
+
+def configure(level: str = "warning") -> None:
+    """Records of the packages at `level` and above on stderr (once, however often called)."""
+    global _console
+    root = logging.getLogger()
+    if _console is not None:
+        root.removeHandler(_console)
+    _console = logging.StreamHandler()
+    _console.setLevel(level.upper())
+    _console.setFormatter(logging.Formatter(FORMAT))
+    root.addHandler(_console)
+    for name in PACKAGES:
+        logging.getLogger(name).setLevel(min(logging.INFO, _console.level))
+
+
+class TelemetryHandler(logging.Handler):
+    """Publishes each record of the packages' loggers through publish(topic, fields) while attached."""
+
+    def __init__(self, publish: Callable[[str, dict], None], level: int = logging.INFO):
+        super().__init__(level)
+        self._publish = publish
+        self.dropped = 0  # records that could not be published (the socket closing under them)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            fields = {"level": record.levelname.lower(), "message": record.getMessage(), "logger": record.name}
+            self._publish("log", fields)
+        except Exception:  # noqa: BLE001 - a record that cannot be sent must not take its thread down: counted
+            self.dropped += 1
+
+    def attach(self) -> None:
+        for name in PACKAGES:
+            logger = logging.getLogger(name)
+            logger.addHandler(self)
+            if logger.getEffectiveLevel() > self.level:
+                logger.setLevel(self.level)
+
+    def detach(self) -> None:
+        for name in PACKAGES:
+            logging.getLogger(name).removeHandler(self)

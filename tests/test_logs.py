@@ -1,0 +1,60 @@
+"""Logging: the CLI's level on stderr, and the records a running compositor publishes on its telemetry."""
+
+import logging
+
+import pytest
+
+from hmdrt import logs
+from hmdrt.cli import build_parser
+
+
+@pytest.fixture
+def restore_logging():
+    root = logging.getLogger()
+    handlers, levels = list(root.handlers), {n: logging.getLogger(n).level for n in logs.PACKAGES}
+    yield
+    root.handlers[:] = handlers
+    for name, level in levels.items():
+        logging.getLogger(name).setLevel(level)
+
+
+def test_the_cli_level_decides_what_reaches_stderr(capsys, restore_logging):
+    logs.configure("warning")
+    logging.getLogger("hmdrt.compositor.daemon").info("quiet")
+    logging.getLogger("drivers.host").warning("driver x crashed")
+    logs.configure("info")  # again: one console handler, not two
+    logging.getLogger("replay.player").info("loud")
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["hmdrt: WARNING: drivers.host: driver x crashed", "hmdrt: INFO: replay.player: loud"]
+
+
+def test_verbose_and_log_level_parse_to_a_level():
+    assert build_parser().parse_args(["-v", "keys", "x"]).log_level == "info"
+    assert build_parser().parse_args(["--log-level", "debug", "keys", "x"]).log_level == "debug"
+    assert build_parser().parse_args(["keys", "x"]).log_level == "warning"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--log-level", "loud", "keys", "x"])
+
+
+def test_a_compositors_handler_publishes_the_packages_records_while_attached(restore_logging):
+    sent = []
+    handler = logs.TelemetryHandler(lambda topic, fields: sent.append((topic, fields)))
+    handler.attach()
+    logging.getLogger("hmdrt.compositor.daemon").info("reloaded run.toml")
+    logging.getLogger("elsewhere").warning("not ours")
+    handler.detach()
+    logging.getLogger("drivers.host").warning("after detach")
+    assert sent == [("log", {"level": "info", "message": "reloaded run.toml", "logger": "hmdrt.compositor.daemon"})]
+
+
+def test_a_record_that_cannot_be_published_does_not_raise(restore_logging, capsys):
+    def closed(topic, fields):
+        raise RuntimeError("socket closed")
+
+    handler = logs.TelemetryHandler(closed)
+    handler.attach()
+    try:
+        logging.getLogger("hmdrt.present.output").error("cannot write frame 3")  # must not raise
+    finally:
+        handler.detach()
+    assert handler.dropped == 1 and "Traceback" not in capsys.readouterr().err
