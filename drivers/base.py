@@ -1,6 +1,6 @@
 """The one small interface every device driver implements, and what drivers share.
 
-A driver is opened, read in a loop, and closed; its samples are already normalised (DESIGN.md:
+A driver is opened, read in a loop, and closed; its samples are already normalised (docs/architecture.md, Conventions:
 host-clock nanoseconds, right-handed head frame, unit gaze directions per eye, validity). read()
 returns the samples that arrived within a timeout (possibly none) and raises DeviceLost when the
 device went away, so a host can reconnect. Drivers count what they publish, what was invalid, what
@@ -43,7 +43,7 @@ class Clock(Protocol):
 
 
 class MonotonicClock:
-    """The host clock of DESIGN.md: time.monotonic_ns()."""
+    """The host clock of docs/architecture.md, Conventions: time.monotonic_ns()."""
 
     def now_ns(self) -> int:
         return time.monotonic_ns()

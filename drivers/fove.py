@@ -1,8 +1,8 @@
-"""fove://HOST:PORT: a FOVE headset served over TCP (wire spec in drivers.protocols.fove; protocols.md section 2).
+"""fove://HOST:PORT: a FOVE headset served over TCP (wire spec in drivers.protocols.fove; docs/protocols.md, FOVE).
 
 open() connects, reads the server's hello and subscribes to eye tracking and head pose; read() turns
 eye frames into Gaze and pose frames into Pose. The coordinate conversion happens here, once: FOVE's
-head frame is left-handed with +Z forward, ours right-handed with -Z forward (DESIGN.md), a mirror
+head frame is left-handed with +Z forward, ours right-handed with -Z forward (docs/architecture.md), a mirror
 image in z, so directions and positions map (x, y, z) -> (x, y, -z) and orientations (w, x, y, z) ->
 (w, -x, -y, z) (protocols.fove.mirror_vector / mirror_quaternion). A gaze sample is valid when its
 result is ok or Data_LowAccuracy, both eyes are Opened and its vectors are unit; Data_NoUpdate and
@@ -37,7 +37,7 @@ class FoveDriver(Driver):
         "and the hello, pose=1 to subscribe to head pose, device_latency=20: eye frames' capture-to-send delay)"
     )
     options = {"timeout": (float, 2.0, 0.05, 60.0), "pose": (bool, True, None, None)}
-    device_latency_ms = 20.0  # FOVE's eye-tracking latency (protocols.md section 2); poses have none
+    device_latency_ms = 20.0  # FOVE's eye-tracking latency (docs/protocols.md, FOVE); poses have none
 
     def __init__(self, url: DriverUrl | str, clock: Clock = MONOTONIC):
         super().__init__(url, clock)

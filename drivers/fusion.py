@@ -1,5 +1,5 @@
 """Head orientation from IMU samples: gyro integration with accelerometer tilt and magnetometer yaw
-correction (protocols.md 4.2, 4.4).
+correction (docs/protocols.md, DK2 HID).
 
 A complementary filter in Mahony's form: the body-frame angular velocity is integrated exactly over
 each step (q <- q * exp(w dt / 2)), after adding gain * (a x v), where a is the measured direction of
@@ -24,7 +24,7 @@ each step uses min(gain, 1 / dt), removing the error in one step at most, and co
 limited in `gain_limited`. Non-finite samples are counted in `rejected` and skipped. The quaternion
 (w, x, y, z) is renormalised every step, so it never leaves the unit sphere and never becomes NaN.
 
-Axes: the filter works in the head frame of DESIGN.md (+X right, +Y up, +Z back); the driver hands it
+Axes: the filter works in the head frame of docs/architecture.md (+X right, +Y up, +Z back); the driver hands it
 samples already in that frame.
 """
 

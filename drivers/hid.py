@@ -1,9 +1,9 @@
-"""hid://: a Rift DK2-class tracker IMU over HID, fused into head orientation (protocols.md sections 4.1-4.4).
+"""hid://: a Rift DK2-class tracker IMU over HID, fused into head orientation (docs/protocols.md, DK2 HID).
 
     hid://2833:0021          the real device, found with hid.enumerate and opened through hidapi
     hid://stub?device=dk2    drivers.emulators.dk2_stub: hidapi's device methods speaking the DK2's bytes
 
-hidapi sits behind HidAdapter (STYLE.md): bytes in and out, -1 and hidapi's exceptions raised as
+hidapi sits behind HidAdapter (CONTRIBUTING.md, adapters): bytes in and out, -1 and hidapi's exceptions raised as
 DeviceLost, and a device factory so the stub plugs in where hid.device would. The driver sends the
 keep-alive feature report 0x11 on open and again 0.2 s before it expires (as OpenHMD does), decodes
 each 0x0B report, counts IMU samples lost between reports from the u16 sample count (counters.dropped

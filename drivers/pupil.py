@@ -1,11 +1,11 @@
-"""pupil://HOST:PORT: Pupil Core gaze through Pupil Remote and the IPC backbone (protocols.md sections 3.1-3.2).
+"""pupil://HOST:PORT: Pupil Core gaze through Pupil Remote and the IPC backbone (docs/protocols.md, Pupil).
 
 open() asks Pupil Remote (ZeroMQ REQ/REP, default port 50020) for the backbone's SUB_PORT, measures
 the offset of Pupil time from the host clock with `t` (round-trip corrected, as Pupil's own time sync
-does: offset = t_pupil - (t_send + rtt / 2), runtime_anchors.md (b)) and subscribes to "gaze.3d."
+does: offset = t_pupil - (t_send + rtt / 2), docs/protocols.md, Pupil) and subscribes to "gaze.3d."
 on the backbone. read() decodes the msgpack gaze datums of section 3.2 and converts them once, here:
 Pupil's 3D camera space is OpenCV's (x right, y down, z forward, mm), ours is right-handed with +Y up
-and -Z forward (DESIGN.md), so vectors map (x, y, z) -> (x, -y, -z), a half turn about X. Eye 0 is the
+and -Z forward (docs/architecture.md), so vectors map (x, y, z) -> (x, -y, -z), a half turn about X. Eye 0 is the
 right eye (section 3.2): binocular "gaze.3d.01." gives R from gaze_normals_3d["0"] and L from ["1"];
 monocular "gaze.3d.0." / "gaze.3d.1." give R / L from gaze_normal_3d. C is the mean of the eyes,
 depth_m the distance of gaze_point_3d (mm -> m), valid = confidence >= 0.6 (section 3.2's pairing

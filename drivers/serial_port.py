@@ -1,4 +1,4 @@
-"""serial://: Razor AHRS and HATIRE head trackers over a serial port (protocols.md sections 5.1, 5.2, 6).
+"""serial://: Razor AHRS and HATIRE head trackers over a serial port (docs/protocols.md, Razor and HATIRE).
 
     serial:///dev/ttyUSB0?protocol=razor          a device path (three slashes: the URL path is the device)
     serial://?port=loop://&protocol=hatire        any pyserial URL (loop://, socket://, spy://...) in port=

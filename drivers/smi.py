@@ -1,4 +1,4 @@
-"""smi://HOST:PORT: an SMI iView X eye tracker (or drivers.emulators.smi_server) over UDP (protocols.md section 1).
+"""smi://HOST:PORT: an SMI iView X eye tracker (or drivers.emulators.smi_server) over UDP (docs/protocols.md, SMI).
 
 open() pings the tracker (ET_PNG, answered within 3 s or DeviceLost), asks its sample rate (ET_SRT),
 sets the sample format "%TU %ET %SX %SY" (ET_FRM, section 1.3) and starts streaming (ET_STR, section
@@ -228,7 +228,7 @@ class SmiDriver(Driver):
         for i, (sample, _) in enumerate(batch):
             for j, key in enumerate(_EYES[sample.eye]):
                 xy = (sample.values["SX"][j], sample.values["SY"][j])
-                if xy != (0.0, 0.0):  # (0, 0): no data for this eye (protocols.md section 1.5)
+                if xy != (0.0, 0.0):  # (0, 0): no data for this eye (docs/protocols.md, SMI)
                     pixels[key][i] = xy
         directions = {
             key: dict(zip(found, self._cameras[key].directions(np.array(list(found.values()))), strict=True))

@@ -1,5 +1,5 @@
 """Counter-based random numbers: a hash of (key, index, dimension), so results do not depend on
-batching, threading or evaluation order (DESIGN.md: a seeded run reproduces bit for bit)."""
+batching, threading or evaluation order (docs/architecture.md, Conventions: a seeded run reproduces bit for bit)."""
 
 import numba as nb
 

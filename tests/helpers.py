@@ -128,7 +128,7 @@ def gaze_trace(
     return str(path)
 
 
-# protocols.md section 7: a binocular gaze datum
+# docs/protocols.md, Test vectors (Pupil): a binocular gaze datum
 SECTION7_GAZE = {
     "topic": "gaze.3d.01.",
     "confidence": 0.97,

@@ -1,4 +1,4 @@
-"""The DK2 codec against protocols.md section 7, the tilt fusion filter, and hid:// through a stub DK2 device."""
+"""The DK2 codec against docs/protocols.md's vectors, the tilt fusion filter, and hid:// through a stub DK2 device."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Razor AHRS and HATIRE: codecs against protocols.md section 7, framers on garbage, and serial:// through a
+"""Razor AHRS and HATIRE: codecs against docs/protocols.md, Test vectors, framers on garbage, and serial:// through a
 real pseudo-terminal (the emulator) and pyserial's loop://."""
 
 from __future__ import annotations

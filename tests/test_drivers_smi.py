@@ -1,4 +1,4 @@
-"""SMI iView X: the line codec against protocols.md section 7, the UDP emulator and the smi:// driver, on
+"""SMI iView X: the line codec against docs/protocols.md, Test vectors, the UDP emulator and the smi:// driver, on
 real loopback sockets."""
 
 from __future__ import annotations
@@ -93,7 +93,7 @@ def trace(tmp_path_factory) -> str:
     return gaze_trace(tmp_path_factory.mktemp("smi") / "still.jsonl", eyes, PERIOD_NS)
 
 
-# --- codec: protocols.md section 7 -----------------------------------------------------------------
+# --- codec: docs/protocols.md, Test vectors -----------------------------------------------------------------
 
 
 def test_red_capture_parses_in_the_format_of_item_1():
@@ -296,7 +296,7 @@ def test_calibration_abort_and_custom_area(emulator, client):
     assert client.reply("ET_CSZ 1280 1024") == "ET_CSZ 1280 1024"
     client.send("ET_CAL 9")
     assert client.recv() == "ET_CSZ 1280 1024"
-    assert client.recv() == "ET_PNT 1 640 512"  # the centre first, as in protocols.md section 7 item 5
+    assert client.recv() == "ET_PNT 1 640 512"  # the centre first, as in docs/protocols.md, Test vectors (SMI)
     for _ in range(9):
         client.recv()
     assert client.reply("ET_BRK") == "ET_BRK"

@@ -1,4 +1,4 @@
-"""A stub Rift DK2 tracker with hidapi's device methods, for hid://stub (protocols.md sections 4.1-4.4).
+"""A stub Rift DK2 tracker with hidapi's device methods, for hid://stub (docs/protocols.md, DK2 HID).
 
 It synthesises what a DK2 on a moving head measures: a head trajectory (the Pose samples of a native
 trace, or replay.synthetic's head motion), orientations interpolated by slerp; gyro = the body-frame

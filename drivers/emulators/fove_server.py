@@ -1,4 +1,4 @@
-"""A FOVE headset on a TCP port: eye frames at 120 Hz and head poses at 70 Hz (protocols.md section 2).
+"""A FOVE headset on a TCP port: eye frames at 120 Hz and head poses at 70 Hz (docs/protocols.md, FOVE).
 
 Speaks the framing and records of drivers.protocols.fove (the wire spec is in its docstring). Gaze
 comes from a GazeFeed, converted to FOVE's left-handed frame; a blink or an invalid sample goes out

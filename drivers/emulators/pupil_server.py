@@ -1,4 +1,4 @@
-"""Pupil Core on ZeroMQ: Pupil Remote (REQ/REP) and an IPC backbone publishing 3D gaze (protocols.md 3.1-3.2).
+"""Pupil Core on ZeroMQ: Pupil Remote (REQ/REP) and an IPC backbone publishing 3D gaze (docs/protocols.md, Pupil).
 
 Pupil Remote answers as Pupil's pupil_remote.py does (section 3.1, the section 7 vectors): SUB_PORT,
 PUB_PORT, t, T <float>, R [name], r, C, c, v, "Unknown command." for anything else, and "Message

@@ -1,4 +1,4 @@
-"""A Razor AHRS or HATIRE head tracker on a real pseudo-terminal (protocols.md sections 5.1, 5.2).
+"""A Razor AHRS or HATIRE head tracker on a real pseudo-terminal (docs/protocols.md, Razor and HATIRE).
 
     with SerialTrackerEmulator("razor", seed=1) as emu:
         open_driver(f"serial://{emu.device_path}?protocol=razor")

@@ -1,4 +1,4 @@
-"""Online fixation detection for the SMI emulator's ET_FIX (protocols.md section 1.4).
+"""Online fixation detection for the SMI emulator's ET_FIX (docs/protocols.md, SMI).
 
 Dispersion-threshold identification (I-DT): a fixation is a run of samples whose x extent plus y extent
 stays within the dispersion for at least the minimum duration; lost tracking ends it.

@@ -1,4 +1,4 @@
-"""An SMI iView X tracker on UDP, speaking the remote command interface of protocols.md section 1.2.
+"""An SMI iView X tracker on UDP, speaking the remote command interface of docs/protocols.md, SMI.
 
 Gaze comes from a GazeFeed (a trace or the seeded synthetic generator) and is reported as an SMI HMD
 tracker reports its point of regard: in the pixels of each eye's display of an HMD profile, the left

@@ -1,1 +1,1 @@
-"""Byte- and line-level codecs of the device protocols (../shared/protocols.md), free of I/O."""
+"""Byte- and line-level codecs of the device protocols (docs/protocols.md), free of I/O."""

@@ -1,4 +1,4 @@
-"""Oculus Rift DK2 (and DK1) tracker HID reports, both ways, free of I/O (protocols.md sections 4.1-4.3, 7).
+"""Oculus Rift DK2 (and DK1) tracker HID reports, both ways, free of I/O (docs/protocols.md, DK2 HID and Test vectors).
 
 Sensor reports arrive on the interrupt-IN endpoint: DK2 report 0x0B (64 bytes) carries up to two IMU
 samples, a u32 microsecond timestamp (wraps about every 72 minutes) and a u16 running sample count.

@@ -1,7 +1,7 @@
 """FOVE eye-tracker data over TCP: the records and their framing (the wire spec of fove:// and the emulator).
 
 FOVE has no public wire protocol; its client library talks to FoveService over local IPC
-(protocols.md section 2). hmdrt serves the FOVE API data model (section 2) over this small framing:
+(docs/protocols.md, FOVE). hmdrt serves the FOVE API data model (section 2) over this small framing:
 
 Framing. Each frame is a big-endian u32 payload length N followed by N bytes: one msgpack map, with
 N at most 65536 (MAX_FRAME_BYTES). A larger N cannot be skipped safely, so the reader raises
@@ -25,7 +25,7 @@ counters that increase by one per frame, so a gap is a lost frame (section 2: "u
                1007 Data_LowAccuracy). On lost tracking the gaze vectors are (0, 0, 1) (section 2).
     pose       id, timestamp, orientation [x, y, z, w] (FOVE's order, unit), position (metres, tared)
 
-Coordinates. FOVE's frame is ours (DESIGN.md: right-handed, -Z forward) mirrored in z, so one
+Coordinates. FOVE's frame is ours (docs/architecture.md, Conventions: right-handed, -Z forward) mirrored in z, so one
 reflection converts either way (mirror_vector, mirror_quaternion; each is its own inverse).
 """
 
@@ -46,7 +46,7 @@ _LENGTH = struct.Struct(">I")
 
 
 class Capability(enum.IntFlag):
-    """ClientCapabilities of the FOVE v1.x API (protocols.md section 2): bit n."""
+    """ClientCapabilities of the FOVE v1.x API (docs/protocols.md, FOVE): bit n."""
 
     ORIENTATION = 1 << 0
     POSITION = 1 << 1

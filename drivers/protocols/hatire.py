@@ -1,4 +1,4 @@
-"""HATIRE binary head-tracker protocol (protocols.md sections 5.2, 7), free of I/O.
+"""HATIRE binary head-tracker protocol (docs/protocols.md, HATIRE and Test vectors), free of I/O.
 
 Every frame is 30 bytes, little-endian: 0xAAAA, a u16, 24 bytes, 0x5555. A data frame's u16 is the frame
 counter Cpt (0..999, wrapping) and its 24 bytes are yaw, pitch, roll (float32 degrees) and three float32
@@ -8,7 +8,7 @@ characters: S start, s stop, R reset, C calibrate, V version, I info (answered i
 HatireFramer takes byte chunks of any size, returns decoded frames, and discards (and counts) bytes
 that are not part of a frame.
 
-Angles: protocols.md gives no axes for HATIRE; the firmware sends the MPU6050 DMP's yaw, pitch and roll,
+Angles: HATIRE gives no axes (docs/protocols.md, HATIRE); the firmware sends the MPU6050 DMP's yaw, pitch and roll,
 which this module takes in the Razor convention (X forward, Y right, Z down, yaw -> pitch -> roll), so
 drivers.protocols.razor.ypr_to_quat converts them to the head frame.
 """

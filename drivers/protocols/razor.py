@@ -1,4 +1,4 @@
-"""Razor AHRS text protocol (protocols.md sections 5.1, 6, 7), and (yaw, pitch, roll) <-> head-frame quaternions.
+"""Razor AHRS text protocol (docs/protocols.md, Razor), and (yaw, pitch, roll) <-> head-frame quaternions.
 
 The firmware streams `#YPR=<yaw>,<pitch>,<roll>\\r\\n` in degrees with two decimals at 50 Hz and 57600
 baud (`#YPRAG=` adds accel and gyro; its first three values are the same angles). Commands need no

@@ -1,4 +1,4 @@
-"""SMI iView X remote command interface: the text-line codec, free of I/O (protocols.md section 1).
+"""SMI iView X remote command interface: the text-line codec, free of I/O (docs/protocols.md, SMI).
 
 One line per UDP datagram (section 1.1): a mnemonic ET_xxx and arguments separated by runs of
 whitespace, double-quoted strings kept whole. ET_SPL sample lines follow the ET_FRM format (section
@@ -279,7 +279,7 @@ class _FixedLine:
         words = _body(line, cls.mnemonic).split()
         matches = [re.fullmatch(f.pattern, w) for f, w in zip(cls.shape, words, strict=False)]
         if len(words) != len(cls.shape) or not all(matches):
-            raise SmiError(f"{cls.mnemonic} line does not have the shape of protocols.md section 1: {line[:120]!r}")
+            raise SmiError(f"{cls.mnemonic} line does not have the shape of docs/protocols.md, SMI: {line[:120]!r}")
         return cls(*(f.read(m.group(1)) for f, m in zip(cls.shape, matches, strict=True)))
 
     def line(self) -> str:

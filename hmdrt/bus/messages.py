@@ -1,6 +1,6 @@
 """What travels on the bus and in native traces: gaze, pose and driver status messages.
 
-Conventions (DESIGN.md): times are integer nanoseconds; t_host on the host's monotonic clock (the
+Conventions (docs/architecture.md): times are integer nanoseconds; t_host on the host's monotonic clock (the
 device's capture time mapped through the driver's clock-sync estimate), t_dev the device's own clock
 as received, scaled to nanoseconds. Gaze directions are unit vectors in the head frame (right-handed,
 +Y up, -Z forward) per eye (L, R) or combined (C), with optional vergence depth in metres. Pose is

@@ -55,7 +55,7 @@ class Security(_Section):
 
 
 class Pacing(_Section):
-    margin_ms: Ms = 2.0  # fixed margin before the VSync (runtime_anchors.md: 1-2 ms)
+    margin_ms: Ms = 2.0  # fixed margin before the VSync (docs/architecture.md, Pacer: 1-2 ms)
     present_to_display_ms: Annotated[float, msgspec.Meta(ge=-1.0, le=1000.0)] = -1.0  # -1: half the period
     render_delay_ms: Ms = 0.0  # extra time added to every render, to see how misses are handled
     # the wake-up plans for this quantile of the last tail_window render times (0: the filtered mean, as Monado);

@@ -1,4 +1,4 @@
-"""The compositor's three sockets (DESIGN.md "Bus"): the ingest SUB that drivers publish to, the
+"""The compositor's three sockets (docs/architecture.md, "Bus"): the ingest SUB that drivers publish to, the
 telemetry PUB (a `frame` per VSync, `stats` each second) and the control REP (status, stats, set,
 snapshot, shutdown).
 

@@ -2,7 +2,7 @@
 predict, closed on measured render times and present margins.
 
 Adapted from Monado's display-timing compositor pacer (src/xrt/auxiliary/util/u_pacing_compositor.c), with the
-render-time filter and period multiples of its app pacer (u_pacing_app.c); numbers in runtime_anchors.md (b).
+render-time filter and period multiples of its app pacer (u_pacing_app.c); numbers in docs/architecture.md, Pacer.
 One addition: a ray tracer's frame times vary far more than a compositor's GPU work (a CPU renderer on a shared
 machine: p99 often 1.5 to 2 times p50), and a budget on the filtered mean then misses about every other frame
 while the slack hunts. With tail_quantile set, the wake-up plans for the larger of the IIR mean and that

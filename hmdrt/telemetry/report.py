@@ -1,4 +1,4 @@
-"""Per-VSync frame records and the run report of `hmdrt run` (DESIGN.md "run report" keys).
+"""Per-VSync frame records and the run report of `hmdrt run` (docs/architecture.md, "Run report").
 
 Each VSync the display shows something: a new frame (on time or late) or the last one again,
 timewarped to the newest head pose. A record carries Monado's per-frame metrics (predicted wake,

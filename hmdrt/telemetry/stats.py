@@ -1,4 +1,4 @@
-"""Per-frame stage timings and ray counts (the render stats keys of DESIGN.md).
+"""Per-frame stage timings and ray counts (the render stats keys of docs/architecture.md, "Command line").
 
 A stage appears in stages_ms only once it has run, so stages_run lists exactly what ran. A stage
 entered inside another is recorded as "outer/inner" (inclusive times), so a method's own stages sum

@@ -2,7 +2,7 @@
 
 Columns used: gaze_timestamp (Pupil time, s, arbitrary epoch), confidence, gaze_normal0_x/y/z and
 gaze_normal1_x/y/z (unit visual axes of eye 0 and eye 1), gaze_point_3d_x/y/z (the 3D gaze point,
-mm). Eye 0 is the right eye and eye 1 the left (protocols.md 3.2), so normal0 -> R, normal1 -> L; a
+mm). Eye 0 is the right eye and eye 1 the left (docs/protocols.md, Pupil), so normal0 -> R, normal1 -> L; a
 monocular row fills only its eye's columns. The 3D data is in the world camera's frame (OpenCV: x
 right, y down, z forward), which is head-fixed, and becomes the head frame by (x, y, z) -> (x, -y, -z).
 C is the direction to gaze_point_3d and depth_m its distance in metres. Rows with confidence below
