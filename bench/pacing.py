@@ -22,7 +22,8 @@ import msgspec
 # bench/drivers.py shares the drivers package's name: keep this folder from shadowing the package
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
-from hmdrt.compositor.clock import VirtualClock, VsyncClock  # noqa: E402
+from hmdrt.clock import VirtualClock  # noqa: E402
+from hmdrt.compositor.clock import VsyncClock  # noqa: E402
 from hmdrt.compositor.config import Bus, load_config  # noqa: E402
 from hmdrt.compositor.daemon import Compositor  # noqa: E402
 from hmdrt.compositor.pacer import Pacer, replay_frame  # noqa: E402

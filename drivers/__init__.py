@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import importlib
 
-from drivers.base import MONOTONIC, Clock, DeviceLost, Driver, DriverError, DriverNotFound, DriverUrl
+from drivers.base import DeviceLost, Driver, DriverError, DriverNotFound, DriverUrl
+from hmdrt.clock import MONOTONIC, Clock
 
 REGISTRY: dict[str, str] = {
     "synthetic": "drivers.synthetic:SyntheticDriver",

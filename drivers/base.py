@@ -10,14 +10,14 @@ they lost and what did not parse; status() reports that with the clock-sync esti
 from __future__ import annotations
 
 import math
-import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import ClassVar, Protocol
+from typing import ClassVar
 from urllib.parse import parse_qsl, urlsplit
 
 from drivers.clocksync import ClockSync
 from hmdrt.bus.messages import Gaze, Pose, Status
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError, HmdrtError
 
 Sample = Gaze | Pose
@@ -33,28 +33,6 @@ class DriverNotFound(DriverError):
 
 class DeviceLost(DriverError):
     """The device stopped answering or the connection dropped; reopening may bring it back."""
-
-
-class Clock(Protocol):
-    def now_ns(self) -> int: ...
-
-    def sleep_until(self, t_ns: int) -> None:
-        """Wait until now_ns() reaches t_ns (a virtual clock returns at once: its time does not pass)."""
-
-
-class MonotonicClock:
-    """The host clock of docs/architecture.md, Conventions: time.monotonic_ns()."""
-
-    def now_ns(self) -> int:
-        return time.monotonic_ns()
-
-    def sleep_until(self, t_ns: int) -> None:
-        delay = t_ns - time.monotonic_ns()
-        if delay > 0:
-            time.sleep(delay / 1e9)
-
-
-MONOTONIC = MonotonicClock()
 
 
 @dataclass(frozen=True)

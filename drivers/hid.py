@@ -25,7 +25,7 @@ import math
 from collections.abc import Callable
 from typing import Protocol
 
-from drivers.base import MONOTONIC, Clock, DeviceLost, Driver, DriverUrl, Sample, SequenceGaps
+from drivers.base import DeviceLost, Driver, DriverUrl, Sample, SequenceGaps
 from drivers.emulators.dk2_stub import Dk2Stub, HeadMotion
 from drivers.fusion import OrientationFusion
 from drivers.protocols.dk2 import (
@@ -41,6 +41,7 @@ from drivers.protocols.dk2 import (
     encode_keep_alive,
 )
 from hmdrt.bus.messages import Pose
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 
 KEEP_ALIVE_MARGIN_NS = 200_000_000

@@ -14,7 +14,8 @@ from __future__ import annotations
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
-from drivers.base import MONOTONIC, Clock, Driver, DriverUrl, Sample
+from drivers.base import Driver, DriverUrl, Sample
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 from replay import load_trace
 from replay.player import Player

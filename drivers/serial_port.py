@@ -20,9 +20,10 @@ from urllib.parse import urlsplit
 
 import serial
 
-from drivers.base import MONOTONIC, Clock, DeviceLost, Driver, DriverUrl, Sample, SequenceGaps
+from drivers.base import DeviceLost, Driver, DriverUrl, Sample, SequenceGaps
 from drivers.protocols import hatire, razor
 from hmdrt.bus.messages import Pose
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 
 MAX_CHUNK = 4096

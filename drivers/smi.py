@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from drivers.base import MONOTONIC, Clock, DeviceLost, Driver, DriverError, DriverUrl, Sample
+from drivers.base import DeviceLost, Driver, DriverError, DriverUrl, Sample
 from drivers.protocols.smi import (
     GAZE_FORMAT,
     MAX_LINE_BYTES,
@@ -36,6 +36,7 @@ from drivers.protocols.smi import (
     parse_line,
 )
 from hmdrt.bus.messages import Gaze
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.spatial import Pose, mean_direction
 

@@ -10,20 +10,31 @@ from pathlib import Path
 from hmdrt.errors import HmdrtError
 
 
-def write_atomic(path: str | Path, data: bytes) -> None:
-    """Write `data` to `path` atomically, creating its folder; a failure is an HmdrtError naming the path."""
+def write_atomic(path: str | Path, data: bytes, mode: int | None = None, replace: bool = True) -> None:
+    """Write `data` to `path` atomically, creating its folder; a failure is an HmdrtError naming the path.
+
+    mode: the file's permission bits, exactly (the umask does not narrow them; the temporary file is 0600 until
+    then). replace=False: never overwrite; FileExistsError when the file is there, checked and created in one
+    step (a hard link of the written temporary file)."""
     path = Path(path)
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
+            if mode is not None:
+                os.fchmod(f.fileno(), mode)
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
-        tmp = None
+        if replace:
+            os.replace(tmp, path)
+            tmp = None
+        else:
+            os.link(tmp, path)
     except OSError as exc:
+        if isinstance(exc, FileExistsError) and exc.filename2 is not None:  # os.link's target, not the folder
+            raise
         raise HmdrtError(f"cannot write {path}: {exc.strerror or exc}") from None
     finally:
         if tmp is not None:

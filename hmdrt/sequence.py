@@ -51,17 +51,6 @@ def compose_pose(start: Pose, relative: PoseSample) -> Pose:
     return Pose(start.position + quat_rotate(start.orientation, relative.position), orientation)
 
 
-def _eye_gaze(sample: Gaze) -> dict[str, np.ndarray]:
-    combined = None if sample.C is None else np.asarray(sample.C, dtype=np.float64)
-    out = {}
-    for eye, v in (("left", sample.L), ("right", sample.R)):
-        g = combined if v is None else np.asarray(v, dtype=np.float64)
-        if g is None:
-            g = np.asarray(sample.R if eye == "left" else sample.L, dtype=np.float64)
-        out[eye] = g / np.linalg.norm(g)
-    return out
-
-
 def from_trace(
     reading: TraceReading, frames: int, period_ns: int, start: Pose
 ) -> tuple[list[FrameInput], SequenceCounts]:
@@ -88,7 +77,8 @@ def from_trace(
         sample = valid_gaze[max(gi, 0)]
         counts.held_frames += all_i >= 0 and not usable(gazes[all_i])
         pose = start if pi < 0 else compose_pose(start, valid_pose[pi])
-        inputs.append(FrameInput(f, t, pose, _eye_gaze(sample), sample.depth_m))
+        left, right = sample.eye_directions()
+        inputs.append(FrameInput(f, t, pose, {"left": np.array(left), "right": np.array(right)}, sample.depth_m))
     return inputs, counts
 
 

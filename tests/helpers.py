@@ -18,6 +18,7 @@ from drivers.base import DeviceLost, Driver, Sample
 from drivers.emulators.base import Emulator
 from drivers.protocols import fove
 from hmdrt.bus.messages import Gaze
+from hmdrt.clock import VirtualClock
 from hmdrt.foveation import FrameRequest, make_method
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.scene import Scene, load_scene
@@ -62,27 +63,11 @@ def trace_gbuffer(scene: Scene, camera: EyeCamera, xy: np.ndarray) -> tuple[np.n
     return rgb, gbuf, stats
 
 
-class VirtualClock:
-    """Time that passes only when the test says so (set `t` or advance()); sleep_until returns at once."""
-
-    def __init__(self, t_ns: int = 0):
-        self.t = t_ns
-
-    def now_ns(self) -> int:
-        return self.t
-
-    def advance(self, dt_ns: int) -> None:
-        self.t += dt_ns
-
-    def sleep_until(self, t_ns: int) -> None:
-        """Returns at once; the time stands still."""
-
-
 class SteppingClock(VirtualClock):
     """A virtual clock whose sleeps return at once with the time moved on: a stub runs faster than real time."""
 
     def sleep_until(self, t_ns: int) -> None:
-        self.t = max(self.t, t_ns)
+        self.advance_to(max(self.now_ns(), t_ns))
 
 
 def wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:

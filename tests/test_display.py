@@ -8,8 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hmdrt.clock import VirtualClock
 from hmdrt.compositor.buffers import BufferPool
-from hmdrt.compositor.clock import VirtualClock, VsyncClock
+from hmdrt.compositor.clock import VsyncClock
 from hmdrt.compositor.display import Display, Frame
 from hmdrt.compositor.pacer import FrameTiming
 from hmdrt.optics import get_profile

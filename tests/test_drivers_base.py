@@ -14,9 +14,8 @@ from drivers.clocksync import ClockSync
 from drivers.host import DriverHost
 from drivers.synthetic import SyntheticDriver
 from hmdrt.bus.messages import Gaze, MalformedMessage, Pose, Status, decode, encode, usable
+from hmdrt.clock import VirtualClock
 from hmdrt.errors import ConfigError
-
-from .helpers import VirtualClock
 
 
 def test_registry_resolves_every_scheme_to_a_driver_class():
@@ -144,10 +143,10 @@ def test_synthetic_driver_follows_a_virtual_clock():
     clock = VirtualClock(1_000_000_000)
     with open_driver("synthetic://?seed=2&rate=100&head=0", clock) as driver:
         first = driver.read(0.1)  # only what is due at the current instant; the clock does not move
-        clock.t += 1_000_000_000
+        clock.advance(1_000_000_000)
         later = driver.read(0.1)
     assert len(first) <= 1 and 99 <= len(later) <= 101
-    assert all(isinstance(s, Gaze) and 1_000_000_000 <= s.t_host <= clock.t for s in first + later)
+    assert all(isinstance(s, Gaze) and 1_000_000_000 <= s.t_host <= clock.now_ns() for s in first + later)
     assert driver.counters.samples == len(first) + len(later) == driver.status().samples
 
 

@@ -63,8 +63,8 @@ def heading_deg(q) -> float:
 
 def run_driver(driver: HidDriver, clock: SteppingClock, seconds: float) -> list[Pose]:
     poses: list[Pose] = []
-    end = clock.t + int(seconds * 1e9)
-    while clock.t < end:
+    end = clock.now_ns() + int(seconds * 1e9)
+    while clock.now_ns() < end:
         poses += driver.read(0.05)
     return poses
 
@@ -215,7 +215,7 @@ def stub_adapter(clock: SteppingClock, **kwargs) -> HidAdapter:
 
 def drain(adapter: HidAdapter, clock: SteppingClock, until_ns: int) -> list[Dk2SensorReport]:
     reports = []
-    while clock.t < until_ns:
+    while clock.now_ns() < until_ns:
         data = adapter.read(DK2_SENSOR_SIZE, 10)
         if data:
             reports.append(decode_dk2_report(data))
@@ -228,7 +228,7 @@ def test_stub_streams_only_under_a_keep_alive_and_resumes_with_one():
     assert drain(adapter, clock, 100_000_000) == []  # no keep-alive yet: silent
 
     adapter.send_feature(encode_keep_alive(KeepAlive(timeout_ms=1000)))
-    sent_at = clock.t
+    sent_at = clock.now_ns()
     first = drain(adapter, clock, sent_at + 1_500_000_000)
     assert 450 <= len(first) <= 501  # 2 ms reports for the keep-alive's one second, then silence
     t_first = [r.timestamp_us for r in first]
@@ -236,10 +236,10 @@ def test_stub_streams_only_under_a_keep_alive_and_resumes_with_one():
     assert all(r.num_samples == 2 and len(r.samples) == 2 for r in first)
     assert [r.sample_count for r in first] == [(first[0].sample_count + 2 * i) % 2**16 for i in range(len(first))]
 
-    clock.t += 1_000_000_000  # nobody reads for a second: still silent, nothing is queued
-    resumed_at = clock.t
+    clock.advance(1_000_000_000)  # nobody reads for a second: still silent, nothing is queued
+    resumed_at = clock.now_ns()
     adapter.send_feature(encode_keep_alive(KeepAlive(timeout_ms=1000)))
-    resumed = drain(adapter, clock, clock.t + 500_000_000)
+    resumed = drain(adapter, clock, clock.now_ns() + 500_000_000)
     assert len(resumed) >= 200
     # the stub's device clock started at 0 with the host clock: the stream resumes at the keep-alive, not before
     assert resumed_at - 2_000_000 <= resumed[0].timestamp_us * 1000 <= resumed_at + 2_000_000
@@ -343,7 +343,7 @@ def test_driver_counts_samples_lost_while_not_reading():
     driver = HidDriver("hid://stub", clock)
     driver.open()
     run_driver(driver, clock, 0.2)
-    clock.t += 1_000_000_000  # the host stalls for a second; the device queues 64 reports and loses the rest
+    clock.advance(1_000_000_000)  # the host stalls for a second; the device queues 64 reports and loses the rest
     poses = run_driver(driver, clock, 0.2)
     lost_reports = 500 - 64
     assert driver.counters.dropped == pytest.approx(2 * lost_reports, abs=4)

@@ -15,11 +15,12 @@ import zmq
 from drivers import open_driver
 from drivers.host import DriverHost
 from hmdrt.bus.messages import Gaze, Pose, Status, encode
+from hmdrt.clock import VirtualClock
 from hmdrt.errors import ConfigError
 from replay.recorder import Recorder
 from replay.trace import read_trace, write_trace
 
-from .helpers import VirtualClock, wait_for
+from .helpers import wait_for
 
 TRACES = Path(__file__).parent / "data" / "traces"
 START_NS = 7_000_000_000  # where the virtual clock stands when the replay opens
@@ -46,7 +47,7 @@ def test_virtual_clock_releases_exactly_the_samples_due(tmp_path, speed):
     released = []
     with open_driver(f"replay://{tmp_path}/t.jsonl?speed={speed:g}", clock) as driver:
         for now in range(START_NS, START_NS + 250_000_000, 3_000_000):
-            clock.t = now
+            clock.advance_to(now)
             got = driver.read(0.1)
             due = [s for s in samples if START_NS + (s.t_host - t0) / speed <= now]
             assert len(released) + len(got) == len(due)
@@ -62,7 +63,7 @@ def test_end_of_trace_returns_nothing_and_reports_ended(tmp_path):
     samples = make_trace(tmp_path / "t.jsonl", count=5)
     clock = VirtualClock(START_NS)
     with open_driver(f"replay://{tmp_path}/t.jsonl", clock) as driver:
-        clock.t += 10**9
+        clock.advance(10**9)
         assert len(driver.read(0.1)) == len(samples)
         assert driver.read(0.1) == [] and driver.read(0.1) == [] and driver.state == "ended"
         assert driver.status().state == "ended"
@@ -79,7 +80,7 @@ def test_loop_continues_with_increasing_times_and_seq(tmp_path):
     lap_ns = round(count * period_ms * 1e6)  # span plus one sample period
     clock = VirtualClock(START_NS)
     with open_driver(f"replay://{tmp_path}/t.jsonl?loop=1", clock) as driver:
-        clock.t += 3 * lap_ns - 1
+        clock.advance(3 * lap_ns - 1)
         out = driver.read(0.1)
     assert len(out) == 3 * len(samples) and driver.state != "ended"
     for kind in (Gaze, Pose):
@@ -96,7 +97,7 @@ def test_skip_seeks_into_the_trace(tmp_path):
     clock = VirtualClock(START_NS)
     with open_driver(f"replay://{tmp_path}/t.jsonl?skip=0.1", clock) as driver:
         first = driver.read(0.1)
-        clock.t += 10**9
+        clock.advance(10**9)
         rest = driver.read(0.1)
     kept = [s for s in samples if s.t_host - t0 >= 100_000_000]
     assert len(first + rest) == len(kept) and first

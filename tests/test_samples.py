@@ -8,7 +8,7 @@ import pytest
 
 from hmdrt.bus.messages import Gaze, Pose, Status
 from hmdrt.compositor import samples
-from hmdrt.compositor.samples import SampleStore, eye_gaze
+from hmdrt.compositor.samples import SampleStore
 from hmdrt.spatial import gaze_direction, mean_direction, quat_conjugate, quat_from_yaw_pitch, quat_multiply
 
 MS = 1_000_000
@@ -249,11 +249,10 @@ def test_malformed_samples_are_counted_and_dropped():
 
 def test_missing_eyes_are_filled_from_the_combined_gaze_or_the_other_eye():
     left, combined = tuple(gaze_direction(-5, 0)), tuple(gaze_direction(2, 0))
-    eyes = eye_gaze(Gaze(seq=0, t_host=0, L=left))
-    np.testing.assert_allclose(eyes["right"], left)
-    eyes = eye_gaze(Gaze(seq=0, t_host=0, L=left, C=combined))
-    np.testing.assert_allclose(eyes["left"], left)
-    np.testing.assert_allclose(eyes["right"], combined)
+    np.testing.assert_allclose(Gaze(seq=0, t_host=0, L=left).eye_directions(), (left, left))
+    np.testing.assert_allclose(Gaze(seq=0, t_host=0, L=left, C=combined).eye_directions(), (left, combined))
+    twice = tuple(2.0 * c for c in combined)  # unit vectors out, whatever length came in
+    np.testing.assert_allclose(Gaze(seq=0, t_host=0, C=twice).eye_directions(), (combined, combined))
 
 
 def test_concurrent_adds_and_lookups_stay_consistent():

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import importlib
 
-from drivers.base import MONOTONIC, Clock
 from drivers.emulators.base import Emulator
 from drivers.emulators.feed import GazeFeed
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 
 # name -> (class, default port, default rate Hz, default capture-to-send latency ms)

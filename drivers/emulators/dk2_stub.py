@@ -20,7 +20,6 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from drivers.base import MONOTONIC, Clock
 from drivers.fusion import GRAVITY
 from drivers.protocols.dk2 import (
     CONFIG_ID,
@@ -42,6 +41,7 @@ from drivers.protocols.dk2 import (
     encode_dk2_report,
 )
 from hmdrt.bus.messages import Pose
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 from hmdrt.spatial import quat_multiply, quat_to_matrix
 from replay import load_trace

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.base import MONOTONIC, Clock
 from hmdrt.bus.messages import Gaze, usable
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 from hmdrt.spatial import gaze_direction
 from replay import load_trace

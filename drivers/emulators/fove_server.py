@@ -18,7 +18,6 @@ import selectors
 import socket
 from dataclasses import dataclass, field
 
-from drivers.base import MONOTONIC, Clock
 from drivers.emulators.base import NetworkEmulator
 from drivers.emulators.feed import FeedSample, GazeFeed
 from drivers.protocols.fove import (
@@ -42,6 +41,7 @@ from drivers.protocols.fove import (
     mirror_vector,
     to_fove_quaternion,
 )
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.spatial import mean_direction, quat_from_yaw_pitch
 from replay.synthetic import SyntheticConfig, SyntheticSource
 

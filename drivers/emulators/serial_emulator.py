@@ -23,10 +23,10 @@ import select
 import tty
 from collections.abc import Iterator
 
-from drivers.base import MONOTONIC, Clock
 from drivers.emulators.base import Emulator
 from drivers.protocols import hatire, razor
 from hmdrt.bus.messages import Pose
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 from replay.synthetic import SyntheticConfig, SyntheticSource
 

@@ -31,7 +31,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.base import MONOTONIC, Clock, DriverError
+from drivers.base import DriverError
 from drivers.emulators.base import Address, NetworkEmulator
 from drivers.emulators.feed import FeedSample, GazeFeed
 from drivers.emulators.smi_fixations import FixationDetector
@@ -49,6 +49,7 @@ from drivers.protocols.smi import (
     int_args,
     parse_line,
 )
+from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.spatial import Pose

@@ -20,6 +20,7 @@ import msgspec
 import numpy as np
 
 from hmdrt.ranges import Finite
+from hmdrt.spatial import unit
 
 SCHEMA_VERSION = 1
 MAX_PAYLOAD_BYTES = 64 * 1024
@@ -44,6 +45,13 @@ class Gaze(_Message, tag="gaze"):
     L: Vec3 | None = None
     R: Vec3 | None = None
     depth_m: Annotated[float, msgspec.Meta(gt=0, le=1e6)] | None = None
+
+    def eye_directions(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """Unit (left, right) gaze of a sample with at least one direction: each eye's own, else the combined
+        one, else the other eye's."""
+        left = next(v for v in (self.L, self.C, self.R) if v is not None)
+        right = next(v for v in (self.R, self.C, self.L) if v is not None)
+        return unit(left), unit(right)
 
 
 class Pose(_Message, tag="pose"):

@@ -25,7 +25,8 @@ import zmq.auth
 from zmq.utils import z85
 from zmq.utils.monitor import recv_monitor_message
 
-from hmdrt.errors import ConfigError
+from hmdrt.atomic import write_atomic
+from hmdrt.errors import ConfigError, HmdrtError
 
 ZAP_ENDPOINT = "inproc://zeromq.zap.01"  # where libzmq asks a context's ZAP handler (RFC 27)
 DOMAIN = b"hmdrt"  # the ZAP domain of the compositor's sockets
@@ -84,33 +85,15 @@ def write_keypair(directory: str | Path, name: str, force: bool = False) -> tupl
     try:
         directory.mkdir(parents=True, exist_ok=True)
         for path, text, mode in ((secret, texts[1], 0o600), (public, texts[0], 0o644)):
-            _write_file(path, text, mode, force)
+            write_atomic(path, text, mode=mode, replace=force)
             written.append(path)
-    except OSError as exc:
-        for path in written:  # no half keypair: a secret without its public file, or an old public beside a new secret
-            path.unlink(missing_ok=True)
+    except (OSError, HmdrtError) as exc:
+        for done in written:  # no half keypair: a secret without its public file, or an old public beside a new secret
+            done.unlink(missing_ok=True)
         if isinstance(exc, FileExistsError):
-            raise ConfigError(f"{exc.filename} exists; pass --force to replace the keypair") from None
-        raise ConfigError(f"cannot write the keypair in {directory}: {exc.strerror}") from None
+            raise ConfigError(f"{path} exists; pass --force to replace the keypair") from None
+        raise ConfigError(f"cannot write the keypair in {directory}: {exc}") from None
     return public, secret
-
-
-def _write_file(path: Path, data: bytes, mode: int, replace: bool) -> None:
-    """Write a file with exactly `mode`; without replace, fail (FileExistsError) rather than overwrite."""
-    if replace:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    else:
-        fd, tmp = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode), None
-    try:
-        with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), mode)  # the umask narrows os.open's mode, and mkstemp's is always 0600
-            f.write(data)
-        if tmp is not None:
-            os.replace(tmp, path)
-    except BaseException:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _load(path: str | Path, what: str) -> tuple[bytes, bytes | None]:

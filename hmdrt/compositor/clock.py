@@ -1,36 +1,8 @@
-"""The compositor's clocks: host time (drivers/base.py's Clock and MonotonicClock, re-exported), simulated
-time for --virtual-time runs, and the display's vsync grid. All times are integer host-monotonic nanoseconds.
-"""
+"""The display's vsync grid; the clocks themselves are hmdrt.clock's. Integer host-monotonic nanoseconds."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-
-from drivers.base import MONOTONIC, Clock, MonotonicClock
-
-__all__ = ["MONOTONIC", "Clock", "MonotonicClock", "VirtualClock", "VsyncClock"]
-
-
-class VirtualClock:
-    """Simulated time that only the compositor moves (Monado tests/time_utils.hpp MockClock).
-
-    sleep_until returns at once and leaves time alone: drivers share this clock and must not move it.
-    """
-
-    def __init__(self, t0_ns: int):
-        self._t_ns = int(t0_ns)
-
-    def now_ns(self) -> int:
-        return self._t_ns
-
-    def sleep_until(self, t_ns: int) -> None:
-        """Return at once; virtual time passes only through advance_to."""
-
-    def advance_to(self, t_ns: int) -> None:
-        """Move time forward to t_ns; ValueError if that is in the past (time never goes back)."""
-        if t_ns < self._t_ns:
-            raise ValueError(f"virtual time never goes back: asked for {t_ns} ns, it is already {self._t_ns} ns")
-        self._t_ns = int(t_ns)
 
 
 @dataclass(frozen=True)

@@ -28,12 +28,12 @@ import numba
 import numpy as np
 import zmq
 
-from drivers.base import MONOTONIC, Clock
 from hmdrt import __version__
 from hmdrt.bus.security import Guard, ServerKeys, check_binds
+from hmdrt.clock import MONOTONIC, Clock, VirtualClock
 from hmdrt.compositor import control
 from hmdrt.compositor.buffers import counts
-from hmdrt.compositor.clock import VirtualClock, VsyncClock
+from hmdrt.compositor.clock import VsyncClock
 from hmdrt.compositor.config import RunConfig, load_config, reload_plan
 from hmdrt.compositor.control import MUTATING
 from hmdrt.compositor.controller import BudgetController, ControllerConfig

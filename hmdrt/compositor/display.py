@@ -20,8 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hmdrt.clock import Clock
 from hmdrt.compositor.buffers import BufferPool
-from hmdrt.compositor.clock import Clock, VsyncClock
+from hmdrt.compositor.clock import VsyncClock
 from hmdrt.compositor.pacer import FrameTiming
 from hmdrt.optics import EyeCamera
 from hmdrt.present.timewarp import timewarp

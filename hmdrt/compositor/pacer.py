@@ -16,7 +16,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from hmdrt.compositor.clock import VirtualClock, VsyncClock
+from hmdrt.clock import VirtualClock
+from hmdrt.compositor.clock import VsyncClock
 
 ALPHA = 0.8  # IIR weight on the old render estimate (u_pacing_app.c, anchors: "IIR alpha 0.8")
 MISS_THRESHOLD_NS = 500_000  # later than this past the desired present is a miss (u_pacing_compositor.c)

@@ -83,12 +83,6 @@ class DeviceCounts:
         return self.duplicates + self.too_old + self.ahead + self.malformed
 
 
-def eye_gaze(sample: Gaze) -> dict[str, np.ndarray]:
-    """Each eye's unit gaze of a usable sample: its own direction, else the combined one, else the other eye's."""
-    left, right = _eye_directions(sample)
-    return {"left": np.array(left), "right": np.array(right)}
-
-
 class _Entry(NamedTuple):
     received_ns: int
     ok: bool  # usable()
@@ -393,7 +387,7 @@ def _admit(sample: Gaze | Pose, received_ns: int) -> tuple[str, int, bool, tuple
         return None
     if not (sample.valid and usable(sample)):
         return kind, t_host, False, None
-    return kind, t_host, True, _eye_directions(sample) if kind == "gaze" else unit(sample.orientation)
+    return kind, t_host, True, sample.eye_directions() if kind == "gaze" else unit(sample.orientation)
 
 
 def _same(a: list[_Entry], b: list[_Entry]) -> bool:
@@ -436,13 +430,6 @@ def _well_formed(sample: Gaze | Pose) -> bool:
         if sample.depth_m is not None and not math.isfinite(sample.depth_m):
             return False
     return all(v is None or (len(v) == n and all(map(math.isfinite, v))) for v, n in vectors)
-
-
-def _eye_directions(sample: Gaze) -> tuple[Vec, Vec]:
-    """Unit (left, right) gaze: each eye's own direction, else the combined one, else the other eye's."""
-    left = next(v for v in (sample.L, sample.C, sample.R) if v is not None)
-    right = next(v for v in (sample.R, sample.C, sample.L) if v is not None)
-    return unit(left), unit(right)
 
 
 # Small-vector arithmetic on tuples: for 3- and 4-vectors plain Python is several times faster than numpy.

@@ -13,9 +13,10 @@ import time
 from collections.abc import Callable
 
 from drivers import open_driver
-from drivers.base import Clock, DeviceLost, Driver
+from drivers.base import DeviceLost, Driver
 from drivers.host import DriverHost
 from hmdrt.bus.security import ClientKeys
+from hmdrt.clock import Clock
 
 MAX_READS = 64  # batches per driver per poll (a read returns at most a few thousand samples)
 

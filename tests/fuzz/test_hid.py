@@ -8,11 +8,11 @@ from hypothesis import strategies as st
 
 from drivers.hid import HidDriver
 from drivers.protocols import dk2
+from hmdrt.clock import VirtualClock
 from tests.fuzz.common import (
     fuzz,
     publishable,
 )
-from tests.helpers import VirtualClock
 
 DK2_DECODERS = [dk2.decode_dk2_report, dk2.decode_dk1_report, dk2.decode_keep_alive, dk2.decode_config]
 DK2_IDS = [dk2.DK2_SENSOR_ID, dk2.DK1_SENSOR_ID, dk2.KEEP_ALIVE_ID, dk2.CONFIG_ID]

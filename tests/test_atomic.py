@@ -1,0 +1,27 @@
+"""Files written whole or not at all (hmdrt.atomic): exact modes, and never overwriting when asked not to."""
+
+import stat
+
+import pytest
+
+from hmdrt.atomic import write_atomic
+from hmdrt.errors import HmdrtError
+
+
+def test_a_file_gets_exactly_its_mode_and_is_not_overwritten_unless_asked(tmp_path):
+    path = tmp_path / "deep" / "name.key_secret"
+    write_atomic(path, b"first", mode=0o600, replace=False)
+    assert path.read_bytes() == b"first" and stat.S_IMODE(path.stat().st_mode) == 0o600
+    with pytest.raises(FileExistsError):
+        write_atomic(path, b"second", mode=0o600, replace=False)
+    assert path.read_bytes() == b"first"
+    write_atomic(path, b"third", mode=0o644)
+    assert path.read_bytes() == b"third" and stat.S_IMODE(path.stat().st_mode) == 0o644
+    assert sorted(p.name for p in path.parent.iterdir()) == ["name.key_secret"]  # no temporary file left
+
+
+def test_a_folder_that_cannot_be_written_is_an_error_naming_the_path(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_bytes(b"")
+    with pytest.raises(HmdrtError, match=f"cannot write {blocker}/x"):
+        write_atomic(blocker / "x", b"data")
