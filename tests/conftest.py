@@ -1,10 +1,59 @@
-"""Shared fixtures."""
+"""Shared fixtures, after pyzmq's test base: a fresh ZeroMQ context per test whose sockets are tracked and closed
+with linger 0 (free loopback ports: tests/helpers.free_port), and a per-test time limit so that a hung socket
+fails its test rather than hanging the run."""
+
+from __future__ import annotations
+
+import signal
+from collections.abc import Callable, Iterator
 
 import pytest
+import zmq
 
 from hmdrt.scene import Scene, load_scene
+
+TEST_TIMEOUT_S = 300  # the slowest default test takes ~15 s on a cold cache; the soak (-m slow) ~100 s
 
 
 @pytest.fixture(scope="session")
 def whitted_scene() -> Scene:
     return load_scene("whitted")
+
+
+@pytest.fixture
+def context() -> Iterator[zmq.Context]:
+    """A ZeroMQ context of this test's own (each has room for its own ZAP handler), destroyed with linger 0."""
+    ctx = zmq.Context()
+    yield ctx
+    ctx.destroy(linger=0)
+
+
+@pytest.fixture
+def sockets(context: zmq.Context) -> Callable[[int], zmq.Socket]:
+    """sockets(kind): a socket on the test's context with linger 0, closed when the test ends."""
+
+    def make(kind: int) -> zmq.Socket:
+        sock = context.socket(kind)
+        sock.setsockopt(zmq.LINGER, 0)
+        return sock
+
+    return make
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item: pytest.Item):
+    """Fail a test that runs longer than TEST_TIMEOUT_S (SIGALRM in the main thread, where pytest runs tests)."""
+    if not hasattr(signal, "SIGALRM"):
+        yield
+        return
+
+    def expired(signum, frame):
+        pytest.fail(f"{item.nodeid} ran longer than {TEST_TIMEOUT_S} s", pytrace=False)
+
+    previous = signal.signal(signal.SIGALRM, expired)
+    signal.alarm(TEST_TIMEOUT_S)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)

@@ -70,6 +70,13 @@ class SteppingClock(VirtualClock):
         self.advance_to(max(self.now_ns(), t_ns))
 
 
+def free_port() -> int:
+    """A loopback TCP port nobody listens on now (for URLs handed to other processes)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
     """Poll condition() until it holds or timeout_s passes; whether it holds."""
     deadline = time.monotonic() + timeout_s

@@ -21,16 +21,7 @@ def hmdrt(*args, cwd=None):
 def test_render_writes_png_and_stats_with_the_design_keys(tmp_path):
     out, stats = tmp_path / "w.png", tmp_path / "w.json"
     r = hmdrt(
-        "render",
-        "--scene",
-        "whitted",
-        "--profile",
-        "sim-cpu",
-        "--method",
-        "full",
-        "--resolution",
-        "64x48",
-        "--out",
+        *"render --scene whitted --profile sim-cpu --method full --resolution 64x48 --out".split(),
         str(out),
         "--stats",
         str(stats),
@@ -52,19 +43,7 @@ def test_render_writes_png_and_stats_with_the_design_keys(tmp_path):
 def test_regular_takes_spp_and_both_eyes_go_side_by_side(tmp_path):
     out, stats = tmp_path / "r.png", tmp_path / "r.json"
     r = hmdrt(
-        "render",
-        "--scene",
-        "whitted",
-        "--profile",
-        "sim-cpu",
-        "--method",
-        "regular",
-        "--spp",
-        "4",
-        "--resolution",
-        "24x20",
-        "--eye",
-        "both",
+        *"render --scene whitted --profile sim-cpu --method regular --spp 4 --resolution 24x20 --eye both".split(),
         "--out",
         str(out),
         "--stats",

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -16,13 +15,7 @@ from hmdrt.bus.messages import Gaze, Pose
 from replay import load_trace
 from replay.recorder import Recorder
 
-from .helpers import wait_for
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from .helpers import free_port, wait_for
 
 
 def start(*args: str) -> subprocess.Popen:

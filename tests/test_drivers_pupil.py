@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import time
 
 import msgpack
@@ -16,7 +15,7 @@ from drivers.emulators.pupil_server import PupilEmulator
 from drivers.pupil import MalformedDatum, PupilDriver, decode_gaze
 from hmdrt.spatial import gaze_direction
 
-from .helpers import SECTION7_GAZE, assert_lost_when_stopped, at_least, collect, gaze_trace
+from .helpers import SECTION7_GAZE, assert_lost_when_stopped, at_least, collect, free_port, gaze_trace
 
 STILL_YAW, STILL_PITCH, STILL_DEPTH = 8.0, -4.0, 0.8
 
@@ -236,13 +235,12 @@ def test_blinks_have_zero_confidence_and_are_invalid(tmp_path):
     assert all("gaze_point_3d" not in d for d in datums if d["confidence"] == 0.0)
 
 
-def test_relayed_datums_and_malformed_messages(tmp_path):
+def test_relayed_datums_and_malformed_messages(tmp_path, sockets):
     """Messages published to PUB_PORT reach the driver through the backbone, malformed ones are counted."""
     with PupilEmulator(feed=GazeFeed(20.0, trace=still_trace(tmp_path / "still.jsonl"))) as emulator:
         driver = PupilDriver(driver_url(emulator))
         driver.open()
-        pub = zmq.Context.instance().socket(zmq.PUB)
-        pub.setsockopt(zmq.LINGER, 0)
+        pub = sockets(zmq.PUB)
         pub.connect(f"tcp://127.0.0.1:{emulator.pub_port}")
         try:
             target = round(SECTION7_GAZE["timestamp"] * 1e9)
@@ -260,9 +258,8 @@ def test_relayed_datums_and_malformed_messages(tmp_path):
             driver.close()
 
 
-def test_device_lost_when_pupil_remote_does_not_answer():
-    mute = zmq.Context.instance().socket(zmq.REP)  # bound, never answers
-    mute.setsockopt(zmq.LINGER, 0)
+def test_device_lost_when_pupil_remote_does_not_answer(sockets):
+    mute = sockets(zmq.REP)  # bound, never answers
     port = mute.bind_to_random_port("tcp://127.0.0.1")
     try:
         driver = PupilDriver(f"pupil://127.0.0.1:{port}?timeout=0.3")
@@ -272,11 +269,8 @@ def test_device_lost_when_pupil_remote_does_not_answer():
         assert time.monotonic() - started < 3.0
     finally:
         mute.close()
-    with socket.socket() as probe:  # a port nobody listens on
-        probe.bind(("127.0.0.1", 0))
-        free = probe.getsockname()[1]
-    with pytest.raises(DeviceLost):
-        PupilDriver(f"pupil://127.0.0.1:{free}?timeout=0.3").open()
+    with pytest.raises(DeviceLost):  # a port nobody listens on
+        PupilDriver(f"pupil://127.0.0.1:{free_port()}?timeout=0.3").open()
 
 
 def test_device_lost_when_the_emulator_stops():

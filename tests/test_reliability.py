@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -25,17 +24,10 @@ from hmdrt.compositor.samples import MAX_DEVICES
 from hmdrt.errors import ConfigError
 from replay import load_trace
 
-from .helpers import wait_for
+from .helpers import free_port, wait_for
 from .test_runtime import TRACE, Background, compositor, readline, start_run, write_config
 
 MS = 1_000_000
-
-
-@pytest.fixture
-def context():
-    ctx = zmq.Context()
-    yield ctx
-    ctx.destroy(linger=0)
 
 
 def test_an_outage_starts_after_stale_ms_widens_the_fovea_then_falls_back_to_the_centre_and_ends_on_a_sample():
@@ -133,12 +125,6 @@ def test_the_driver_host_restarts_a_crashing_driver_with_growing_backoff(context
     assert host.driver.counters.crashes == 3 and not thread.is_alive()
     gaps = [b - a for a, b in zip(opened, opened[1:4], strict=False)]
     assert gaps[0] >= 0.05 and gaps[1] >= 0.1 and gaps[2] >= 0.2  # 0.05, 0.1, then the 0.2 s ceiling
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_a_recording_killed_mid_stream_replays_up_to_its_last_complete_line(tmp_path, context):

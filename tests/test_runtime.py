@@ -118,13 +118,6 @@ class Recording(Compositor):
 
 
 @pytest.fixture
-def context():
-    ctx = zmq.Context()
-    yield ctx
-    ctx.destroy(linger=0)
-
-
-@pytest.fixture
 def own_signals():
     """`hmdrt run` in this process installs its SIGINT, SIGTERM and SIGHUP handlers: put pytest's back after."""
     saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}

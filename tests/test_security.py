@@ -27,7 +27,6 @@ from hmdrt.errors import ConfigError
 from . import test_runtime as runtime
 from .helpers import wait_for
 
-context = runtime.context  # a fresh ZeroMQ context per test: each has room for its own ZAP handler
 own_signals = runtime.own_signals
 ANY_PORT = runtime.ANY_PORT
 NO_ANSWER_S = 0.5  # how long a refused client waits for the answer that never comes

@@ -107,16 +107,7 @@ def test_sequence_command_writes_frames_and_per_frame_stats(tmp_path, capsys):
     out = tmp_path / "seq"
     code = main(
         [
-            "render",
-            "--scene",
-            "whitted",
-            "--profile",
-            "sim-cpu",
-            "--method",
-            "weier16?frc=small",
-            "--resolution",
-            "48x54",
-            "--trace",
+            *"render --scene whitted --profile sim-cpu --method weier16?frc=small --resolution 48x54 --trace".split(),
             str(trace),
             "--frames",
             "5",
@@ -143,16 +134,7 @@ def test_builtin_trace_and_frames_default_from_the_trace(tmp_path):
     assert (
         main(
             [
-                "render",
-                "--scene",
-                "voxel_city?size=4",
-                "--profile",
-                "sim-cpu",
-                "--method",
-                "rrm",
-                "--resolution",
-                "32x36",
-                "--trace",
+                *"render --scene voxel_city?size=4 --profile sim-cpu --method rrm --resolution 32x36 --trace".split(),
                 str(trace),
                 "--out",
                 str(tmp_path / "a"),
@@ -164,20 +146,8 @@ def test_builtin_trace_and_frames_default_from_the_trace(tmp_path):
     assert (
         main(
             [
-                "render",
-                "--scene",
-                "voxel_city?size=4",
-                "--profile",
-                "sim-cpu",
-                "--method",
-                "rrm",
-                "--resolution",
-                "32x36",
-                "--trace",
-                "builtin",
-                "--frames",
-                "3",
-                "--out",
+                *"render --scene voxel_city?size=4 --profile sim-cpu --method rrm --resolution 32x36".split(),
+                *"--trace builtin --frames 3 --out".split(),
                 str(tmp_path / "b"),
             ]
         )
