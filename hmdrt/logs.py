@@ -40,6 +40,7 @@ class TelemetryHandler(logging.Handler):
         super().__init__(level)
         self._publish = publish
         self.dropped = 0  # records that could not be published (the socket closing under them)
+        self._levels: dict[str, int] = {}  # the packages' logger levels before attach, restored by detach
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
@@ -52,9 +53,13 @@ class TelemetryHandler(logging.Handler):
         for name in PACKAGES:
             logger = logging.getLogger(name)
             logger.addHandler(self)
+            self._levels[name] = logger.level
             if logger.getEffectiveLevel() > self.level:
                 logger.setLevel(self.level)
 
     def detach(self) -> None:
-        for name in PACKAGES:
-            logging.getLogger(name).removeHandler(self)
+        for name, level in self._levels.items():
+            logger = logging.getLogger(name)
+            logger.removeHandler(self)
+            logger.setLevel(level)
+        self._levels.clear()

@@ -39,7 +39,8 @@ def _set(comp: Compositor, request: dict) -> dict:
     """A new method ("method": "name?key=value") and/or new parameters ("params": {key: value}) over the method as
     it renders now; a bad name or value is answered now, not failed on later."""
     spec, params = request.get("method"), request.get("params", {})
-    if not (isinstance(spec, str) or spec is None) or not isinstance(params, dict) or (spec is None and not params):
+    bad_params = not isinstance(params, dict) or not all(isinstance(k, str) for k in params)
+    if not (isinstance(spec, str) or spec is None) or bad_params or (spec is None and not params):
         return {"ok": False, "error": 'set takes "method": "name?key=value" and/or "params": {key: value}'}
     choice = comp.session.current() if spec is None else MethodChoice.parse(spec)
     if params:

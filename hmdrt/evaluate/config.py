@@ -76,7 +76,7 @@ class MethodSweep(_Table):
         out = []
         for combo in combos:
             swept = dict(zip(keys, combo, strict=True))
-            choice = MethodChoice.parse(self.name, **self.options, **swept)
+            choice = MethodChoice.parse(self.name, **{**self.options, **swept})  # a swept key overrides its option
             label = " ".join([self.label, *(f"{k}={v}" for k, v in swept.items())]) if self.label else str(choice)
             out.append((choice, label))
         return out
