@@ -41,23 +41,113 @@ def copy_rate(width: int, height: int, repeats: int = 15) -> float:
     return 2 * src.nbytes / statistics.median(times)
 
 
-def bare_embree_rate(scene: Scene, camera: EyeCamera, threads: int, repeats: int = 5) -> float:
-    """Rays per second of bare embreex on the camera's primary rays, split in equal parts over `threads`."""
-    geometry = pack(scene).geometry
-    bare = rtcore_scene.EmbreeScene()
-    TriangleMesh(bare, geometry.vertices, geometry.faces)
-    dirs = camera.directions(pixel_centres(camera.width, camera.height))
-    origins = np.empty_like(dirs)
-    origins[:] = camera.position
-    bare.run(origins[:1], dirs[:1])  # commit the BVH outside the timing
-    parts = [slice(p[0], p[-1] + 1) for p in np.array_split(np.arange(len(dirs)), threads)]
+def _timed_rate(bare, origins, dirs, threads: int, repeats: int, dists=None, query: str = "INTERSECT") -> float:
+    """Rays per second of bare embreex on these rays, split in equal parts over `threads`."""
+    if len(dirs) == 0:
+        return float("nan")
+    parts = [slice(p[0], p[-1] + 1) for p in np.array_split(np.arange(len(dirs)), threads) if len(p)]
     times = []
     with ThreadPoolExecutor(threads) as pool:
         for _ in range(repeats):
             t = time.perf_counter()
-            list(pool.map(lambda s: bare.run(origins[s], dirs[s], output=1), parts))
+            if query == "INTERSECT":
+                list(pool.map(lambda s: bare.run(origins[s], dirs[s], output=1), parts))
+            else:
+                list(pool.map(lambda s: bare.run(origins[s], dirs[s], dists[s], query=query), parts))
             times.append(time.perf_counter() - t)
     return len(dirs) / statistics.median(times)
+
+
+def _embree(scene: Scene):
+    packed = pack(scene)
+    bare = rtcore_scene.EmbreeScene()
+    TriangleMesh(bare, packed.geometry.vertices, packed.geometry.faces)
+    return packed, bare
+
+
+def _primary_rays(camera: EyeCamera) -> tuple[np.ndarray, np.ndarray]:
+    dirs = camera.directions(pixel_centres(camera.width, camera.height))
+    origins = np.empty_like(dirs)
+    origins[:] = camera.position
+    return origins, dirs
+
+
+def bare_embree_rate(scene: Scene, camera: EyeCamera, threads: int, repeats: int = 5) -> float:
+    """Rays per second of bare embreex on the camera's primary rays, split in equal parts over `threads`."""
+    _, bare = _embree(scene)
+    origins, dirs = _primary_rays(camera)
+    bare.run(origins[:1], dirs[:1])  # commit the BVH outside the timing
+    return _timed_rate(bare, origins, dirs, threads, repeats)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
+def bare_kind_rates(scene: Scene, camera: EyeCamera, threads: int, repeats: int = 3) -> dict[str, float]:
+    """Bare embreex's rays per second on each kind of ray the tracer casts (meter.RAY_KINDS), built from this
+    view: primary (the camera's rays), secondary (the mirror reflections and refractions at the first hits on
+    reflective or transmissive surfaces), shadow (each first hit to each point light), area (to a random point
+    of each area light) and ao (cosine-distributed within the scene's ao_distance); occlusion queries for the
+    last three. A kind the view has none of is nan. The floor of a method's frame is its rays of each kind at
+    these rates: what the scene's rays cost before any of our own work."""
+    packed, bare = _embree(scene)
+    origins, dirs = _primary_rays(camera)
+    bare.run(origins[:1], dirs[:1])
+    rates = {"primary": _timed_rate(bare, origins, dirs, threads, repeats)}
+    first = bare.run(origins, dirs, output=1)
+    hit = first["primID"] >= 0
+    prim, t = first["primID"][hit], first["tfar"][hit]
+    geo, mats, lights = packed.geometry, packed.materials, packed.lights
+    normal = geo.face_normals[prim].astype(np.float64)
+    d = dirs[hit].astype(np.float64)
+    normal[(normal * d).sum(1) > 0] *= -1  # facing the ray
+    point = origins[hit] + d * t[:, None]
+    eps = 1e-4 * np.maximum(1.0, np.abs(point).max(axis=1, keepdims=True))
+    above = (point + normal * eps).astype(np.float32)
+    material = geo.object_material[geo.tri_object[prim]]
+    cos_i = -(d * normal).sum(1, keepdims=True)
+    reflective = mats.reflectance[material] > 0
+    transmissive = mats.transmittance[material] > 0
+    eta = 1.0 / mats.ior[material][:, None]
+    k = 1.0 - eta**2 * (1.0 - cos_i**2)
+    refracts = transmissive & (k[:, 0] > 0)
+    refracted = eta * d + (eta * cos_i - np.sqrt(np.maximum(k, 0.0))) * normal
+    sec_o = np.concatenate([above[reflective], (point - normal * eps).astype(np.float32)[refracts]])
+    sec_d = np.concatenate([_unit((d + 2 * cos_i * normal)[reflective]), _unit(refracted[refracts])])
+    rates["secondary"] = _timed_rate(bare, sec_o, sec_d, threads, repeats)
+    rng = np.random.default_rng(0)
+
+    def occluded_rate(targets: list[np.ndarray]) -> float:
+        if not targets:
+            return float("nan")
+        to = np.concatenate([target - point for target in targets])
+        dist = np.linalg.norm(to, axis=1)
+        o = np.concatenate([above] * len(targets))
+        return _timed_rate(bare, o, _unit(to), threads, repeats, (dist * 0.999).astype(np.float32), "OCCLUDED")
+
+    rates["shadow"] = occluded_rate([np.broadcast_to(p, point.shape) for p in lights.point_position])
+    corners = [
+        c + rng.random((len(point), 1)) * u + rng.random((len(point), 1)) * v
+        for c, u, v in zip(lights.area_corner, lights.area_u, lights.area_v, strict=True)
+    ]
+    rates["area"] = occluded_rate(corners)
+    if scene.ao_samples:
+        tangent = _unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
+        bitangent = np.cross(normal, tangent)
+        u1, u2 = rng.random((2, len(point), 1))
+        r, phi = np.sqrt(u1), 2 * np.pi * u2
+        ao_dir = _unit(r * np.cos(phi) * tangent + r * np.sin(phi) * bitangent + np.sqrt(1 - u1) * normal)
+        far = np.full(len(point), scene.ao_distance, np.float32)
+        rates["ao"] = _timed_rate(bare, above, ao_dir, threads, repeats, far, "OCCLUDED")
+    else:
+        rates["ao"] = float("nan")
+    return rates
+
+
+def floor_ms(rays: dict[str, float], rates: dict[str, float]) -> float:
+    """The bare-embreex time of a frame's rays by kind at `rates` (bare_kind_rates)."""
+    return sum(n / rates[kind] * 1e3 for kind, n in rays.items() if n)
 
 
 def left_eye_requests(

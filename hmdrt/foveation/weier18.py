@@ -36,7 +36,7 @@ from hmdrt.foveation.stages.dof import (
     horizontal_pass,
     lens,
 )
-from hmdrt.foveation.stages.filters import Contrast, contrast_levels
+from hmdrt.foveation.stages.filters import Contrast, contrast_levels, prefilter
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push, quincunx_rgbd
 from hmdrt.foveation.stages.sampling import (
     FOVEAL_REGION_KNOBS,
@@ -157,6 +157,7 @@ class _EyeState:
     samples: SampleSet = field(default_factory=SampleSet)
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the samples' random-stream keys
     levels: np.ndarray | None = None  # contrast enhancement's blur level per pixel
+    blurred: Pyramid | None = None  # contrast enhancement's prefiltered pyramid
     levels_for: tuple | None = None  # the (gaze, r0) they were computed for
     layers: Layers | None = None  # the depth of field's buffers
 
@@ -216,7 +217,7 @@ class Weier18(Configurable):
         state.samples.update((view, state.tables_for), ecc, self.foveal, state.tables, por)
         if state.levels_for != (view, self.params.r0):
             if state.levels is None or state.levels.shape[:2] != ecc.shape:
-                state.levels = np.empty((*ecc.shape, 2), np.float32)
+                state.levels = np.empty(ecc.shape, np.float32)
             contrast_levels(ecc, self.params.r0, state.levels)
             state.levels_for = (view, self.params.r0)
         n = state.samples.count
@@ -240,7 +241,12 @@ class Weier18(Configurable):
             if out is None:
                 out = np.empty((cam.height, cam.width, 3), np.float32)
             color = current.level(0)[..., :3]
-            combine(color, ecc, layers, blur, current, Contrast(p.contrast, p.r0, p.r1, state.levels), out)
+            if state.blurred is None or state.blurred.data.shape != current.data.shape:
+                state.blurred = Pyramid.empty(cam.width, cam.height)
+            if p.contrast:
+                prefilter(current, state.blurred)
+            contrast = Contrast(p.contrast, p.r0, p.r1, state.levels)
+            combine(color, ecc, layers, blur, current, contrast, state.blurred, out)
         state.camera = request.camera
         stats.metrics["sample_fraction"] = state.samples.count / (cam.width * cam.height)
         return out

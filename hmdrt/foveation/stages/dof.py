@@ -299,21 +299,21 @@ def _dof_pixel(color, ecc, layers, blur, pyramid, y, x):
 
 
 @serial
-def _combine_row(color, ecc, layers, blur, pyramid, contrast, dof, y, out):
+def _combine_row(color, ecc, layers, blur, pyramid, contrast, blurred, dof, y, out):
     for x in range(out.shape[1]):
         if dof:
             r, g, b = _dof_pixel(color, ecc, layers, blur, pyramid, y, x)
         else:
             r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
         if contrast.strength != 0.0:
-            r, g, b = enhance(r, g, b, ecc[y, x], x, y, contrast, pyramid)
+            r, g, b = enhance(r, g, b, ecc[y, x], x, y, contrast, blurred)
         out[y, x, 0], out[y, x, 1], out[y, x, 2] = r, g, b
 
 
 @kernel
-def _combine(color, ecc, layers, blur, pyramid, contrast, dof, out):
+def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, dof, out):
     for y in nb.prange(out.shape[0]):
-        _combine_row(color, ecc, layers, blur, pyramid, contrast, dof, y, out)
+        _combine_row(color, ecc, layers, blur, pyramid, contrast, blurred, dof, y, out)
 
 
 def horizontal_pass(color: np.ndarray, ecc: np.ndarray, layers: Layers, blur: Blur) -> None:
@@ -328,12 +328,15 @@ def combine(
     blur: Blur,
     pyramid: Pyramid,
     contrast: Contrast,
+    blurred: Pyramid,
     out: np.ndarray,
 ) -> np.ndarray:
     """weier2018's DoF Combine in one pass over the image, into out: the second pass of the layered blur
     and its combination with the sharp image when layers are given (after horizontal_pass), then the
-    contrast enhancement (filters.enhance; strength 0: none)."""
-    _combine(color, ecc, _NO_LAYERS if layers is None else layers, blur, pyramid, contrast, layers is not None, out)
+    contrast enhancement (filters.enhance, from `blurred`, the pyramid prefiltered by filters.prefilter;
+    strength 0: none)."""
+    no_layers = layers is None
+    _combine(color, ecc, _NO_LAYERS if no_layers else layers, blur, pyramid, contrast, blurred, not no_layers, out)
     return out
 
 
@@ -350,8 +353,8 @@ def layered_blur(
     _coc_stats(layers.coc, layers.rows)
     blur = Blur(r0, r1, ramp, layers.near_radius())
     horizontal_pass(color, ecc, layers, blur)
-    no_contrast = Contrast(0.0, r0, r1, np.zeros((0, 0, 2), np.float32))
-    return combine(color, ecc, layers, blur, pyramid, no_contrast, np.empty_like(color))
+    no_contrast = Contrast(0.0, r0, r1, np.zeros((0, 0), np.float32))
+    return combine(color, ecc, layers, blur, pyramid, no_contrast, pyramid, np.empty_like(color))
 
 
 def gaze_depth(

@@ -56,13 +56,12 @@ def _weight(data, i, mask):
 @serial
 def _axis(f, n):
     """The two texels either side of continuous texel coordinate f (centres at k + 0.5), clamped to [0, n),
-    and the weight of the second."""
+    as unsigned indices (numba adds no negative-index wraparound to their loads), and the weight of the second
+    in float32."""
     g = f - 0.5
     k = math.floor(g)
     i = int(k)
-    if i < 0 or i + 1 >= n:
-        return min(max(i, 0), n - 1), min(max(i + 1, 0), n - 1), g - k
-    return i, i + 1, g - k
+    return np.uint64(min(max(i, 0), n - 1)), np.uint64(min(max(i + 1, 0), n - 1)), np.float32(g - k)
 
 
 @serial
@@ -71,15 +70,14 @@ def _bilinear(data, o, w, ax, ay):
     pyramid's float32."""
     i0, i1, a = ax
     j0, j1, b = ay
-    a, b = np.float32(a), np.float32(b)
     p, q = np.float32(1.0) - a, np.float32(1.0) - b
-    w00, w01, w10, w11 = p * q, a * q, p * b, a * b
-    k00, k01, k10, k11 = o + j0 * w + i0, o + j0 * w + i1, o + j1 * w + i0, o + j1 * w + i1
+    top, bottom = np.uint64(o) + j0 * np.uint64(w), np.uint64(o) + j1 * np.uint64(w)
+    k00, k01, k10, k11 = top + i0, top + i1, bottom + i0, bottom + i1
     return (
-        w00 * data[k00, 0] + w01 * data[k01, 0] + w10 * data[k10, 0] + w11 * data[k11, 0],
-        w00 * data[k00, 1] + w01 * data[k01, 1] + w10 * data[k10, 1] + w11 * data[k11, 1],
-        w00 * data[k00, 2] + w01 * data[k01, 2] + w10 * data[k10, 2] + w11 * data[k11, 2],
-        w00 * data[k00, 4] + w01 * data[k01, 4] + w10 * data[k10, 4] + w11 * data[k11, 4],
+        q * (p * data[k00, 0] + a * data[k01, 0]) + b * (p * data[k10, 0] + a * data[k11, 0]),
+        q * (p * data[k00, 1] + a * data[k01, 1]) + b * (p * data[k10, 1] + a * data[k11, 1]),
+        q * (p * data[k00, 2] + a * data[k01, 2]) + b * (p * data[k10, 2] + a * data[k11, 2]),
+        q * (p * data[k00, 4] + a * data[k01, 4]) + b * (p * data[k10, 4] + a * data[k11, 4]),
     )
 
 
@@ -208,14 +206,3 @@ def quincunx_rgbd(pyramid, level, off, x, y):
 def quincunx_offset(level):
     """The diagonal offset of the quincunx taps on `level`, in full-resolution pixels: half a texel there."""
     return 0.5 * 2.0 ** max(level, 0.0)
-
-
-@inline
-def quincunx_mean(pyramid, level, off, x, y):
-    """The mean colour of the five taps of quincunx_rgbd."""
-    a, b, c, d, e = quincunx_rgbd(pyramid, level, off, x, y)
-    return (
-        0.2 * (a[0] + b[0] + c[0] + d[0] + e[0]),
-        0.2 * (a[1] + b[1] + c[1] + d[1] + e[1]),
-        0.2 * (a[2] + b[2] + c[2] + d[2] + e[2]),
-    )
