@@ -472,28 +472,30 @@ def _subpixel_samples(width, sub_mask, samples, first, seed_key, xy, keys):
 
 
 @serial
+def _mean3(rows, start, count):
+    """The mean of rows [start, start + count) of an (n, 3) array."""
+    r = g = b = 0.0
+    for j in range(start, start + count):
+        r, g, b = r + rows[j, 0], g + rows[j, 1], b + rows[j, 2]
+    return r / count, g / count, b / count
+
+
+@serial
 def _resolve_row(y, image, sub_mask, samples, first, extra, out):
     width = image.shape[1]
     j = first[y]
-    for x in range(width):
-        i = y * width + x
-        m = sub_mask[i]
-        if m == 0:
+    for i in range(y * width, (y + 1) * width):
+        if sub_mask[i] == 0:
             continue
-        k = np.int64(samples[i])
+        x, k = i - y * width, np.int64(samples[i])
         r = g = b = 0.0
         for s in range(4):
-            if (m >> s) & 1:
-                sr = sg = sb = 0.0
-                for _ in range(k):
-                    sr += extra[j, 0]
-                    sg += extra[j, 1]
-                    sb += extra[j, 2]
-                    j += 1
-                r, g, b = r + sr / k, g + sg / k, b + sb / k
+            if (sub_mask[i] >> s) & 1:
+                cr, cg, cb = _mean3(extra, j, k)
+                j += k
             else:
                 cr, cg, cb = bilinear3(image, x + 0.25 + 0.5 * (s & 1), y + 0.25 + 0.5 * (s >> 1))
-                r, g, b = r + cr, g + cg, b + cb
+            r, g, b = r + cr, g + cg, b + cb
         out[i, 0], out[i, 1], out[i, 2] = 0.25 * r, 0.25 * g, 0.25 * b
 
 

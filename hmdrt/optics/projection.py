@@ -34,12 +34,34 @@ def camera_arrays(camera: EyeCamera, width: int | None = None, height: int | Non
     return CameraArrays(np.asarray(camera.position, np.float64), np.asarray(camera.rotation, np.float64), frustum)
 
 
+@serial
+def _tangents(f, x, y):
+    """The view ray's tangents (x right, y up) through continuous pixel (x, y) of frustum f."""
+    return f[0] + x * (f[1] - f[0]) / f[4], f[2] - y * (f[2] - f[3]) / f[5]
+
+
+@serial
+def _pixel(f, tx, ty):
+    """Continuous pixel coordinates of the view ray with tangents (tx, ty) in frustum f."""
+    return (tx - f[0]) / (f[1] - f[0]) * f[4], (f[2] - ty) / (f[2] - f[3]) * f[5]
+
+
+@inline
+def _to_eye(cam, px, py, pz):
+    """World point p in the camera's eye frame (x right, y up, looking along -z)."""
+    dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
+    r = cam.rotation
+    return (
+        r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz,
+        r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz,
+        r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz,
+    )
+
+
 @inline
 def ray_direction(cam, x, y):
     """World unit direction of the view ray through continuous pixel (x, y)."""
-    f = cam.frustum
-    tx = f[0] + x * (f[1] - f[0]) / f[4]
-    ty = f[2] - y * (f[2] - f[3]) / f[5]
+    tx, ty = _tangents(cam.frustum, x, y)
     inv = 1.0 / math.sqrt(tx * tx + ty * ty + 1.0)
     r = cam.rotation
     ex, ey, ez = tx * inv, ty * inv, -inv
@@ -53,17 +75,11 @@ def ray_direction(cam, x, y):
 @inline
 def project(cam, px, py, pz):
     """Continuous pixel coordinates and distance from the camera of world point p; x is NaN behind it."""
-    dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
-    r = cam.rotation
-    lx = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
-    ly = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
-    lz = r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz
-    dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+    lx, ly, lz = _to_eye(cam, px, py, pz)
+    dist = math.sqrt(lx * lx + ly * ly + lz * lz)
     if lz >= 0.0:
         return math.nan, math.nan, dist
-    f = cam.frustum
-    x = (lx / -lz - f[0]) / (f[1] - f[0]) * f[4]
-    y = (f[2] - ly / -lz) / (f[2] - f[3]) * f[5]
+    x, y = _pixel(cam.frustum, lx / -lz, ly / -lz)
     return x, y, dist
 
 
@@ -106,9 +122,8 @@ NEAR = 1e-4  # metres: mesh vertices closer to (or behind) the current eye drop 
 @inline
 def view_point(cam, x, y, z):
     """The world point at view depth z (along -Z) on the view ray through continuous pixel (x, y)."""
-    f, r = cam.frustum, cam.rotation
-    tx = f[0] + x * (f[1] - f[0]) / f[4]
-    ty = f[2] - y * (f[2] - f[3]) / f[5]
+    r = cam.rotation
+    tx, ty = _tangents(cam.frustum, x, y)
     return (
         cam.position[0] + z * (r[0, 0] * tx + r[0, 1] * ty - r[0, 2]),
         cam.position[1] + z * (r[1, 0] * tx + r[1, 1] * ty - r[1, 2]),
@@ -119,21 +134,16 @@ def view_point(cam, x, y, z):
 @inline
 def view_distance(cam, x, y, z):
     """The distance from the eye of the point at view depth z on the view ray through pixel (x, y)."""
-    f = cam.frustum
-    tx = f[0] + x * (f[1] - f[0]) / f[4]
-    ty = f[2] - y * (f[2] - f[3]) / f[5]
+    tx, ty = _tangents(cam.frustum, x, y)
     return z * math.sqrt(tx * tx + ty * ty + 1.0)
 
 
 @inline
 def project_view(cam, px, py, pz):
     """Continuous pixel coordinates and view depth (along -Z, positive in front) of world point p."""
-    dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
-    r = cam.rotation
-    lx = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
-    ly = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
-    z = -(r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz)
+    lx, ly, lz = _to_eye(cam, px, py, pz)
+    z = -lz
     if z <= NEAR:
         return 0.0, 0.0, z
-    f = cam.frustum
-    return (lx / z - f[0]) / (f[1] - f[0]) * f[4], (f[2] - ly / z) / (f[2] - f[3]) * f[5], z
+    x, y = _pixel(cam.frustum, lx / z, ly / z)
+    return x, y, z

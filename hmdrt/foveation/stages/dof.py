@@ -191,26 +191,36 @@ def _gauss_radius(sigma):
 
 
 @serial
+def _far_gauss(central, outside, ecc, coc, y, x, step_y, step_x, r1, c0):
+    """The central far-field Gaussian of pixel (y, x) along one axis (step_y, step_x) over the far-field pixels
+    only, so that the focused and near fields do not bleed into the blurred background; a tap reads `central`
+    inside central vision (e < r1) and `outside` beyond it."""
+    h, w = coc.shape
+    sigma = max(-0.5 * c0, 0.5)
+    reach = _gauss_radius(sigma)
+    wsum = r = g = b = 0.0
+    for d in range(-reach, reach + 1):
+        yy, xx = y + d * step_y, x + d * step_x
+        if yy < 0 or yy >= h or xx < 0 or xx >= w or coc[yy, xx] >= 0.0:
+            continue
+        wt = math.exp(-0.5 * d * d / (sigma * sigma))
+        wsum += wt
+        src = central if ecc[yy, xx] < r1 else outside
+        r, g, b = r + wt * src[yy, xx, 0], g + wt * src[yy, xx, 1], b + wt * src[yy, xx, 2]
+    return r / wsum, g / wsum, b / wsum
+
+
+@serial
 def _horizontal_row(color, ecc, coc, far, near, y, r1, radius, has_near):
-    """Row y of the first pass: the far-field Gaussian of central pixels over far-field neighbours only, so the
-    focused and near fields do not bleed into the blurred background; and the near field, where each pixel
-    averages the near-field pixels (CoC > 0) whose blur disc reaches it and records the largest such reach."""
+    """Row y of the first pass: the far-field Gaussian of central pixels (_far_gauss); and the near field, where
+    each pixel averages the near-field pixels (CoC > 0) whose blur disc reaches it and records the
+    largest such reach."""
     w = coc.shape[1]
     for x in range(w):
         c0 = coc[y, x]
         if c0 >= 0.0 or not ecc[y, x] < r1:
             continue
-        sigma = max(-0.5 * c0, 0.5)
-        reach = _gauss_radius(sigma)
-        wsum = r = g = b = 0.0
-        for d in range(-reach, reach + 1):
-            xx = x + d
-            if xx < 0 or xx >= w or coc[y, xx] >= 0.0:
-                continue
-            wt = math.exp(-0.5 * d * d / (sigma * sigma))
-            wsum += wt
-            r, g, b = r + wt * color[y, xx, 0], g + wt * color[y, xx, 1], b + wt * color[y, xx, 2]
-        far[y, x, 0], far[y, x, 1], far[y, x, 2] = r / wsum, g / wsum, b / wsum
+        far[y, x, 0], far[y, x, 1], far[y, x, 2] = _far_gauss(color, color, ecc, coc, y, x, 0, 1, r1, c0)
     if not has_near:
         return
     for x in range(w):
@@ -232,25 +242,6 @@ def _horizontal(color, ecc, layers, blur):
     r1, radius = blur.r1, blur.radius
     for y in nb.prange(coc.shape[0]):
         _horizontal_row(color, ecc, coc, far, near, y, r1, radius, rows[y, ROW_MAX] > 0.0)
-
-
-@inline
-def _far_vertical(color, ecc, coc, far, y, x, r1, c0):
-    """The second pass of the central far-field Gaussian over the far-field pixels of the column; a
-    neighbour outside central vision took no first pass and contributes its own colour."""
-    h = coc.shape[0]
-    sigma = max(-0.5 * c0, 0.5)
-    reach = _gauss_radius(sigma)
-    wsum = r = g = b = 0.0
-    for d in range(-reach, reach + 1):
-        yy = y + d
-        if yy < 0 or yy >= h or coc[yy, x] >= 0.0:
-            continue
-        wt = math.exp(-0.5 * d * d / (sigma * sigma))
-        wsum += wt
-        src = far if ecc[yy, x] < r1 else color
-        r, g, b = r + wt * src[yy, x, 0], g + wt * src[yy, x, 1], b + wt * src[yy, x, 2]
-    return r / wsum, g / wsum, b / wsum
 
 
 @inline
@@ -283,7 +274,7 @@ def _dof_pixel(color, ecc, layers, blur, pyramid, y, x):
         e = ecc[y, x]
         blend = 0.0 if e < r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
         if e < r1:
-            fr, fg, fb = _far_vertical(color, ecc, coc, far, y, x, r1, c)
+            fr, fg, fb = _far_gauss(far, color, ecc, coc, y, x, 1, 0, r1, c)  # a neighbour beyond r1 took no first pass
         else:
             fr, fg, fb = r, g, b
         if blend > 0.0:
