@@ -68,12 +68,21 @@ class DriverUrl:
 
 @dataclass
 class Counters:
-    samples: int = 0
-    invalid: int = 0
-    dropped: int = 0
-    malformed: int = 0
-    reconnects: int = 0
+    """What a driver made of its device (docs/architecture.md, Drivers); its status carries all but crashes."""
+
+    samples: int = 0  # samples passed on by read(), valid or not
+    invalid: int = 0  # of those, marked invalid: blinks, lost tracking
+    dropped: int = 0  # lost: gaps in the device's sequence, a full send queue
+    malformed: int = 0  # device messages that did not decode (serial trackers: bytes)
+    reconnects: int = 0  # the device went away and was opened again
     crashes: int = 0  # unexpected errors in the driver's own code; the host restarts it with backoff
+
+    def summary(self) -> str:
+        """The counts in a line, as `hmdrt driver` prints them when it stops."""
+        return (
+            f"{self.samples} samples ({self.invalid} invalid), {self.dropped} dropped, {self.malformed} malformed, "
+            f"{self.reconnects} reconnects"
+        )
 
 
 class Driver(ABC):

@@ -30,6 +30,8 @@ from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
 
 UNTIL = "stop after SEC seconds (default: until SIGINT/SIGTERM)"
+# make_emulator's keywords: the emulate command's options store their values under these names
+EMULATOR_OPTIONS = ("host", "port", "trace", "seed", "rate_hz", "offset_deg", "noise_deg", "latency_ms")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -166,11 +168,8 @@ def cmd_driver(args: argparse.Namespace) -> int:
 
     duration = _duration(args)
     host = DriverHost(args.url, args.bus, curve=_client_keys(args))
-    c = host.run(_stop_on_signals(), duration)
-    print(
-        f"{args.url}: {c.samples} samples ({c.invalid} invalid), {c.dropped} dropped, {c.malformed} malformed, "
-        f"{c.reconnects} reconnects"
-    )
+    counters = host.run(_stop_on_signals(), duration)
+    print(f"{args.url}: {counters.summary()}")
     return 0
 
 
@@ -179,17 +178,7 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     from drivers.emulators import make_emulator
 
     duration = _duration(args)
-    emulator = make_emulator(
-        args.device,
-        host=args.host,
-        port=args.port,
-        trace=args.trace,
-        seed=args.synthetic,
-        rate_hz=args.rate,
-        offset_deg=args.offset,
-        noise_deg=args.noise,
-        latency_ms=args.latency,
-    )
+    emulator = make_emulator(args.device, **{name: getattr(args, name) for name in EMULATOR_OPTIONS})
     stop = _stop_on_signals()
     with emulator:
         print(f"{args.device} emulator: connect with: hmdrt driver '{emulator.url}'", flush=True)
@@ -212,11 +201,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         raise ConfigError(f"record binds loopback only, not {args.bus} (a bound recorder has no CURVE)")
     recorder = Recorder(args.bus, args.out, bind=not args.connect, device=args.device, context=context)
     print(f"recording {recorder.endpoint} to {args.out}", flush=True)
-    c = recorder.run(_stop_on_signals(), duration)
-    print(
-        f"{args.out}: {c.gaze} gaze, {c.pose} pose ({recorder.device or 'no device'}); {c.malformed} malformed, "
-        f"{c.ignored} of other devices ignored"
-    )
+    recorder.run(_stop_on_signals(), duration)
+    print(f"{args.out}: {recorder.summary()}")
     return 0
 
 
@@ -386,11 +372,16 @@ def build_parser() -> argparse.ArgumentParser:
     emulate.add_argument("--port", type=int, help="port (default: the device's usual one; 0 = any free port)")
     source = emulate.add_mutually_exclusive_group()
     source.add_argument("--trace", help="gaze from a recorded trace (any format `hmdrt render --trace` reads)")
-    source.add_argument("--synthetic", type=int, default=0, metavar="SEED", help="synthetic gaze of SEED (default 0)")
-    emulate.add_argument("--rate", type=float, help="sample rate in Hz (default: the device's)")
-    emulate.add_argument("--offset", type=float, help="tracker accuracy error in degrees (default 0)")
-    emulate.add_argument("--noise", type=float, help="tracker precision noise in degrees (default 0)")
-    emulate.add_argument("--latency", type=float, help="capture-to-send latency in ms (default: the device's)")
+    source.add_argument(
+        "--synthetic", dest="seed", type=int, default=0, metavar="SEED", help="synthetic gaze of SEED (default 0)"
+    )
+    for flag, dest, text in (
+        ("--rate", "rate_hz", "sample rate in Hz (default: the device's)"),
+        ("--offset", "offset_deg", "tracker accuracy error in degrees (default 0)"),
+        ("--noise", "noise_deg", "tracker precision noise in degrees (default 0)"),
+        ("--latency", "latency_ms", "capture-to-send latency in ms (default: the device's)"),
+    ):
+        emulate.add_argument(flag, dest=dest, type=float, metavar=flag[2:].upper(), help=text)
     emulate.add_argument("--duration", type=float, help=UNTIL)
     emulate.set_defaults(run=cmd_emulate)
     run = sub.add_parser("run", help="run the compositor daemon on a config")

@@ -96,7 +96,7 @@ def sequence_inputs(
     frames = frames or 1
     if trace == "builtin":
         return builtin_path(frames, period_ns, start, seed), None
-    g = gaze_direction(*parse_gaze(gaze))
+    g = np.array(gaze_direction(*parse_gaze(gaze)))
     return [FrameInput(f, f * period_ns, start, {"left": g, "right": g}) for f in range(frames)], None
 
 
@@ -119,7 +119,7 @@ def builtin_path(frames: int, period_ns: int, start: Pose, seed: int = 0) -> lis
         _, yaw, pitch = fixations[k]
         sway = Pose.looking((0.0, 0.0, 0.0), 6.0 * math.sin(math.pi * 0.5 * ts), 2.0 * math.sin(math.pi * 0.34 * ts))
         pose = Pose(start.position, quat_multiply(start.orientation, sway.orientation))
-        g = gaze_direction(yaw, pitch)
+        g = np.array(gaze_direction(yaw, pitch))
         inputs.append(FrameInput(f, f * period_ns, pose, {"left": g, "right": g}))
     return inputs
 

@@ -28,6 +28,8 @@ POLL_MS = 50
 
 @dataclass
 class RecorderCounts:
+    """What the recorder did with the messages it heard."""
+
     gaze: int = 0
     pose: int = 0
     status: int = 0
@@ -130,6 +132,14 @@ class Recorder:
         finally:
             self.close()
         return self.counts
+
+    def summary(self) -> str:
+        """The counts in a line, as `hmdrt record` prints them when it stops."""
+        c = self.counts
+        return (
+            f"{c.gaze} gaze, {c.pose} pose ({self.device or 'no device'}); {c.malformed} malformed, "
+            f"{c.ignored} of other devices ignored"
+        )
 
     def close(self) -> None:
         """Release the sockets; safe to call twice."""

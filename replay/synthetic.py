@@ -139,7 +139,7 @@ class SyntheticSource:
             valid = t >= self._blink_until
             yaw = self._yaw + cfg.offset_deg[0] + self._rng.normal(0, cfg.noise_deg)
             pitch = self._pitch + cfg.offset_deg[1] + self._rng.normal(0, cfg.noise_deg)
-            centre = gaze_direction(yaw, pitch)
+            centre = np.array(gaze_direction(yaw, pitch))
             target = centre * self._depth
             half = np.array([cfg.ipd_m / 2, 0.0, 0.0])
             left, right = target + half, target - half  # from each eye (at -+ half) to the target
@@ -160,6 +160,6 @@ class SyntheticSource:
                     t_host=t_host,
                     t_dev=t_host,
                     position=(0.0, 0.0, 0.0),
-                    orientation=tuple(quat_from_yaw_pitch(hy, hp)),
+                    orientation=quat_from_yaw_pitch(hy, hp),
                 )
             k += 1

@@ -53,7 +53,7 @@ def still_trace(path, blink_share: float = 0.0) -> str:
 
 def still_eyes() -> tuple[np.ndarray, np.ndarray]:
     """The left and right eye's directions when both look at the still gaze's point."""
-    centre = gaze_direction(STILL_YAW, STILL_PITCH)
+    centre = np.array(gaze_direction(STILL_YAW, STILL_PITCH))
     half = np.array([0.0635 / 2, 0.0, 0.0])
     return unit(centre * STILL_DEPTH + half), unit(centre * STILL_DEPTH - half)
 

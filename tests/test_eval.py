@@ -23,6 +23,7 @@ from hmdrt.quality import BANDS, BandScores, ssim_map
 from hmdrt.scene import load_scene
 from hmdrt.spatial import Pose
 from hmdrt.trace.integrator import Whitted
+from tests.helpers import DATA
 
 RNG = np.random.default_rng(7)
 
@@ -231,59 +232,6 @@ def test_eval_config_paths_are_relative_to_the_file(tmp_path):
     )
 
 
-TABLES = """
-tables = ["weier2016", "kim2021", "smith2013", "weier2018"]
-scenes = ["whitted", "whitted?max_depth=0"]
-resolution = "48x54"
-frames = 3
-warmup_frames = 1
-truth_spp = 2
-cache_dir = "cache"
-
-[[methods]]
-name = "full"
-label = "full"
-
-[[methods]]
-name = "weier16"
-label = "weier16"
-scenes = ["whitted"]
-
-[[methods]]
-name = "regular"
-label = "Regular_36"
-options = { spp = 3 }
-scenes = ["whitted"]
-
-[[methods]]
-name = "kim21"
-label = "Selective"
-options = { tau_0 = 1.0, tau_f = 1.0, tau_f_slope = 0.0, tau_np = 1.0, n_f = 4, n_p = 4, n_m = 4, n_np = 4 }
-scenes = ["whitted"]
-
-[[methods]]
-name = "kim21"
-label = "Sel_Fov"
-scenes = ["whitted"]
-
-[[methods]]
-name = "rrm"
-label = "rrm"
-options = { group_w = 1, group_h = 2 }
-
-[[methods]]
-name = "weier18"
-label = "weier18"
-scenes = ["whitted?max_depth=0"]
-
-[[methods]]
-name = "weier18"
-label = "weier18 full"
-options = { r0 = 90.0, r1 = 90.0, p_min = 1.0 }
-scenes = ["whitted?max_depth=0"]
-"""
-
-
 def table_lines(markdown: str, title: str) -> list[list[str]]:
     """The body rows of the Markdown table under the heading that starts with `title`."""
     section = markdown.split(f"### {title}")[1].split("###")[0]
@@ -294,7 +242,7 @@ def table_lines(markdown: str, title: str) -> list[list[str]]:
 
 def test_paper_tables_are_filled_from_the_labelled_cells_of_each_scene(tmp_path):
     config = tmp_path / "tables.toml"
-    config.write_text(TABLES)
+    config.write_text((DATA / "eval_tables.toml").read_text())
     assert main(["eval", str(config), "--out", str(tmp_path / "out"), "--no-plots"]) == 0
     rows = json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
     assert {r["scene"] for r in rows if r["label"] == "weier18"} == {"whitted?max_depth=0"}  # scenes = [...]

@@ -21,7 +21,7 @@ PROFILE = get_profile("sim-cpu").with_resolution(96, 108)
 
 
 def still(scene, frames, gaze=(0.0, 0.0)):
-    g = gaze_direction(*gaze)
+    g = np.array(gaze_direction(*gaze))
     return [FrameInput(f, f * PROFILE.period_ns, scene.start, {"left": g, "right": g}) for f in range(frames)]
 
 
@@ -83,7 +83,7 @@ def test_rrm_traces_its_cell_and_the_foveal_rectangle_in_row_major_order(options
     tracer = RecordingTracer()
     method = Rrm(tracer, params)
     phase = refresh_phase(cam.width, cam.height, params)
-    g = gaze_direction(*gaze)
+    g = np.array(gaze_direction(*gaze))
     x0, x1, y0, y1 = foveal_rectangle(cam, g, params)
     expected = np.zeros((cam.height, cam.width, 3), np.float32)
     out = np.full_like(expected, np.nan)
@@ -104,7 +104,9 @@ def test_rrm_refuses_an_out_buffer_of_another_shape():
     cam = EyeCamera.for_eye(PROFILE, load_scene("whitted").start)
     method = Rrm(RecordingTracer(), RrmParams())
     with pytest.raises(ValueError, match="out must be a float32 array of shape"):
-        method.render(FrameRequest(cam, gaze_direction(0.0, 0.0)), FrameStats(), np.empty((4, 4, 3), np.float32))
+        method.render(
+            FrameRequest(cam, np.array(gaze_direction(0.0, 0.0))), FrameStats(), np.empty((4, 4, 3), np.float32)
+        )
 
 
 @pytest.mark.parametrize("spec", ["weier16", "rrm"])
@@ -123,7 +125,7 @@ def test_the_fovea_is_traced_fresh_every_frame_while_the_head_moves(spec):
 
 def test_kim21_supersamples_the_fovea_closer_to_the_ground_truth_than_one_sample():
     scene = load_scene("whitted")
-    gaze = gaze_direction(-4.0, -8.0)  # on the glass sphere's edge and the checkerboard
+    gaze = np.array(gaze_direction(-4.0, -8.0))  # on the glass sphere's edge and the checkerboard
     cam = EyeCamera.for_eye(PROFILE, scene.start)
     with Whitted(scene) as tracer:
         req = FrameRequest(cam, gaze)
@@ -149,7 +151,7 @@ def test_kim21_on_a_still_view_matches_back_projection():
     scene = load_scene("whitted")
     cam = EyeCamera.for_eye(PROFILE, scene.start)
     nudged = EyeCamera(**{**cam.__dict__, "position": cam.position + 1e-9})
-    gaze = gaze_direction(-4.0, -8.0)
+    gaze = np.array(gaze_direction(-4.0, -8.0))
     frames = []
     with Whitted(scene) as tracer:
         for cameras in ([cam] * 4, [cam, nudged, cam, nudged]):
@@ -191,7 +193,7 @@ def test_kim21_foveation_follows_the_gaze_and_the_parameters():
         for f, (gaze, e_np) in enumerate([((0, 0), 30.0), ((0, 0), 30.0), ((20, 5), 30.0), ((20, 5), 12.5)]):
             if e_np != method.params.e_np:
                 method.set_params(msgspec.structs.replace(method.params, e_np=e_np))
-            g = gaze_direction(*gaze)
+            g = np.array(gaze_direction(*gaze))
             stats = FrameStats()
             method.render(FrameRequest(cam, g, f), stats)
             assert stats.metrics["central_pixels"] == (cam.eccentricity(g) < e_np).sum()

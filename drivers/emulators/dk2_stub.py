@@ -43,7 +43,7 @@ from drivers.protocols.dk2 import (
 from hmdrt.bus.messages import Pose
 from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
-from hmdrt.spatial import quat_multiply, quat_to_matrix
+from hmdrt.spatial import quat_conjugate, quat_multiply, quat_to_matrix
 from replay import load_trace
 from replay.synthetic import SyntheticConfig, SyntheticSource
 
@@ -53,7 +53,7 @@ REPORT_PERIOD_NS = 2 * SAMPLE_PERIOD_US * 1000
 
 def _rotation_vector(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
     """The body-frame rotation vector (rad) taking orientation q0 to q1: log(q0^-1 q1) * 2."""
-    d = quat_multiply(q0 * (1.0, -1.0, -1.0, -1.0), q1)
+    d = np.array(quat_multiply(quat_conjugate(q0), q1))
     if d[0] < 0:
         d = -d
     s = math.sqrt(d[1] ** 2 + d[2] ** 2 + d[3] ** 2)
@@ -109,7 +109,7 @@ class HeadMotion:
             return self._q[-1], self._p[-1]
         s = (t_ns - self._t[i]) / (self._t[i + 1] - self._t[i])
         q0, q1 = self._q[i], self._q[i + 1]
-        q = quat_multiply(q0, _exp(s * _rotation_vector(q0, q1)))
+        q = np.array(quat_multiply(q0, _exp(s * _rotation_vector(q0, q1))))
         return q, self._p[i] + s * (self._p[i + 1] - self._p[i])
 
     @classmethod

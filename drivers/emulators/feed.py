@@ -16,7 +16,7 @@ import numpy as np
 from hmdrt.bus.messages import Gaze, usable
 from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
-from hmdrt.spatial import gaze_direction
+from hmdrt.spatial import Vec, gaze_direction
 from replay import load_trace
 from replay.synthetic import SyntheticConfig, SyntheticSource
 
@@ -26,13 +26,13 @@ class FeedSample:
     index: int  # device frame number
     capture_ns: int  # on the feed's clock
     due_ns: int  # capture + latency: when the device delivers it
-    left: np.ndarray  # unit gaze directions, head frame
-    right: np.ndarray
+    left: np.ndarray | None  # unit gaze directions, head frame; None when not valid
+    right: np.ndarray | None
     valid: bool
     depth_m: float | None
 
 
-def _degrade(direction: np.ndarray, offset_deg: float, noise: np.ndarray) -> np.ndarray:
+def _degrade(direction: Vec, offset_deg: float, noise: np.ndarray) -> Vec:
     """Rotate a gaze direction by a constant yaw offset plus noise (yaw, pitch) in degrees."""
     yaw = np.degrees(np.arctan2(direction[0], -direction[2])) + offset_deg + noise[0]
     pitch = np.degrees(np.arcsin(np.clip(direction[1], -1.0, 1.0))) + noise[1]
@@ -84,10 +84,12 @@ class GazeFeed:
         period = 1e9 / self.rate_hz
         for k, gaze in enumerate(self._gaze):
             capture = start + round(k * period)
-            left = np.asarray(gaze.L if gaze.L is not None else gaze.C, dtype=np.float64)
-            right = np.asarray(gaze.R if gaze.R is not None else gaze.C, dtype=np.float64)
             noise = self._rng.normal(0.0, self.noise_deg, 2) if self.noise_deg else np.zeros(2)
             valid = usable(gaze)
-            if valid and (self.offset_deg or self.noise_deg):
-                left, right = (_degrade(v, self.offset_deg, noise) for v in (left, right))
+            left = right = None
+            if valid:
+                eyes = gaze.eye_directions()
+                if self.offset_deg or self.noise_deg:
+                    eyes = tuple(_degrade(v, self.offset_deg, noise) for v in eyes)
+                left, right = (np.array(v) for v in eyes)
             yield FeedSample(k, capture, capture + self.latency_ns, left, right, valid, gaze.depth_m)

@@ -37,10 +37,6 @@ _MARK_BEGIN, _MARK_END = 0xAAAA, 0x5555
 MAX_ACCEL = 1e6
 
 
-class HatireFormatError(FrameFormatError):
-    """Bytes that are not a valid HATIRE frame."""
-
-
 @dataclass(frozen=True)
 class HatireFrame:
     """A data frame: counter, angles in degrees, accelerations as sent."""
@@ -56,6 +52,10 @@ class HatireFrame:
 class HatireInfo:
     code: int
     message: str
+
+
+class HatireFormatError(FrameFormatError):
+    """Bytes that are not a valid HATIRE frame."""
 
 
 def encode_frame(f: HatireFrame) -> bytes:

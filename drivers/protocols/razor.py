@@ -35,10 +35,6 @@ _COMMAND = re.compile(rb"#(o[01tbcnx]|oe[01]|os[crb][tb]|f|s[\x21-\x7e]{2})")
 _LONGEST_COMMAND = 5
 
 
-class RazorFormatError(FrameFormatError):
-    """A line that is not a Razor AHRS frame."""
-
-
 @dataclass(frozen=True)
 class Ypr:
     """Orientation in degrees, Razor convention."""
@@ -65,6 +61,10 @@ def check_angles(yaw: float, pitch: float, roll: float) -> None:
     """Raise ValueError unless yaw and roll lie within +-180 and pitch within +-90 degrees."""
     if not (abs(yaw) <= 180.0 and abs(pitch) <= 90.0 and abs(roll) <= 180.0):
         raise ValueError(f"angles out of range: yaw {yaw}, pitch {pitch}, roll {roll}")
+
+
+class RazorFormatError(FrameFormatError):
+    """A line that is not a Razor AHRS frame."""
 
 
 def decode_line(line: bytes) -> RazorFrame:

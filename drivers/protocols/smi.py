@@ -14,7 +14,7 @@ import math
 import re
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, fields
-from typing import ClassVar, Self
+from typing import Annotated, ClassVar, Self, get_origin, get_type_hints
 
 MAX_LINE_BYTES = 4096  # far above any real line; longer datagrams are dropped by the transports
 MAX_FORMAT_CHARS = 1024  # keeps every ET_SPL line of a format under MAX_LINE_BYTES
@@ -261,18 +261,24 @@ class _Field:
     write: Callable[[object], str]
 
 
-_EYE_FIELD = _Field(f"({_EYE})", str, str)
-_TIME_FIELD = _Field(f"({_INT})", _counter, str)
-_NUMBER_FIELD = _Field(f"({_NUMBER})", _float, _number)
+# a fixed-shape line's field types: the value's type, annotated with how its word reads and writes
+_Eye = Annotated[str, _Field(f"({_EYE})", str, str)]
+_Time = Annotated[int, _Field(f"({_INT})", _counter, str)]
+_Number = Annotated[float, _Field(f"({_NUMBER})", _float, _number)]
 # read with a unit suffix such as the degree sign, written with the degree sign
-_DEGREES_FIELD = _Field(rf"({_NUMBER})[^\s\d]{{0,3}}", _float, lambda v: _number(v) + "\u00b0")
+_Degrees = Annotated[float, _Field(rf"({_NUMBER})[^\s\d]{{0,3}}", _float, lambda v: _number(v) + "\u00b0")]
 
 
 class _FixedLine:
-    """A line of fixed shape: `mnemonic`, then one whitespace-separated word per dataclass field, as `shape`."""
+    """A line of fixed shape: `mnemonic`, then one whitespace-separated word per dataclass field, read and
+    written as the field's type says (`shape`, in field order)."""
 
     mnemonic: ClassVar[str]
     shape: ClassVar[tuple[_Field, ...]]
+
+    def __init_subclass__(cls) -> None:
+        hints = get_type_hints(cls, include_extras=True).values()
+        cls.shape = tuple(h.__metadata__[0] for h in hints if get_origin(h) is Annotated)
 
     @classmethod
     def parse(cls, line: str) -> Self:
@@ -291,28 +297,26 @@ class _FixedLine:
 class FixationStart(_FixedLine):
     """ET_FIX <eye> <start_us> <x> <y>: a fixation began (section 1.4)."""
 
-    eye: str
-    start_us: int
-    x: float
-    y: float
+    eye: _Eye
+    start_us: _Time
+    x: _Number
+    y: _Number
 
     mnemonic: ClassVar = "ET_FIX"
-    shape: ClassVar = (_EYE_FIELD, _TIME_FIELD, _NUMBER_FIELD, _NUMBER_FIELD)
 
 
 @dataclass(frozen=True)
 class FixationEnd(_FixedLine):
     """ET_EFX <eye> <start_us> <end_us> <duration_ms> <x> <y>: a fixation ended (section 1.4)."""
 
-    eye: str
-    start_us: int
-    end_us: int
-    duration_ms: int
-    x: float
-    y: float
+    eye: _Eye
+    start_us: _Time
+    end_us: _Time
+    duration_ms: _Time
+    x: _Number
+    y: _Number
 
     mnemonic: ClassVar = "ET_EFX"
-    shape: ClassVar = (_EYE_FIELD, _TIME_FIELD, _TIME_FIELD, _TIME_FIELD, _NUMBER_FIELD, _NUMBER_FIELD)
 
     @classmethod
     def parse(cls, line: str) -> FixationEnd:
@@ -331,12 +335,11 @@ def parse_event(line: str) -> FixationStart | FixationEnd:
 class Validation(_FixedLine):
     """ET_VLS <eye> <x> <y> <d> <xd>° <yd>°: accuracy at a validation target (px), in degrees (section 1.2)."""
 
-    eye: str
-    x: float
-    y: float
-    deviation_deg: float
-    x_deg: float
-    y_deg: float
+    eye: _Eye
+    x: _Number
+    y: _Number
+    deviation_deg: _Number
+    x_deg: _Degrees
+    y_deg: _Degrees
 
     mnemonic: ClassVar = "ET_VLS"
-    shape: ClassVar = (_EYE_FIELD, _NUMBER_FIELD, _NUMBER_FIELD, _NUMBER_FIELD, _DEGREES_FIELD, _DEGREES_FIELD)

@@ -21,11 +21,26 @@ from typing import NamedTuple
 import numpy as np
 
 from hmdrt.bus.messages import Gaze, Pose, usable
-from hmdrt.spatial import quat_conjugate, quat_from_rotvec, quat_multiply, quat_slerp, quat_to_rotvec, unit
+from hmdrt.spatial import (
+    Vec,
+    advance,
+    angle_between,
+    lerp,
+    nlerp,
+    norm,
+    quat_conjugate,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_slerp,
+    quat_to_rotvec,
+    rotvec_between,
+    sub,
+    turn,
+    unit,
+)
 
 KINDS = ("gaze", "pose")
 MAX_DEVICES = 64  # devices tracked at once; samples naming another device are refused and counted
-Vec = tuple[float, ...]
 
 
 @dataclass(frozen=True)
@@ -111,10 +126,20 @@ class _Pick(NamedTuple):
     entries: list[_Entry]
     invalid_since: int | None = None
     fitted: tuple | None = None  # the fit made on arrival to these same entries (predict)
+    # a lookup's: the device the entries came from, and where its time lies among them
+    device: str = ""
+    u: float = 0.0  # interpolate: the fraction of the way from a to b
+    predicted_ns: int = 0  # predict: how far past the newest sample, at most the horizon
+    clamped: bool = False  # predict: the time lay beyond the horizon
 
     @property
     def samples(self) -> list:
         return [e.sample for e in self.entries]
+
+    @property
+    def newest(self) -> Gaze | Pose:
+        """The newest sample used: the later of an interpolated pair, else the first entry."""
+        return self.entries[-1 if self.mode == "interpolate" else 0].sample
 
 
 class SampleStore:
@@ -231,25 +256,20 @@ class SampleStore:
 
     def gaze_at(self, t_ns: int, now_ns: int, device: str | None = None) -> GazeEstimate | None:
         """Gaze at t_ns from what had arrived by now_ns; None when no usable sample at or before t_ns had."""
-        found = self._pick("gaze", t_ns, now_ns, device)
-        if found is None:
+        pick = self._pick("gaze", t_ns, now_ns, device)
+        if pick is None:
             return None
-        name, pick = found
-        samples = pick.samples
-        newest = samples[-1] if pick.mode == "interpolate" else samples[0]
-        eyes = [e.unit for e in pick.entries]
-        speed, predicted, clamped, depth = 0.0, 0, False, newest.depth_m
+        newest, eyes = pick.newest, [e.unit for e in pick.entries]
+        speed, depth = 0.0, newest.depth_m
         if pick.mode == "interpolate":
-            a, b = samples
-            u = (t_ns - a.t_host) / (b.t_host - a.t_host)
-            left, right = (_nlerp(eyes[0][e], eyes[1][e], u) for e in (0, 1))
-            speed = max(_angle(eyes[0][e], eyes[1][e]) for e in (0, 1)) / ((b.t_host - a.t_host) * 1e-9)
+            a, b = pick.samples
+            left, right = (nlerp(eyes[0][e], eyes[1][e], pick.u) for e in (0, 1))
+            speed = max(angle_between(eyes[0][e], eyes[1][e]) for e in (0, 1)) / ((b.t_host - a.t_host) * 1e-9)
             if a.depth_m is not None and b.depth_m is not None:
-                depth = a.depth_m + u * (b.depth_m - a.depth_m)
+                depth = a.depth_m + pick.u * (b.depth_m - a.depth_m)
         elif pick.mode == "predict":
-            predicted, clamped = self._extrapolation(t_ns, newest.t_host)
             spins, speed = pick.fitted or _gaze_fit(pick.entries)
-            left, right = (_turn(eyes[0][e], spins[e], predicted * 1e-9) for e in (0, 1))
+            left, right = (turn(eyes[0][e], spins[e], pick.predicted_ns * 1e-9) for e in (0, 1))
         else:
             left, right = eyes[0]
         return GazeEstimate(
@@ -259,35 +279,28 @@ class SampleStore:
             source_seq=newest.seq,
             source_t_host=int(newest.t_host),
             age_ns=int(t_ns - newest.t_host),
-            predicted_ns=predicted,
+            predicted_ns=pick.predicted_ns,
             speed_deg_s=math.degrees(speed),
-            device=name,
-            clamped=clamped,
+            device=pick.device,
+            clamped=pick.clamped,
             blinking=pick.mode == "held",
             blink_since_ns=pick.invalid_since,
         )
 
     def pose_at(self, t_ns: int, now_ns: int, device: str | None = None) -> PoseEstimate | None:
         """Head pose at t_ns from what had arrived by now_ns; None when no usable sample at or before t_ns had."""
-        found = self._pick("pose", t_ns, now_ns, device)
-        if found is None:
+        pick = self._pick("pose", t_ns, now_ns, device)
+        if pick is None:
             return None
-        name, pick = found
-        samples = pick.samples
-        newest = samples[-1] if pick.mode == "interpolate" else samples[0]
-        positions = [s.position for s in samples]
-        quats = [e.unit for e in pick.entries]
-        predicted, clamped = 0, False
+        newest, quats = pick.newest, [e.unit for e in pick.entries]
+        positions = [s.position for s in pick.samples]
         if pick.mode == "interpolate":
-            a, b = samples
-            u = (t_ns - a.t_host) / (b.t_host - a.t_host)
-            position = _lerp(positions[0], positions[1], u)
-            orientation = quat_slerp(quats[0], quats[1], u)
+            position = lerp(positions[0], positions[1], pick.u)
+            orientation = quat_slerp(quats[0], quats[1], pick.u)
         elif pick.mode == "predict":
-            predicted, clamped = self._extrapolation(t_ns, newest.t_host)
-            h = predicted * 1e-9
+            h = pick.predicted_ns * 1e-9
             velocity, spin = pick.fitted or _pose_fit(pick.entries)
-            position = _advance(positions[0], velocity, h)
+            position = advance(positions[0], velocity, h)
             orientation = unit(quat_multiply(quat_from_rotvec([c * h for c in spin]), quats[0]))
         else:
             position, orientation = positions[0], quats[0]
@@ -297,9 +310,9 @@ class SampleStore:
             source_seq=newest.seq,
             source_t_host=int(newest.t_host),
             age_ns=int(t_ns - newest.t_host),
-            predicted_ns=predicted,
-            device=name,
-            clamped=clamped,
+            predicted_ns=pick.predicted_ns,
+            device=pick.device,
+            clamped=pick.clamped,
             tracking_lost=pick.mode == "held",
             lost_since_ns=pick.invalid_since,
         )
@@ -313,11 +326,9 @@ class SampleStore:
             del track.entries[:cut]
             counts.evicted += cut
 
-    def _extrapolation(self, t_ns: int, newest_t: int) -> tuple[int, bool]:
-        ahead = int(t_ns - newest_t)
-        return min(ahead, self.horizon_ns), ahead > self.horizon_ns
-
-    def _pick(self, kind: str, t: int, now: int, device: str | None) -> tuple[str, _Pick] | None:
+    def _pick(self, kind: str, t: int, now: int, device: str | None) -> _Pick | None:
+        """What a lookup at t by now uses: the entries, with the device, the fit made on arrival when it was
+        made to them, and where t lies among them."""
         with self._lock:
             tracks = self._tracks[kind]
             name = self._freshest(tracks, now) if device is None else device
@@ -326,9 +337,15 @@ class SampleStore:
             if pick is None:
                 return None
             fit = track.fit
-            if pick.mode == "predict" and fit is not None and _same(fit[0], pick.entries):
-                pick = pick._replace(fitted=fit[1])
-            return name, pick
+            fitted = fit[1] if pick.mode == "predict" and fit is not None and _same(fit[0], pick.entries) else None
+        u, predicted, clamped = 0.0, 0, False
+        if pick.mode == "interpolate":
+            a, b = pick.samples
+            u = (t - a.t_host) / (b.t_host - a.t_host)
+        elif pick.mode == "predict":
+            ahead = int(t - pick.newest.t_host)
+            predicted, clamped = min(ahead, self.horizon_ns), ahead > self.horizon_ns
+        return _Pick(pick.mode, pick.entries, pick.invalid_since, fitted, name, u, predicted, clamped)
 
     @staticmethod
     def _freshest(tracks: dict[str, _Track], now: int) -> str | None:
@@ -405,15 +422,15 @@ def _gaze_fit(entries: list[_Entry]) -> tuple[tuple[Vec, Vec], float]:
     and the faster eye's speed."""
     dts = _dts(entries)
     g0 = entries[0].unit
-    spins = tuple(_rate(dts, [_arc(g0[e], g.unit[e]) for g in entries[1:]]) for e in (0, 1))
-    return spins, max(_norm(spin) for spin in spins)
+    spins = tuple(_rate(dts, [rotvec_between(g0[e], g.unit[e]) for g in entries[1:]]) for e in (0, 1))
+    return spins, max(norm(spin) for spin in spins)
 
 
 def _pose_fit(entries: list[_Entry]) -> tuple[Vec, Vec]:
     """Head velocity (m/s) and angular velocity (rad/s rotation vector) through the newest entry."""
     dts = _dts(entries)
     p0, inverse = entries[0].sample.position, quat_conjugate(entries[0].unit)
-    velocity = _rate(dts, [_sub(e.sample.position, p0) for e in entries[1:]])
+    velocity = _rate(dts, [sub(e.sample.position, p0) for e in entries[1:]])
     spin = _rate(dts, [quat_to_rotvec(quat_multiply(e.unit, inverse)) for e in entries[1:]])
     return velocity, spin
 
@@ -430,67 +447,6 @@ def _well_formed(sample: Gaze | Pose) -> bool:
         if sample.depth_m is not None and not math.isfinite(sample.depth_m):
             return False
     return all(v is None or (len(v) == n and all(map(math.isfinite, v))) for v, n in vectors)
-
-
-# Small-vector arithmetic on tuples: for 3- and 4-vectors plain Python is several times faster than numpy.
-
-
-def _norm(v: Vec) -> float:
-    return math.hypot(*v)
-
-
-def _dot(a: Vec, b: Vec) -> float:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _sub(a: Vec, b: Vec) -> Vec:
-    return tuple(x - y for x, y in zip(a, b, strict=True))
-
-
-def _advance(p: Vec, v: Vec, h: float) -> Vec:
-    return tuple(x + h * y for x, y in zip(p, v, strict=True))
-
-
-def _lerp(a: Vec, b: Vec, u: float) -> Vec:
-    return tuple(x + u * (y - x) for x, y in zip(a, b, strict=True))
-
-
-def _cross(a: Vec, b: Vec) -> Vec:
-    ax, ay, az = a
-    bx, by, bz = b
-    return (ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx)
-
-
-def _nlerp(a: Vec, b: Vec, u: float) -> Vec:
-    v = _lerp(a, b, u)
-    n = _norm(v)
-    return tuple(c / n for c in v) if n > 1e-12 else (a if u < 0.5 else b)
-
-
-def _angle(a: Vec, b: Vec) -> float:
-    """Angle in radians between unit directions."""
-    return math.atan2(_norm(_cross(a, b)), _dot(a, b))
-
-
-def _arc(a: Vec, b: Vec) -> Vec:
-    """Rotation vector (axis times radians) of the shortest rotation turning unit direction a into b."""
-    c = _cross(a, b)
-    s = _norm(c)
-    if s <= 1e-15:
-        return (0.0, 0.0, 0.0)
-    k = math.atan2(s, _dot(a, b)) / s
-    return tuple(x * k for x in c)
-
-
-def _turn(d: Vec, spin: Vec, h: float) -> Vec:
-    """Unit direction d turned for h seconds at angular velocity spin (rad/s rotation vector; Rodrigues)."""
-    rate = _norm(spin)
-    if rate * h < 1e-15:
-        return d
-    k = tuple(c / rate for c in spin)
-    cos, sin = math.cos(rate * h), math.sin(rate * h)
-    along = _dot(k, d) * (1.0 - cos)
-    return unit(tuple(x * cos + y * sin + z * along for x, y, z in zip(d, _cross(k, d), k, strict=True)))
 
 
 def _rate(dts: list[float], offsets: list[Vec]) -> Vec:

@@ -19,19 +19,34 @@ import numpy as np
 import trimesh
 
 from hmdrt.scene import shapes
-from hmdrt.scene.model import AreaLight, Checker, Material, Mesh, Noise, PointLight, Scene
+from hmdrt.scene.model import AreaLight, Checker, Light, Material, Mesh, Noise, PointLight, Scene
 from hmdrt.scene.noise import fbm_points
 from hmdrt.spatial import Pose
 
 SKY = (0.35, 0.55, 0.85)
+# smith2013's spheres: a mirror and a glass ball
+MIRROR = Material(diffuse=(0.1, 0.1, 0.1), specular=0.6, shininess=80, reflectance=0.85)
+GLASS = Material(diffuse=(0.0, 0.0, 0.0), specular=0.6, shininess=160, transmittance=0.95, ior=1.5)
+
+
+def _under_sky(
+    name: str,
+    meshes: list[Mesh],
+    mats: dict[str, Material],
+    lights: list[Light],
+    start: Pose,
+    ambient: tuple[float, float, float] = (0.1, 0.1, 0.1),
+) -> Scene:
+    """An open scene: rays that leave it see the sky."""
+    return Scene(name, meshes, mats, lights, background=SKY, ambient=ambient, start=start)
 
 
 def whitted() -> Scene:
     """Checkerboard floor, a mirror sphere behind a glass sphere, one point light."""
     mats = {
         "floor": Material(diffuse=(1, 1, 1), texture=Checker(colors=((0.85, 0.1, 0.05), (0.95, 0.85, 0.1)))),
-        "mirror": Material(diffuse=(0.1, 0.1, 0.1), specular=0.6, shininess=80, reflectance=0.85),
-        "glass": Material(diffuse=(0.0, 0.0, 0.0), specular=0.6, shininess=160, transmittance=0.95, ior=1.5),
+        "mirror": MIRROR,
+        "glass": GLASS,
     }
     meshes = [
         shapes.quad("floor", (-20, 0, 8), (40, 0, 0), (0, 0, -60), "floor", uv_scale=(40, 60)),
@@ -39,15 +54,7 @@ def whitted() -> Scene:
         shapes.sphere("glass_sphere", (-0.45, 0.8, -2.6), 0.55, "glass", subdivisions=5),
     ]
     lights = [PointLight(position=(-3.0, 7.0, 1.5), intensity=(60.0, 60.0, 60.0))]
-    return Scene(
-        "whitted",
-        meshes,
-        mats,
-        lights,
-        background=SKY,
-        ambient=(0.1, 0.1, 0.1),
-        start=Pose.looking((0.0, 1.25, 0.0), 0.0, -10.0),
-    )
+    return _under_sky("whitted", meshes, mats, lights, Pose.looking((0.0, 1.25, 0.0), 0.0, -10.0))
 
 
 def _tunnel_scene(name: str, meshes: list[Mesh], mats: dict[str, Material], length: float) -> Scene:
@@ -121,15 +128,8 @@ def voxel_city(size: int = 24, seed: int = 1) -> Scene:
         shapes.quad("ground", (-8, 0, 8), (extent, 0, 0), (0, 0, -extent), "street", uv_scale=(extent, extent))
     )
     lights = [PointLight(position=(-120.0, 260.0, 90.0), intensity=(9.0e4, 8.6e4, 8.0e4))]
-    return Scene(
-        "voxel_city",
-        meshes,
-        mats,
-        lights,
-        background=SKY,
-        ambient=(0.18, 0.2, 0.24),
-        start=Pose.look_at((-6.0, 18.0, 6.0), (size * plot * 0.45, 0.0, -size * plot * 0.45)),
-    )
+    start = Pose.look_at((-6.0, 18.0, 6.0), (size * plot * 0.45, 0.0, -size * plot * 0.45))
+    return _under_sky("voxel_city", meshes, mats, lights, start, ambient=(0.18, 0.2, 0.24))
 
 
 def shooting_range() -> Scene:
@@ -232,8 +232,8 @@ def bunny() -> Scene:
         "floor": Material(
             diffuse=(1, 1, 1), texture=Noise(colors=((0.2, 0.3, 0.15), (0.75, 0.7, 0.55)), scale=1.5, octaves=6)
         ),
-        "mirror": Material(diffuse=(0.1, 0.1, 0.1), specular=0.6, shininess=80, reflectance=0.85),
-        "glass": Material(diffuse=(0.0, 0.0, 0.0), specular=0.6, shininess=160, transmittance=0.95, ior=1.5),
+        "mirror": MIRROR,
+        "glass": GLASS,
     }
     meshes = [
         Mesh("bunny", verts, np.asarray(raw.faces), "bunny", np.asarray(raw.vertex_normals, dtype=np.float64)),
@@ -242,15 +242,7 @@ def bunny() -> Scene:
         shapes.sphere("glass_sphere", (-1.0, 0.3, -1.9), 0.3, "glass"),
     ]
     lights = [PointLight(position=(2.0, 5.0, 1.0), intensity=(30.0, 30.0, 30.0))]
-    return Scene(
-        "bunny",
-        meshes,
-        mats,
-        lights,
-        background=SKY,
-        ambient=(0.1, 0.1, 0.1),
-        start=Pose.looking((0.0, 1.2, 0.0), 0.0, -14.0),
-    )
+    return _under_sky("bunny", meshes, mats, lights, Pose.looking((0.0, 1.2, 0.0), 0.0, -14.0))
 
 
 BUILTINS: dict[str, Callable[..., Scene]] = {

@@ -86,7 +86,7 @@ def direction(yaw_deg: float, pitch_deg: float) -> Vec3 | None:
     """Head-frame gaze direction for yaw (right +) and pitch (up +) in degrees; None when missing or beyond +-90."""
     if not (abs(yaw_deg) <= 90.0 and abs(pitch_deg) <= 90.0):  # also false for NaN
         return None
-    return tuple(float(v) for v in gaze_direction(yaw_deg, pitch_deg))
+    return gaze_direction(yaw_deg, pitch_deg)
 
 
 def gaze_sample(

@@ -168,7 +168,7 @@ def test_fixation_filter_counts_samples_not_time_so_a_stall_is_one_step():
     filt = FixationFilter(0.25, saccade_deg=3.0)
     filt(gaze_direction(0.0, 0.0))
     state = filt(gaze_direction(2.0, 0.0))  # after a 1 s stall or 1 ms: the same single step
-    blend = 0.25 * gaze_direction(2.0, 0.0) + 0.75 * gaze_direction(0.0, 0.0)
+    blend = 0.25 * np.array(gaze_direction(2.0, 0.0)) + 0.75 * np.array(gaze_direction(0.0, 0.0))
     np.testing.assert_allclose(state, blend / np.linalg.norm(blend), atol=1e-15)
     for _ in range(3):  # the same sample again (dt = 0 duplicates): converges, stays unit
         state = filt(gaze_direction(2.0, 0.0))

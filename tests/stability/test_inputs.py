@@ -148,7 +148,8 @@ def test_a_1x1_profile_renders_the_centre_ray_finitely_with_every_method():
 
 
 def test_an_empty_scene_renders_the_background_with_every_method():
-    gazes = [FORWARD, gaze_direction(10.0, 5.0)] * 6  # 12 frames: one refresh cycle of rrm's persistent buffer
+    # 12 frames: one refresh cycle of rrm's persistent buffer
+    gazes = [FORWARD, np.array(gaze_direction(10.0, 5.0))] * 6
     for method in METHODS:
         images, stats = render_frames(empty_scene(), method, gazes)
         for im in images if method != "rrm" else images[-1:]:
