@@ -21,13 +21,13 @@ from __future__ import annotations
 import functools
 from collections import deque
 
-import numba as nb
 import numpy as np
 
 from hmdrt.bus.messages import ClockEstimate
+from hmdrt.jit import serial
 
 
-@nb.njit(cache=True)
+@serial
 def _line(x: np.ndarray, y: np.ndarray, min_span: float) -> tuple[float, float]:
     """Offset and drift through the minima (least squares); a flat lower bound until they span min_span
     (and while they all share one device time, where the slope is 0 / 0)."""
@@ -40,7 +40,7 @@ def _line(x: np.ndarray, y: np.ndarray, min_span: float) -> tuple[float, float]:
     return y.min(), 0.0
 
 
-@nb.njit(cache=True)
+@serial
 def _fit_envelope(x: np.ndarray, y: np.ndarray, min_span: float) -> tuple[float, float, float]:
     """Offset, drift and RMS residual of the line through the windows' minima, leaving out windows far
     above it (the host stalled through them). Compiled: it runs on the sample path, a few times a second."""

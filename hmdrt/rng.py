@@ -1,12 +1,12 @@
 """Counter-based random numbers: a hash of (key, index, dimension), so results do not depend on
 batching, threading or evaluation order (docs/architecture.md, Conventions: a seeded run reproduces bit for bit)."""
 
-import numba as nb
+from hmdrt.jit import inline
 
 _MASK = 0xFFFFFFFF
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def hash32(a: int, b: int, c: int) -> int:
     """Mix three integers into 32 well-distributed bits (a lowbias32-style finaliser chain).
 
@@ -21,7 +21,7 @@ def hash32(a: int, b: int, c: int) -> int:
     return h ^ (h >> 16)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def uniform(a: int, b: int, c: int) -> float:
     """A float in [0, 1) determined by (a, b, c)."""
     return hash32(a, b, c) * (1.0 / 4294967296.0)

@@ -62,7 +62,7 @@ PARALLEL_MIN = 4096
 OFF_IMAGE_TAN = 1e6  # gaze_pixel's point of regard for a gaze that never meets the image plane, in tangent units
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
+@kernel
 def _eccentricity(xy, tan_l, tan_r, tan_u, tan_d, width, height, gaze, out):
     sx = (tan_r - tan_l) / width
     sy = (tan_u - tan_d) / height
@@ -78,7 +78,7 @@ def _eccentricity(xy, tan_l, tan_r, tan_u, tan_d, width, height, gaze, out):
         out[i] = math.degrees(math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), dot))
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
+@kernel
 def _pixel_centres(width, row0, rows, out):
     for r in nb.prange(rows):
         for x in range(width):

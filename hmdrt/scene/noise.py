@@ -5,10 +5,11 @@ import math
 import numba as nb
 import numpy as np
 
+from hmdrt.jit import inline, kernel
 from hmdrt.rng import hash32
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def _grad(h, x, y, z):
     h &= 15
     u = x if h < 8 else y
@@ -16,12 +17,12 @@ def _grad(h, x, y, z):
     return (u if (h & 1) == 0 else -u) + (v if (h & 2) == 0 else -v)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def _fade(t):
     return t * t * t * (t * (t * 6.0 - 15.0) + 10.0)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def gradient_noise(x: float, y: float, z: float, seed: int) -> float:
     """Improved-Perlin gradient noise in about [-1, 1], zero at lattice points."""
     xi, yi, zi = math.floor(x), math.floor(y), math.floor(z)
@@ -40,7 +41,7 @@ def gradient_noise(x: float, y: float, z: float, seed: int) -> float:
     return acc
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def fbm(x: float, y: float, z: float, octaves: int, seed: int) -> float:
     """Fractal sum of `octaves` noise octaves (lacunarity 2, gain 0.5), normalised to about [-1, 1]."""
     total, amp, norm, freq = 0.0, 1.0, 0.0, 1.0
@@ -52,7 +53,7 @@ def fbm(x: float, y: float, z: float, octaves: int, seed: int) -> float:
     return total / norm
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
+@kernel
 def _fbm_points(points, octaves, seed, out):
     for i in nb.prange(points.shape[0]):
         out[i] = fbm(points[i, 0], points[i, 1], points[i, 2], octaves, seed)

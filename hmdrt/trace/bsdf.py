@@ -6,17 +6,17 @@ Vectors are passed as scalar triples so the numba kernels inline these without a
 
 import math
 
-import numba as nb
+from hmdrt.jit import inline
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def reflect(dx, dy, dz, nx, ny, nz):
     """Mirror direction of d about unit normal n."""
     k = 2.0 * (dx * nx + dy * ny + dz * nz)
     return dx - k * nx, dy - k * ny, dz - k * nz
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def refract(dx, dy, dz, nx, ny, nz, eta):
     """Snell refraction of unit d through unit n facing against d (n.d < 0), eta = n_incident / n_transmitted.
 
@@ -31,7 +31,7 @@ def refract(dx, dy, dz, nx, ny, nz, eta):
     return True, eta * dx + k * nx, eta * dy + k * ny, eta * dz + k * nz
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def fresnel_dielectric(cos_i, eta):
     """Unpolarised Fresnel reflectance at a dielectric interface; 1 under total internal reflection."""
     cos_i = min(max(cos_i, 0.0), 1.0)
@@ -44,7 +44,7 @@ def fresnel_dielectric(cos_i, eta):
     return 0.5 * (rs * rs + rp * rp)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def split(reflectance, transmittance, cos_i, eta):
     """Weights (k_reflect, k_transmit) of the mirror and refracted rays; they sum to reflectance + transmittance.
 

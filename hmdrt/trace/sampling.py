@@ -9,13 +9,14 @@ import math
 import numba as nb
 import numpy as np
 
+from hmdrt.jit import inline, kernel
 from hmdrt.rng import uniform
 
 # RNG dimensions: distinct streams for the different decisions made for one key
 DIM_PIXEL, DIM_AREA, DIM_AO = 1, 16, 4096
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def grid_dims(n):
     """(nx, ny) with nx * ny == n and nx <= ny as close to square as n allows (36 -> 6 x 6, 8 -> 2 x 4)."""
     nx = max(1, int(math.sqrt(n)))
@@ -29,7 +30,7 @@ def grid_shape(n: int) -> tuple[int, int]:
     return tuple(int(v) for v in grid_dims(n))
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def stratified(key, k, dim, nx, ny):
     """The k-th of nx * ny jittered strata of the unit square, for a given key and dimension."""
     ix = k % nx
@@ -37,7 +38,7 @@ def stratified(key, k, dim, nx, ny):
     return (ix + uniform(key, dim, 2 * k)) / nx, (iy + uniform(key, dim, 2 * k + 1)) / ny
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def cosine_hemisphere(nx, ny, nz, s, t):
     """Cosine-weighted direction about unit normal n from a point (s, t) of the unit square."""
     r = math.sqrt(s)
@@ -52,7 +53,7 @@ def cosine_hemisphere(nx, ny, nz, s, t):
     return lx * tx + ly * bx + lz * nx, lx * ty + ly * by + lz * ny, lx * tz + ly * bz + lz * nz
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
+@kernel
 def _jittered_pixels(width, row0, rows, nx, ny, seed, out):
     spp = nx * ny
     for r in nb.prange(rows):

@@ -19,7 +19,7 @@ from hmdrt.optics.camera import EyeCamera
 from hmdrt.optics.projection import FAR, bilinear3, camera_arrays
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def k_of_age(dt, k_min, k_max, t_max):
     """weier2016's k_t(dt) = min(exp(x0 + (dt - 1) / (t_max - 1) (x1 - x0)), k_max), x0 = ln k_min, x1 = ln k_max.
 
@@ -34,7 +34,7 @@ def k_of_age(dt, k_min, k_max, t_max):
     return min(math.exp(x0 + (dt - 1.0) / (t_max - 1.0) * (x1 - x0)), k_max)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@inline
 def running_estimate(rho_prev, k):
     """weier2016 equation (1)'s blending weight and the new accumulated count, given the count so far.
 
