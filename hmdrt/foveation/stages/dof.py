@@ -23,7 +23,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.stages.filters import Contrast, enhance
-from hmdrt.foveation.stages.pyramid import Pyramid, sample_rgbd
+from hmdrt.foveation.stages.pyramid import Pyramid, sample_pixel
 from hmdrt.jit import inline, kernel, serial
 
 IMAGE_DISTANCE_MM = 22.4  # d_i, the eye's lens-to-retina distance (Gross 2005)
@@ -262,49 +262,54 @@ def _near_vertical(near, rows, y, x, radius):
     return r / n, g / n, b / n, min(1.0, n / (2.0 * reach + 1.0))
 
 
-@inline
-def _dof_pixel(color, ecc, layers, blur, pyramid, y, x):
-    """Far field: the central Gaussian, the pyramid blur in the periphery, blended across [r0, r1); the
-    sharp image is interpolated towards it by |CoC|; the near field is alpha-blended over."""
+@serial
+def _dof_row(color, ecc, layers, blur, pyramid, y, out):
+    """Row y of the second pass. Far field: the central Gaussian, the pyramid blur in the periphery, blended
+    across [r0, r1); the sharp image is interpolated towards it by |CoC|; the near field is alpha-blended over."""
     coc, far, near, rows = layers
     r0, r1, ramp, radius = blur
-    c = coc[y, x]
-    r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
-    if c < 0.0:
-        e = ecc[y, x]
-        blend = 0.0 if e < r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
-        if e < r1:
-            fr, fg, fb = _far_gauss(far, color, ecc, coc, y, x, 1, 0, r1, c)  # a neighbour beyond r1 took no first pass
-        else:
-            fr, fg, fb = r, g, b
-        if blend > 0.0:
-            level = 0.0 if -c <= 1.0 else math.log2(-c)
-            pr, pg, pb, _ = sample_rgbd(pyramid, level, x + 0.5, y + 0.5)
-            fr, fg, fb = fr + blend * (pr - fr), fg + blend * (pg - fg), fb + blend * (pb - fb)
-        t = min(1.0, -c / ramp)
-        r, g, b = r + t * (fr - r), g + t * (fg - g), b + t * (fb - b)
-    nr, ng, nb_, a = _near_vertical(near, rows, y, x, radius)
-    if a > 0.0:
-        r, g, b = r + a * (nr - r), g + a * (ng - g), b + a * (nb_ - b)
-    return r, g, b
+    for x in range(out.shape[1]):
+        c = coc[y, x]
+        r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
+        if c < 0.0:
+            e = ecc[y, x]
+            blend = 0.0 if e < r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+            if e < r1:
+                fr, fg, fb = _far_gauss(far, color, ecc, coc, y, x, 1, 0, r1, c)  # beyond r1 no first pass ran
+            else:
+                fr, fg, fb = r, g, b
+            if blend > 0.0:
+                level = 0.0 if -c <= 1.0 else math.log2(-c)
+                pr, pg, pb, _ = sample_pixel(pyramid, level, x, y)
+                fr, fg, fb = fr + blend * (pr - fr), fg + blend * (pg - fg), fb + blend * (pb - fb)
+            t = min(1.0, -c / ramp)
+            r, g, b = r + t * (fr - r), g + t * (fg - g), b + t * (fb - b)
+        nr, ng, nb_, a = _near_vertical(near, rows, y, x, radius)
+        if a > 0.0:
+            r, g, b = r + a * (nr - r), g + a * (ng - g), b + a * (nb_ - b)
+        out[y, x, 0], out[y, x, 1], out[y, x, 2] = r, g, b
 
 
 @serial
-def _combine_row(color, ecc, layers, blur, pyramid, contrast, blurred, dof, y, out):
+def _contrast_row(ecc, contrast, blurred, y, out):
+    """Row y of out enhanced in place (filters.enhance)."""
     for x in range(out.shape[1]):
-        if dof:
-            r, g, b = _dof_pixel(color, ecc, layers, blur, pyramid, y, x)
-        else:
-            r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
-        if contrast.strength != 0.0:
-            r, g, b = enhance(r, g, b, ecc[y, x], x, y, contrast, blurred)
-        out[y, x, 0], out[y, x, 1], out[y, x, 2] = r, g, b
+        out[y, x, 0], out[y, x, 1], out[y, x, 2] = enhance(
+            out[y, x, 0], out[y, x, 1], out[y, x, 2], ecc[y, x], x, y, contrast, blurred
+        )
 
 
 @kernel
 def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, dof, out):
+    """Row by row, the depth of field then the contrast over the row while it is in cache: two simple loops
+    compile to faster code than one that does both."""
     for y in nb.prange(out.shape[0]):
-        _combine_row(color, ecc, layers, blur, pyramid, contrast, blurred, dof, y, out)
+        if dof:
+            _dof_row(color, ecc, layers, blur, pyramid, y, out)
+        else:
+            out[y] = color[y]
+        if contrast.strength != 0.0:
+            _contrast_row(ecc, contrast, blurred, y, out)
 
 
 def horizontal_pass(color: np.ndarray, ecc: np.ndarray, layers: Layers, blur: Blur) -> None:

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.stages.pyramid import Pyramid, sample_rgbd
+from hmdrt.foveation.stages.pyramid import Pyramid, sample_pixel
 from hmdrt.jit import inline, kernel
 
 DEGREES_PER_LEVEL = 5.0  # the blur's pyramid level grows by one every 5 degrees beyond r0
@@ -89,6 +89,6 @@ def enhance(r, g, b, e, x, y, contrast, blurred):
     fade = 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
     if fade <= 0.0:
         return r, g, b
-    br, bg, bb, _ = sample_rgbd(blurred, levels[y, x], x + 0.5, y + 0.5)
+    br, bg, bb, _ = sample_pixel(blurred, levels[y, x], x, y)
     gain = strength * fade
     return max(r + gain * (r - br), 0.0), max(g + gain * (g - bg), 0.0), max(b + gain * (b - bb), 0.0)

@@ -137,20 +137,26 @@ def pull_push(pyramid: Pyramid, mask: np.ndarray | None = None) -> None:
 
 
 @inline
-def sample_rgbd(pyramid, level, x, y):
-    """Colour and depth at full-resolution pixel coordinates (x, y) on a (fractional) level, trilinearly."""
+def sample_pixel(pyramid, level, x, y):
+    """Colour and depth at the centre of full-resolution pixel (x, y) on a (fractional) level, trilinearly. Level 0
+    there is the texel itself, read as such: most of the depth of field's lookups and the contrast blur's nearest
+    the fovea stay within a level of it."""
     data, offsets, widths, heights, sx, sy = pyramid
     top = len(offsets) - 1
     level = min(max(level, 0.0), float(top))
     l0 = int(level)
-    r, g, b, d = _bilinear(data, offsets[l0], widths[l0], _axis(x * sx[l0], widths[l0]), _axis(y * sy[l0], heights[l0]))
+    if l0 == 0:
+        i = np.uint64(y * widths[0] + x)
+        r, g, b, d = data[i, 0], data[i, 1], data[i, 2], data[i, 4]
+    else:
+        ax, ay = _axis((x + 0.5) * sx[l0], widths[l0]), _axis((y + 0.5) * sy[l0], heights[l0])
+        r, g, b, d = _bilinear(data, offsets[l0], widths[l0], ax, ay)
     t = level - l0
     if t == 0.0 or l0 == top:
         return r, g, b, d
     l1 = l0 + 1
-    r1, g1, b1, d1 = _bilinear(
-        data, offsets[l1], widths[l1], _axis(x * sx[l1], widths[l1]), _axis(y * sy[l1], heights[l1])
-    )
+    ax, ay = _axis((x + 0.5) * sx[l1], widths[l1]), _axis((y + 0.5) * sy[l1], heights[l1])
+    r1, g1, b1, d1 = _bilinear(data, offsets[l1], widths[l1], ax, ay)
     return r + t * (r1 - r), g + t * (g1 - g), b + t * (b1 - b), d + t * (d1 - d)
 
 
