@@ -46,9 +46,10 @@ from hmdrt.foveation.stages.sampling import (
     pixels_per_degree,
     sampling_tables,
 )
+from hmdrt.foveation.stages.temporal import eye_point, relative_view, view_project
 from hmdrt.jit import kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
-from hmdrt.optics.projection import FAR, camera_arrays, project, world_point
+from hmdrt.optics.projection import FAR, camera_arrays
 from hmdrt.ranges import Deg, Fraction
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.gbuffer import GBufferPool
@@ -112,19 +113,24 @@ def _tap(tap, expected, tol, valid, r, g, b):
 
 
 @serial
-def _taa_block(traced, cur, prev, blend, previous, history, data, start, stop):
+def _taa_block(traced, frustum, view, blend, previous, history, data, start, stop):
+    """Samples [start, stop): each one's point in the current eye frame (frustum) seen from the previous frame
+    (its relative_view `view`), and the previous pyramid's quincunx taps there."""
     pixels, levels, offsets, depth, rgb = traced
     width, alpha_min, tol = blend
-    pw, ph = previous.widths[0], previous.heights[0]
+    p_data, p_offsets, p_widths, p_heights, p_sx, p_sy = previous
+    pw, ph = p_widths[0], p_heights[0]
     for s in range(start, stop):
         i = pixels[s]
         r, g, b = rgb[s, 0], rgb[s, 1], rgb[s, 2]
         if history:
-            px, py, pz = world_point(cur, i % width + 0.5, i // width + 0.5, depth[s])
-            qx, qy, dist = project(prev, px, py, pz)
+            px, py, pz = eye_point(frustum, i % width + 0.5, i // width + 0.5, depth[s])
+            qx, qy, dist = view_project(view, px, py, pz)
             if qx >= 0.0 and qy >= 0.0 and qx < pw and qy < ph:
                 expected = dist if depth[s] < FAR else math.inf
-                t0, t1, t2, t3, t4 = quincunx_rgbd(previous, levels[s], offsets[s], qx, qy)
+                t0, t1, t2, t3, t4 = quincunx_rgbd(
+                    p_data, p_offsets, p_widths, p_heights, p_sx, p_sy, levels[s], offsets[s], qx, qy
+                )
                 valid, tr, tg, tb = _tap(t0, expected, tol, 0, 0.0, 0.0, 0.0)
                 valid, tr, tg, tb = _tap(t1, expected, tol, valid, tr, tg, tb)
                 valid, tr, tg, tb = _tap(t2, expected, tol, valid, tr, tg, tb)
@@ -139,13 +145,14 @@ def _taa_block(traced, cur, prev, blend, previous, history, data, start, stop):
 
 
 @kernel
-def _taa(traced, cur, prev, blend, previous, history, pyramid):
+def _taa(traced, frustum, view, blend, previous, history, pyramid):
     """Each traced sample into level 0 of `pyramid` (weight 1, depth capped at FAR), blended with the previous
-    frame's pyramid around its back-projection (cameras cur and prev) when there is history."""
+    frame's pyramid around its back-projection (temporal.relative_view `view` of the previous camera) when there
+    is history."""
     n = traced.pixels.shape[0]
     data = pyramid.data
     for block in nb.prange((n + BLOCK - 1) // BLOCK):
-        _taa_block(traced, cur, prev, blend, previous, history, data, block * BLOCK, min(n, (block + 1) * BLOCK))
+        _taa_block(traced, frustum, view, blend, previous, history, data, block * BLOCK, min(n, (block + 1) * BLOCK))
 
 
 @dataclass
@@ -266,14 +273,14 @@ class Weier18(Configurable):
         p = self.params
         state.pyramids.reverse()
         current, previous = state.pyramids
-        cameras = camera_arrays(cam), camera_arrays(state.camera)
+        frustum, view = camera_arrays(cam).frustum, relative_view(state.camera, cam)
         blend = Blend(cam.width, p.alpha_min, p.taa_depth)
         if "taa" in steps:
             with stats.stage("taa"):
-                _taa(traced, *cameras, blend, previous, True, current)
+                _taa(traced, frustum, view, blend, previous, True, current)
         with stats.stage("ppi"):
             if "taa" not in steps:
-                _taa(traced, *cameras, blend, previous, False, current)
+                _taa(traced, frustum, view, blend, previous, False, current)
             pull_push(current, state.samples.mask.reshape(-1))
         return current
 

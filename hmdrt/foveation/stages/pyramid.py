@@ -181,11 +181,11 @@ def _lerp4(u, v, t):
 
 
 @inline
-def quincunx_rgbd(pyramid, level, off, x, y):
+def quincunx_rgbd(data, offsets, widths, heights, sx, sy, level, off, x, y):
     """The five quincunx taps (centre, then the diagonals) around full-resolution pixel coordinates (x, y) on
-    a (fractional) level, `off` = 2^level / 2 full-resolution pixels apart diagonally (half a texel of that
-    level): each one's colour and depth, trilinearly."""
-    data, offsets, widths, heights, sx, sy = pyramid
+    a (fractional) level of the pyramid whose fields these are (per-sample callers take it apart once: a
+    namedtuple taken apart per sample costs a reference count per array), `off` = 2^level / 2 full-resolution
+    pixels apart diagonally (half a texel of that level): each one's colour and depth, trilinearly."""
     top = len(offsets) - 1
     level = min(max(level, 0.0), float(top))
     l0 = int(level)
