@@ -16,7 +16,6 @@ from collections.abc import Callable
 from importlib import resources
 
 import numpy as np
-import trimesh
 
 from hmdrt.scene import shapes
 from hmdrt.scene.model import AreaLight, Checker, Light, Material, Mesh, Noise, PointLight, Scene
@@ -222,6 +221,8 @@ def interior(ao_samples: int = 8, area_samples: int = 8) -> Scene:
 
 def bunny() -> Scene:
     """The Stanford bunny on an irregular noise floor, with a mirror and a glass sphere."""
+    import trimesh  # a second to import: only where a mesh is loaded (hmdrt.scene.shapes)
+
     with resources.as_file(resources.files("hmdrt.scene") / "data" / "bunny.ply") as path:
         raw = trimesh.load(path, process=True)
     scale = 6.0

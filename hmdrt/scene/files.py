@@ -3,6 +3,7 @@ with their materials and textures (diffuse colour and map, OBJ Ks/Ns, glTF base 
 
 from __future__ import annotations
 
+import functools
 import io
 import os
 from pathlib import Path
@@ -10,7 +11,6 @@ from typing import Annotated
 
 import msgspec
 import numpy as np
-import trimesh
 from PIL import Image as PILImage
 from PIL import UnidentifiedImageError
 
@@ -84,22 +84,28 @@ def _read_bytes(path: Path, what: str, limit: int = MAX_FILE_BYTES) -> bytes:
     return read_limited(path, what, limit, SceneError, regular_only=True)
 
 
-class _CappedResolver(trimesh.resolvers.FilePathResolver):
+@functools.cache
+def _capped_resolver() -> type:
     """trimesh's resolver of the files a mesh file names (OBJ materials and textures, glTF buffers and
-    images), reading each under the same size cap as the mesh file itself."""
+    images), reading each under the same size cap as the mesh file itself. Made at first use: trimesh takes a
+    second to import (hmdrt.scene.shapes)."""
+    import trimesh
 
-    def get(self, name: str) -> bytes:
-        for candidate in (name.strip(), name.strip().lstrip("/"), os.path.split(name)[-1]):
-            try:
-                path = self.absolute(candidate)
-            except ValueError:
-                continue  # outside the mesh file's folder
-            if path.exists():
-                return _read_bytes(path, "file named by a mesh file")
-        raise FileNotFoundError(name)
+    class CappedResolver(trimesh.resolvers.FilePathResolver):
+        def get(self, name: str) -> bytes:
+            for candidate in (name.strip(), name.strip().lstrip("/"), os.path.split(name)[-1]):
+                try:
+                    path = self.absolute(candidate)
+                except ValueError:
+                    continue  # outside the mesh file's folder
+                if path.exists():
+                    return _read_bytes(path, "file named by a mesh file")
+            raise FileNotFoundError(name)
 
-    def namespaced(self, namespace: str) -> _CappedResolver:
-        return _CappedResolver(os.path.join(self.parent, namespace), allow_anywhere=self.allow_anywhere)
+        def namespaced(self, namespace: str) -> CappedResolver:
+            return CappedResolver(os.path.join(self.parent, namespace), allow_anywhere=self.allow_anywhere)
+
+    return CappedResolver
 
 
 def _image_to_linear(image, source: Path) -> np.ndarray:
@@ -127,6 +133,8 @@ def load_image(path: Path) -> np.ndarray:
 
 def _file_material(visual, key: Path, images: dict[str, np.ndarray], seen: dict[int, str]) -> Material:
     """Our material for a trimesh visual: diffuse colour and map, OBJ Ks/Ns, glTF emission."""
+    import trimesh
+
     mat = getattr(visual, "material", None)
     if mat is None:  # ColorVisuals: one main colour, stored as sRGB bytes
         rgb = np.asarray(visual.main_color[:3], dtype=np.float64) / 255.0
@@ -156,13 +164,15 @@ def load_mesh_file(
     path: Path, material: str | None = None
 ) -> tuple[list[Mesh], dict[str, Material], dict[str, np.ndarray]]:
     """Meshes, materials and linear texture images of a mesh file, with its node transforms applied."""
+    import trimesh
+
     data = _read_bytes(path, "mesh file")
     try:
         loaded = trimesh.load(
             trimesh.util.wrap_as_stream(data),
             file_type=path.suffix[1:].lower(),
             force="scene",
-            resolver=_CappedResolver(path),
+            resolver=_capped_resolver()(path),
         )
     except Exception as exc:  # trimesh raises many types for malformed files
         raise SceneError(f"cannot load mesh file {path}: {exc}") from None
@@ -208,6 +218,8 @@ def _checked(mesh: Mesh, path: Path) -> Mesh:
 
 
 def _object_meshes(spec, base: Path, scene: Scene) -> list[Mesh]:
+    import trimesh
+
     if isinstance(spec, SphereSpec):
         return [shapes.sphere("sphere", spec.center, spec.radius, spec.material, spec.subdivisions)]
     if isinstance(spec, BoxSpec):

@@ -1,17 +1,22 @@
-"""Procedural meshes for the built-in scenes: spheres, boxes, quads and parametric grids (tunnels)."""
+"""Procedural meshes for the built-in scenes: spheres, boxes, quads and parametric grids (tunnels).
+
+trimesh is imported where a mesh is built, not with the module: it takes a second to import, which every
+command line run (an error, --help) would otherwise pay before doing anything.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
 import numpy as np
-import trimesh
 
 from hmdrt.scene.model import Mesh
 
 
 def sphere(name: str, center, radius: float, material: str, subdivisions: int = 4) -> Mesh:
     """Icosphere with smooth normals and a spherical UV map; faces wound outward."""
+    import trimesh
+
     ico = trimesh.creation.icosphere(subdivisions=subdivisions)
     unit = np.asarray(ico.vertices, dtype=np.float64)
     uv = np.stack([0.5 + np.arctan2(unit[:, 0], unit[:, 2]) / (2 * np.pi), 0.5 + np.arcsin(unit[:, 1]) / np.pi], axis=1)
@@ -22,6 +27,8 @@ def sphere(name: str, center, radius: float, material: str, subdivisions: int = 
 
 def box(name: str, lo, hi, material: str) -> Mesh:
     """Axis-aligned box from corner lo to corner hi, flat shaded, faces wound outward."""
+    import trimesh
+
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     b = trimesh.creation.box(bounds=np.stack([lo, hi]))
     return Mesh(name, np.asarray(b.vertices), np.asarray(b.faces), material)
@@ -29,6 +36,8 @@ def box(name: str, lo, hi, material: str) -> Mesh:
 
 def boxes(name: str, lo: np.ndarray, hi: np.ndarray, material: str) -> Mesh:
     """Many axis-aligned boxes (k, 3) corners as one flat-shaded mesh, built without a Python loop."""
+    import trimesh
+
     unit = trimesh.creation.box(bounds=[[0, 0, 0], [1, 1, 1]])
     corners = np.asarray(unit.vertices)  # (8, 3) in {0, 1}
     verts = lo[:, None, :] + corners[None] * (hi - lo)[:, None, :]
@@ -58,6 +67,8 @@ def grid(
     surface maps (k,) u and (k,) v to (k, 3) points. wrap_u closes the surface in u (a tube);
     the seam keeps duplicate vertices so UVs stay continuous.
     """
+    import trimesh
+
     u, v = np.meshgrid(np.linspace(0, 1, nu + 1), np.linspace(0, 1, nv + 1), indexing="ij")
     pts = surface(u.ravel(), v.ravel())
     if wrap_u:
