@@ -72,14 +72,6 @@ def _primary_rays(camera: EyeCamera) -> tuple[np.ndarray, np.ndarray]:
     return origins, dirs
 
 
-def bare_embree_rate(scene: Scene, camera: EyeCamera, threads: int, repeats: int = 5) -> float:
-    """Rays per second of bare embreex on the camera's primary rays, split in equal parts over `threads`."""
-    _, bare = _embree(scene)
-    origins, dirs = _primary_rays(camera)
-    bare.run(origins[:1], dirs[:1])  # commit the BVH outside the timing
-    return _timed_rate(bare, origins, dirs, threads, repeats)
-
-
 def _unit(v: np.ndarray) -> np.ndarray:
     return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
 
@@ -93,7 +85,7 @@ def bare_kind_rates(scene: Scene, camera: EyeCamera, threads: int, repeats: int 
     these rates: what the scene's rays cost before any of our own work."""
     packed, bare = _embree(scene)
     origins, dirs = _primary_rays(camera)
-    bare.run(origins[:1], dirs[:1])
+    bare.run(origins[:1], dirs[:1])  # commit the BVH outside the timing
     rates = {"primary": _timed_rate(bare, origins, dirs, threads, repeats)}
     first = bare.run(origins, dirs, output=1)
     hit = first["primID"] >= 0

@@ -248,12 +248,12 @@ class Weier18(Configurable):
             if out is None:
                 out = np.empty((cam.height, cam.width, 3), np.float32)
             color = current.level(0)[..., :3]
-            if state.blurred is None or state.blurred.data.shape != current.data.shape:
-                state.blurred = Pyramid.empty(cam.width, cam.height)
+            blurred = current  # read only with contrast on
             if p.contrast:
-                prefilter(current, state.blurred)
-            contrast = Contrast(p.contrast, p.r0, p.r1, state.levels)
-            combine(color, ecc, layers, blur, current, contrast, state.blurred, out)
+                if state.blurred is None or state.blurred.data.shape != current.data.shape:
+                    state.blurred = Pyramid.empty(cam.width, cam.height)
+                blurred = prefilter(current, state.blurred)
+            combine(color, ecc, layers, blur, current, Contrast(p.contrast, p.r0, p.r1, state.levels), blurred, out)
         state.camera = request.camera
         stats.metrics["sample_fraction"] = state.samples.count / (cam.width * cam.height)
         return out
