@@ -220,6 +220,26 @@ def test_weier18_depth_of_field_blurs_only_out_of_focus():
     assert diff[near].mean() > 5 * diff[focused].mean()
 
 
+def test_weier18_density_option_redraws_its_sampling_tables():
+    """density=linear (equation (1) with the polar Jacobian) traces another set of pixels, also when set on a
+    running method; the printed equation stays the default."""
+    profile = get_profile("sim-cpu").with_resolution(320, 360)
+    look = lambda s: still(s, 1)  # noqa: E731
+    fraction = lambda frames: frames[0][1].metrics["sample_fraction"]  # noqa: E731
+    printed = fraction(run("weier18?dof=none", "whitted", look, profile=profile))
+    linear = fraction(run("weier18?dof=none&density=linear", "whitted", look, profile=profile))
+    assert printed != linear and make_method("weier18", None).params.density == "printed"
+    scene = load_scene("whitted")
+    with Whitted(scene) as tracer:
+        method = make_method("weier18?dof=none", tracer)
+        request = FrameRequest(EyeCamera.for_eye(profile, scene.start), np.array(gaze_direction(0.0, 0.0)), 0)
+        method.render(request, FrameStats())
+        method.set_params(msgspec.structs.replace(method.params, density="linear"))
+        stats = FrameStats()
+        method.render(request, stats)
+    assert stats.metrics["sample_fraction"] == linear
+
+
 def cam_depth(scene, cam):
     from hmdrt.optics.camera import pixel_centres
     from hmdrt.trace.gbuffer import GBuffer

@@ -8,7 +8,7 @@ import pytest
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.kim21 import Kim21Params, alpha_of_eccentricity, bezier_controls, tau_fov_array
 from hmdrt.foveation.rrm import RrmParams, refresh_phase, visit_order
-from hmdrt.foveation.stages.dof import DOF_PRESETS, circle_of_confusion, coc_map, focal_lengths
+from hmdrt.foveation.stages.dof import DOF_PRESETS, REFERENCE_PPD, circle_of_confusion, coc_map, focal_lengths
 from hmdrt.foveation.stages.gaze import FixationFilter, vergence_depth
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push
 from hmdrt.foveation.stages.reproject import CoarseMesh, backproject
@@ -17,10 +17,12 @@ from hmdrt.foveation.stages.sampling import (
     bernoulli_mask,
     expected_fraction,
     foveal_config,
+    pixels_per_degree,
     sampling_tables,
     table_mask,
     transition_points,
     transition_radius,
+    transition_radius_linear,
 )
 from hmdrt.foveation.stages.temporal import History, exponential_smoothing, k_of_age, running_estimate
 from hmdrt.optics import EyeCamera, get_profile
@@ -107,6 +109,23 @@ def test_equation_1_limits_and_distribution():
     p = 0.2
     x = transition_radius(u, 0.0, 1.0, p)
     np.testing.assert_allclose((2 * x - (1 - p) * x * x) / (1 + p), u, atol=1e-12)
+
+
+def test_linear_density_falls_linearly_per_unit_area():
+    """density=linear: the points per unit area of each ring follow f(r) = 1 - (1 - p)(r - r0)/(r1 - r0), where
+    equation (1) as printed gives f(r) / r; both end at r0 and r1."""
+    r0, r1, p = 10.0, 20.0, 0.2
+    u = (np.arange(200_000) + 0.5) / 200_000
+    edges = np.linspace(r0, r1, 11)
+    mid = 0.5 * (edges[:-1] + edges[1:])
+    f = 1 - (1 - p) * (mid - r0) / (r1 - r0)
+    for radius, expected in ((transition_radius_linear, f), (transition_radius, f / mid)):
+        r = radius(u, r0, r1, p)
+        assert r[0] == pytest.approx(r0, abs=1e-3) and r[-1] == pytest.approx(r1, abs=1e-3)
+        assert np.all(np.diff(r) > 0)
+        per_area = np.histogram(r, edges)[0] / (edges[1:] ** 2 - edges[:-1] ** 2)
+        np.testing.assert_allclose(per_area / per_area[0], expected / expected[0], rtol=0.02)
+    np.testing.assert_allclose(transition_radius_linear(u[::997], 0.0, 1.0, 1.0), np.sqrt(u[::997]), atol=1e-9)
 
 
 def test_s_in_reproduces_the_density_of_equation_1():
@@ -284,11 +303,16 @@ def test_coc_is_zero_inside_the_focus_range_and_grows_outside():
     assert abs(near[0]) < 0.05 and abs(far[0]) < 0.05  # continuous at the range's ends
 
 
-def test_coc_presets_scale_the_blur():
+def test_coc_presets_blur_2_5_and_10_pixels_at_rift_s():
+    """As docs/methods.md says: a point at 6 m while fixating 0.75 m, at rift_s's own pixel density."""
+    ppd = sum(pixels_per_degree(camera())) / 2
+    assert REFERENCE_PPD == pytest.approx(ppd, abs=0.01)
     depth = np.array([[0.75, 6.0]])
-    sizes = [abs(coc_map(depth, 0.75, DOF_PRESETS[p], 14.2)[0, 1]) for p in ("weak", "medium", "strong")]
-    assert sizes == sorted(sizes) and 1.0 < sizes[0] < 3.5 and 3.0 < sizes[1] < 7.0 and 7.0 < sizes[2] < 14.0
-    assert coc_map(depth, 0.75, DOF_PRESETS["medium"], 14.2)[0, 0] == 0.0
+    sizes = [abs(coc_map(depth, 0.75, DOF_PRESETS[p], ppd)[0, 1]) for p in ("weak", "medium", "strong")]
+    np.testing.assert_allclose(sizes, [2.0, 5.0, 10.0], rtol=0.05)
+    assert coc_map(depth, 0.75, DOF_PRESETS["medium"], ppd)[0, 0] == 0.0
+    half = abs(coc_map(depth, 0.75, DOF_PRESETS["medium"], ppd / 2)[0, 1])  # the same angle on a coarser display
+    assert half == pytest.approx(sizes[1] / 2)
 
 
 # -- reprojection and reconstruction --

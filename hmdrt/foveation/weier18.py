@@ -40,6 +40,7 @@ from hmdrt.foveation.stages.filters import Contrast, contrast_levels, prefilter
 from hmdrt.foveation.stages.pyramid import Pyramid, pull_push, quincunx_rgbd
 from hmdrt.foveation.stages.sampling import (
     FOVEAL_REGION_KNOBS,
+    Density,
     Foveal,
     SampleSet,
     SamplingTables,
@@ -63,6 +64,7 @@ class Weier18Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     r0: Deg = 10.0
     r1: Deg = 20.0
     p_min: Fraction = 0.2
+    density: Density = "printed"  # equation (1) as printed, or "linear" with the polar Jacobian
     dof: Literal["none", "weak", "medium", "strong"] = "medium"
     pupil_mm: Annotated[float, msgspec.Meta(gt=0.0, le=20.0)] | None = None  # k, overrides the preset's
     retina: Annotated[float, msgspec.Meta(gt=0.0, le=100.0)] | None = None  # E, overrides the preset's
@@ -160,7 +162,7 @@ class _EyeState:
     camera: EyeCamera
     pyramids: list[Pyramid]  # [current, previous]; swapped every frame
     tables: SamplingTables | None = None
-    tables_for: tuple | None = None  # the (foveal region, table_seed) the tables were drawn for
+    tables_for: tuple | None = None  # the (foveal region, table_seed, density) the tables were drawn for
     samples: SampleSet = field(default_factory=SampleSet)
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the samples' random-stream keys
     levels: np.ndarray | None = None  # contrast enhancement's blur level per pixel
@@ -194,11 +196,11 @@ class Weier18(Configurable):
 
     def _configure(self, params: Weier18Params) -> None:
         """Keeps each eye's reconstruction pyramids, which TAA reprojects. A new foveal region (r0, r1,
-        p_min) or table_seed redraws each eye's sampling tables S_in and S_out before its next frame;
+        p_min), table_seed or density redraws each eye's sampling tables S_in and S_out before its next frame;
         dof, contrast and the TAA settings act on the next frame as they are."""
         self.params = params
         self.foveal = Foveal(params.r0, params.r1, params.p_min)
-        self._tables_for = (self.foveal, params.table_seed)
+        self._tables_for = (self.foveal, params.table_seed, params.density)
         self.features = frozenset({DOF} if params.preset() else set())
 
     def _state(self, request: FrameRequest) -> tuple[_EyeState, bool]:
@@ -210,7 +212,7 @@ class Weier18(Configurable):
             pyramids = [Pyramid.empty(cam.width, cam.height), Pyramid.empty(cam.width, cam.height)]
             state = self._eyes[request.eye] = _EyeState(cam, pyramids)
         if state.tables_for != self._tables_for:
-            state.tables = sampling_tables(cam, self.foveal, self.params.table_seed)
+            state.tables = sampling_tables(cam, self.foveal, self.params.table_seed, self.params.density)
             state.tables_for = self._tables_for
         return state, history
 

@@ -28,7 +28,7 @@ from hmdrt.jit import inline, kernel, serial
 
 IMAGE_DISTANCE_MM = 22.4  # d_i, the eye's lens-to-retina distance (Gross 2005)
 DEPTH_INACCURACY_M = 0.2  # t, the mean gaze-depth estimation error over 6 m (Weier et al. 2018)
-REFERENCE_PPD = 14.2  # rift_s pixels per degree at the centre, the density the presets were set at
+REFERENCE_PPD = 11.44  # rift_s pixels per degree at the centre (mean of x and y), where the presets hold
 MAX_BLUR_PX = 24  # radius cap of the central Gaussian and of the near-field spread
 RAMP_PX = 2.0  # the |CoC| over which the sharp image fades into the far field
 

@@ -9,7 +9,7 @@ with the point of regard, and the static uniform table S_out of density p_min.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numba as nb
 import numpy as np
@@ -29,6 +29,9 @@ FRC_PRESETS: dict[str, tuple[float, float, float]] = {
     "full": (math.inf, math.inf, 1.0),
 }
 SMALL_R0, SMALL_R1, SMALL_P_MIN = FRC_PRESETS["small"]
+# weier2018 equation (1)'s radius: as printed, or with the polar Jacobian so that the per-pixel density
+# falls linearly as weier2016's p(e) does
+Density = Literal["printed", "linear"]
 # the budget controller's knobs of a foveal region (weier2016, weier2018): down to the small configuration,
 # the fovea's own size with a steep falloff
 FOVEAL_REGION_KNOBS = (
@@ -109,6 +112,25 @@ def transition_radius(u: np.ndarray | float, r0: float, r1: float, p_min: float)
     return r0 + (r1 - r0) * x
 
 
+def transition_radius_linear(u: np.ndarray | float, r0: float, r1: float, p_min: float) -> np.ndarray:
+    """The radius whose per-pixel density falls linearly from 1 at r0 to p_min at r1: the density of r is
+    f(r) r (the polar Jacobian that equation (1) as printed leaves out), inverted by bisection on its cubic
+    distribution function, monotone on [r0, r1] since f >= p_min >= 0."""
+    u = np.asarray(u, dtype=np.float64)
+    a, span = 1.0 - p_min, r1 - r0
+
+    def cdf(x: np.ndarray) -> np.ndarray:  # of x = (r - r0) / (r1 - r0), unnormalised
+        return r0 * x + (span - a * r0) * x * x / 2.0 - a * span * x**3 / 3.0
+
+    target = u * cdf(np.float64(1.0))
+    lo, hi = np.zeros_like(u), np.ones_like(u)
+    for _ in range(52):  # to float64 resolution on [0, 1]
+        mid = 0.5 * (lo + hi)
+        below = cdf(mid) < target
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    return r0 + span * 0.5 * (lo + hi)
+
+
 def halton(index: np.ndarray, base: int) -> np.ndarray:
     """The radical inverse of integers in a prime base: a low-discrepancy sequence in [0, 1)."""
     index = np.asarray(index, dtype=np.int64).copy()
@@ -137,25 +159,27 @@ class SamplingTables(NamedTuple):
     ppd: tuple[float, float]
 
 
-def transition_points(cfg: Foveal, count: int, ppd: tuple[float, float]) -> np.ndarray:
+def transition_points(cfg: Foveal, count: int, ppd: tuple[float, float], density: Density = "printed") -> np.ndarray:
     """weier2018 equation (1)'s points as pixel offsets (count, 2) from the point of regard: r from the
     equation and phi = 2 pi v, (u, v) from the Halton (2, 3) sequence (indices from 1).
 
     As printed, the equation gives r the density f(x) without the polar Jacobian r, so the points are
-    denser per pixel near r0 than the linear falloff, and some there share a pixel.
+    denser per pixel near r0 than the linear falloff, and some there share a pixel; density "linear" draws r
+    with the Jacobian (transition_radius_linear).
     """
     k = np.arange(1, count + 1)
-    r = transition_radius(halton(k, 2), cfg.r0, min(cfg.r1, 180.0), cfg.p_min)
+    radius = transition_radius if density == "printed" else transition_radius_linear
+    r = radius(halton(k, 2), cfg.r0, min(cfg.r1, 180.0), cfg.p_min)
     phi = 2.0 * np.pi * halton(k, 3)
     return np.stack([r * np.cos(phi) * ppd[0], r * np.sin(phi) * ppd[1]], axis=1)
 
 
-def sampling_tables(camera: EyeCamera, cfg: Foveal, seed: int = 0) -> SamplingTables:
+def sampling_tables(camera: EyeCamera, cfg: Foveal, seed: int = 0, density: Density = "printed") -> SamplingTables:
     """Precompute S_in and S_out for a camera (weier2018 section 3.1).
 
     S_in holds every offset inside r0 and, in [r0, r1), the pixels hit by transition_points; their
-    number M is the expected number of transition pixels under weier2016's linear falloff. S_out is a
-    seeded uniform pattern of density p_min.
+    number M is the expected number of transition pixels under weier2016's linear falloff, their radii drawn
+    as `density` says (transition_points). S_out is a seeded uniform pattern of density p_min.
     """
     ppd = pixels_per_degree(camera)
     r1 = min(cfg.r1, 180.0)
@@ -168,7 +192,7 @@ def sampling_tables(camera: EyeCamera, cfg: Foveal, seed: int = 0) -> SamplingTa
     if band.any() and r1 > cfg.r0:
         p = 1.0 - (1.0 - cfg.p_min) * (r_deg[band] - cfg.r0) / (r1 - cfg.r0)
         samples = int(round(p.sum()))
-        offsets = np.rint(transition_points(cfg, samples, ppd)).astype(np.int64)
+        offsets = np.rint(transition_points(cfg, samples, ppd, density)).astype(np.int64)
         s_in[offsets[:, 1] + ry, offsets[:, 0] + rx] = True
     rng = np.random.default_rng(seed)
     s_out = rng.random((camera.height, camera.width)) < cfg.p_min
