@@ -19,7 +19,8 @@ from hmdrt.evaluate.runner import pareto_front, summarise
 from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.foveation import MethodChoice
 from hmdrt.optics import EyeCamera, get_profile
-from hmdrt.quality import BANDS, BandScores, ssim_map
+from hmdrt.present.encode import linear_to_srgb8
+from hmdrt.quality import BANDS, BandScores, band_psnr, psnr, srgb_encode, ssim_map, to_space
 from hmdrt.scene import load_scene
 from hmdrt.spatial import Pose
 from hmdrt.trace.integrator import Whitted
@@ -49,7 +50,7 @@ def test_ssim_is_one_for_identical_images_and_matches_a_direct_window_sum_inside
 def test_band_scores_pool_the_squared_error_over_frames_and_measure_flicker_beyond_the_truths():
     truth = np.full((30, 40, 3), 0.5, dtype=np.float32)
     eccentricity = np.tile(np.linspace(0, 40, 40, dtype=np.float32), (30, 1))
-    scores = BandScores()
+    scores = BandScores("linear")
     scores.add(truth + 0.1, truth, eccentricity)  # squared error 0.01
     scores.add(truth - 0.1, truth, eccentricity)  # squared error 0.01, and a change of 0.2 from the last frame
     scores.add(truth + 0.1, truth, eccentricity)
@@ -57,7 +58,7 @@ def test_band_scores_pool_the_squared_error_over_frames_and_measure_flicker_beyo
     for band in (*BANDS, "image"):
         assert result[f"psnr_{band}"] == pytest.approx(20.0, abs=1e-3)  # 10 log10(1 / 0.01)
         assert result[f"flicker_{band}"] == pytest.approx(0.2, abs=1e-6)  # the truth is steady
-    steady = BandScores()
+    steady = BandScores("linear")
     for _ in range(3):
         steady.add(truth + 0.1, truth, eccentricity)
     assert steady.result()["flicker_image"] == pytest.approx(0.0, abs=1e-7)
@@ -67,35 +68,90 @@ def test_band_scores_pool_the_squared_error_over_frames_and_measure_flicker_beyo
     assert empty.result()["psnr_fovea"] == math.inf and empty.result()["psnr_parafovea"] is None
 
 
+@pytest.mark.parametrize("space", ["srgb", "linear"])
+def test_flicker_is_the_change_that_differs_from_the_truths_so_a_frozen_image_is_not_steadier(space):
+    eccentricity = np.tile(np.linspace(0, 40, 40, dtype=np.float32), (30, 1))
+    truths = [np.full((30, 40, 3), v, dtype=np.float32) for v in (0.2, 0.4, 0.3, 0.6)]  # the scene changes
+    frozen, itself = BandScores(space), BandScores(space)
+    for truth in truths:
+        frozen.add(truths[0], truth, eccentricity)  # a method that never updates its image
+        itself.add(truth, truth, eccentricity)
+    for band in (*BANDS, "image"):
+        assert frozen.result()[f"flicker_{band}"] > 0.05
+        assert itself.result()[f"flicker_{band}"] == 0.0
+    encoded = [to_space(t, space)[0, 0, 0] for t in truths]
+    expected = np.mean(np.abs(np.diff(encoded)))  # the frozen image misses every change of the truth
+    assert frozen.result()["flicker_image"] == pytest.approx(expected, rel=1e-5)
+
+
+def _srgb(x: float) -> float:
+    """IEC 61966-2-1's encoding, written out."""
+    return 12.92 * x if x <= 0.0031308 else 1.055 * x ** (1 / 2.4) - 0.055
+
+
+def test_scores_are_of_display_encoded_images_by_default_and_of_linear_radiance_on_request():
+    values = np.array([-0.5, 0.0, 0.002, 0.0031308, 0.01, 0.18, 0.5, 0.99, 1.0, 4.0], dtype=np.float32)
+    assert srgb_encode(values) == pytest.approx([_srgb(min(max(v, 0.0), 1.0)) for v in values], abs=1e-6)
+    srgb8 = linear_to_srgb8(np.tile(values, (1, 1, 1)).reshape(1, -1, 1).repeat(3, axis=2))[0, :, 0]
+    assert np.abs(srgb_encode(values) * 255 - srgb8).max() <= 0.5 + 1e-3  # the display's 8 bits, unquantised
+    truth = np.full((30, 40, 3), 0.02, dtype=np.float32)
+    image = truth + np.float32(0.01)
+    eccentricity = np.zeros((30, 40), dtype=np.float32)
+    scores = {space: BandScores(space) for space in ("srgb", "linear")}
+    for s in scores.values():
+        s.add(image, truth, eccentricity)
+    linear = -10 * math.log10(0.01**2)
+    displayed = -10 * math.log10((_srgb(0.03) - _srgb(0.02)) ** 2)
+    assert BandScores().space == "srgb"
+    assert scores["linear"].result()["psnr_fovea"] == pytest.approx(linear, abs=1e-3)
+    assert scores["srgb"].result()["psnr_fovea"] == pytest.approx(displayed, abs=1e-3)
+    assert displayed < linear - 10  # an error in the dark is larger on the display than in radiance
+    # the module's functions score whatever space they are given
+    assert psnr(to_space(image, "srgb"), to_space(truth, "srgb")) == pytest.approx(displayed, abs=1e-3)
+    assert band_psnr(image, truth, eccentricity)["fovea"] == pytest.approx(linear, abs=1e-3)
+
+
 def test_pareto_front_keeps_only_points_no_other_beats():
     points = [(10.0, 30.0), (5.0, 30.0), (5.0, 25.0), (20.0, 40.0), (20.0, 35.0), (1.0, None), (5.0, 30.0)]
     assert pareto_front(points) == [False, True, False, True, False, False, True]
 
 
-def test_summary_picks_the_fastest_foveated_cell_on_the_front_at_least_as_sharp_as_full():
-    def row(method, ms, psnr, pareto):
-        return {
-            "scene": "s",
-            "profile": "p",
-            "trace": "t",
-            "method": method.partition("?")[0],
-            "params": method,
-            "label": method,
-            "ms_per_frame": ms,
-            "psnr_fovea": psnr,
-            "pareto": pareto,
-            "speedup_vs_full": 40.0 / ms,
-        }
+def _summary_row(label, ms, psnr, baseline="full", method=None, base=(40.0, 30.0)):
+    return {
+        "scene": "s",
+        "profile": "p",
+        "trace": "t",
+        "method": method or label.partition("?")[0],
+        "params": label,
+        "label": label,
+        "ms_per_frame": ms,
+        "psnr_fovea": psnr,
+        "pareto": False,
+        "baseline": baseline,
+        "speedup_vs_baseline": base[0] / ms,
+        "psnr_fovea_vs_baseline": psnr - base[1],
+    }
 
+
+def test_summary_picks_the_fastest_foveated_cell_at_least_as_sharp_as_its_baseline():
+    selective = (20.0, 40.0)
     rows = [
-        row("full", 40.0, 30.0, False),
-        row("rrm?a=1", 5.0, 29.0, True),
-        row("kim21", 10.0, 31.0, True),
-        row("weier16", 8.0, 30.0, False),
-        row("regular?spp=4", 9.0, 32.0, True),
+        _summary_row("full", 40.0, 30.0),
+        _summary_row("rrm?a=1", 5.0, 29.0),  # faster, but blurrier than full
+        _summary_row("kim21", 10.0, 31.0),
+        _summary_row("weier16", 12.0, 30.0),
+        _summary_row("regular?spp=4", 9.0, 32.0),  # a reference, never the best foveated cell
+        _summary_row("Selective", 20.0, 40.0, method="kim21"),
+        _summary_row("Sel_Fov", 30.0, 41.0, baseline="Selective", method="kim21", base=selective),  # slower than full
+        _summary_row("Sel_Fov fast", 15.0, 39.0, baseline="Selective", method="kim21", base=selective),
     ]
-    [entry] = summarise(rows)
-    assert entry["best"] == "kim21" and entry["best_speedup"] == 4.0 and entry["full_psnr_fovea"] == 30.0
+    by_full, by_selective = summarise(rows)
+    assert by_full["baseline"] == "full" and by_full["baseline_psnr_fovea"] == 30.0 and by_full["baseline_ms"] == 40.0
+    assert by_full["best"] == "kim21" and by_full["best_speedup"] == 4.0 and by_full["best_psnr_fovea_delta"] == 1.0
+    assert by_selective["baseline"] == "Selective" and by_selective["best"] == "Sel_Fov"  # the fast one is blurrier
+    assert by_selective["best_speedup"] == pytest.approx(20.0 / 30.0) and by_selective["best_psnr_fovea_delta"] == 1.0
+    [alone] = summarise([_summary_row("rrm", 5.0, 29.0, baseline=None)])
+    assert alone["baseline"] is None and alone["best"] is None
 
 
 def test_truth_cache_renders_a_view_once_and_reads_it_back(tmp_path):
@@ -165,8 +221,10 @@ def test_hmdrt_eval_writes_one_row_per_cell_with_band_scores_plots_and_a_summary
         "rrm?fovea_deg=5.0&group_w=1&group_h=1",  # as MethodChoice writes it: the fields in their order
         "rrm?fovea_deg=20.0&group_w=1&group_h=1",
     }
+    assert result["score_space"] == "srgb" and "PSNR, SSIM and flicker of display-encoded (sRGB) images" in stdout
     for r in result["rows"]:
         assert r["frames"] == 3 and r["ms_per_frame"] > 0 and r["width"] == 48 and r["height"] == 54
+        assert r["score_space"] == "srgb" and r["baseline"] == "full"
         assert all(f"{k}_{b}" in r for k in ("psnr", "ssim", "flicker") for b in (*BANDS, "image"))
         assert r["psnr_image"] is not None and 0 < r["psnr_image"] < 100
     full = [r for r in result["rows"] if r["method"] == "full"]
@@ -176,7 +234,7 @@ def test_hmdrt_eval_writes_one_row_per_cell_with_band_scores_plots_and_a_summary
         twin = next(f for f in full if f["trace"] == r["trace"])
         assert r["psnr_image"] == pytest.approx(twin["psnr_image"], abs=1e-6)
     assert result["truth"]["rendered"] == 1 + 3  # still head: one view; the head path: three scored views
-    assert [s["trace"] for s in result["summary"]] == ["gaze 0,0", "path"]
+    assert [(s["trace"], s["baseline"]) for s in result["summary"]] == [("gaze 0,0", "full"), ("path", "full")]
     assert sorted(p.name.split("_")[0] for p in out.glob("*.png")) == [
         "band",
         "band",
@@ -202,6 +260,22 @@ def test_hmdrt_eval_writes_one_row_per_cell_with_band_scores_plots_and_a_summary
         ('[[traces]]\ngaze = "95,0"\n', "within +-90 degrees"),
         ("scenes = []\n", "at least one entry"),
         ("nonsense = 1\n", "unknown field `nonsense`"),
+        ('score_space = "log"\n', "Invalid enum value 'log' - at `$.score_space`"),
+        (
+            '[[methods]]\nname = "full"\ncompare_to = "nosuch"\n',
+            "compare_to 'nosuch' names no cell (labels there: 'full')",
+        ),
+        (
+            '[[methods]]\nname = "full"\nlabel = "a"\n[[methods]]\nname = "rrm"\nlabel = "a"\n'
+            '[[methods]]\nname = "rrm"\noptions = { block = 2 }\ncompare_to = "a"\n',
+            "compare_to 'a' names 2 cells on scene 'whitted'",
+        ),
+        (
+            'scenes = ["whitted", "tunnel_maps"]\n[[methods]]\nname = "full"\nscenes = ["whitted"]\n'
+            '[[methods]]\nname = "rrm"\ncompare_to = "full"\n',
+            "on scene 'tunnel_maps'",
+        ),
+        ('[[methods]]\nname = "rrm"\ncompare_to = "a\\nb"\n', "compare_to 'a\\nb' names no cell"),
     ],
 )
 def test_bad_eval_configs_are_one_line_errors(tmp_path, text, message):
@@ -242,7 +316,8 @@ def table_lines(markdown: str, title: str) -> list[list[str]]:
 
 def test_paper_tables_are_filled_from_the_labelled_cells_of_each_scene(tmp_path):
     config = tmp_path / "tables.toml"
-    config.write_text((DATA / "eval_tables.toml").read_text())
+    text = (DATA / "eval_tables.toml").read_text()
+    config.write_text(text.replace('label = "Sel_Fov"\n', 'label = "Sel_Fov"\ncompare_to = "Selective"\n'))
     assert main(["eval", str(config), "--out", str(tmp_path / "out"), "--no-plots"]) == 0
     rows = json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
     assert {r["scene"] for r in rows if r["label"] == "weier18"} == {"whitted?max_depth=0"}  # scenes = [...]
@@ -262,6 +337,13 @@ def test_paper_tables_are_filled_from_the_labelled_cells_of_each_scene(tmp_path)
     kim = table_lines(markdown, "kim2021")
     assert [line[1] for line in kim] == ["Regular_36", "Regular_1", "Selective", "Sel_Fov"]
     assert kim[1][2] == f"{full['ms_per_frame']:.1f}"  # Regular_1 is full's cell
+    assert "kim2021 Table 2: time, rays and PSNR per band against regular 36 spp (PSNR of display-encoded" in markdown
+    assert [line[8] for line in kim] == ["Regular_1", "Regular_1", "Regular_1", "Selective"]  # compare_to
+    selective, sel_fov = by["whitted", "Selective"], by["whitted", "Sel_Fov"]
+    assert kim[3][9] == f"{sel_fov['speedup_vs_baseline']:.2f}"
+    assert sel_fov["speedup_vs_baseline"] == pytest.approx(selective["ms_per_frame"] / sel_fov["ms_per_frame"], 1e-3)
+    assert float(kim[3][10]) == pytest.approx(sel_fov["psnr_fovea"] - selective["psnr_fovea"], abs=0.01)
+    assert (kim[1][9], kim[1][10]) == ("1.00", "+0.00")  # full against itself
     assert by["whitted", "Regular_36"]["rays_primary"] == 3 * 48 * 54
 
     smith = table_lines(markdown, "smith2013")
@@ -333,3 +415,122 @@ def test_a_sweep_of_more_than_max_cells_is_refused_before_any_cell_is_built(tmp_
     with pytest.raises(ConfigError, match="its sweep makes 20000 cells, more than 10000"):
         load_eval_config(config)
     assert time.monotonic() - started < 5
+
+
+WARMUP = """
+scenes = ["whitted"]
+resolution = "48x54"
+frames = 3
+warmup_frames = 1
+truth_spp = 2
+cache_dir = "cache"
+score_space = "linear"
+
+[[methods]]
+name = "full"
+
+[[methods]]
+name = "rrm"
+label = "rrm"
+options = { group_w = 2, group_h = 2 }
+
+[[methods]]
+name = "rrm"
+label = "rrm small"
+options = { fovea_deg = 5.0, group_w = 2, group_h = 2 }
+compare_to = "rrm"
+"""
+
+
+def test_each_method_warms_up_for_the_history_it_declares_and_is_compared_with_its_baseline(
+    tmp_path, monkeypatch, capsys
+):
+    config = tmp_path / "e.toml"
+    config.write_text(WARMUP)
+    calls: dict[str, int] = {}
+    real = MethodChoice.make
+
+    def counting(choice, tracer):
+        method = real(choice, tracer)
+        render = method.render
+
+        def counted(request, stats):
+            calls[str(choice)] = calls.get(str(choice), 0) + 1
+            return render(request, stats)
+
+        method.render = counted
+        return method
+
+    monkeypatch.setattr(MethodChoice, "make", counting)
+    assert main(["eval", str(config), "--out", str(tmp_path / "out"), "--no-plots"]) == 0
+    stdout = capsys.readouterr().out
+    result = json.loads((tmp_path / "out" / "results.json").read_text())
+    full, rrm, small = result["rows"]
+    # rrm's N = 2 x 2 frames refresh its whole buffer: the warm-up grows from 1 to 4 frames, full skips it
+    assert (full["warmup_frames"], rrm["warmup_frames"], small["warmup_frames"]) == (0, 4, 4)
+    cells = ("full", "rrm?group_w=2&group_h=2", "rrm?fovea_deg=5.0&group_w=2&group_h=2")
+    assert [calls[c] for c in cells] == [2, 4 + 2, 4 + 2]  # the truth's regular renders apart
+    assert all(r["frames"] == 2 for r in result["rows"])
+    assert rrm["psnr_image"] == pytest.approx(full["psnr_image"], abs=1e-6)  # no pixel left black
+    assert small["baseline"] == "rrm" and rrm["baseline"] == "full"
+    assert small["speedup_vs_baseline"] == pytest.approx(rrm["ms_per_frame"] / small["ms_per_frame"], rel=1e-2)
+    assert small["psnr_fovea_vs_baseline"] == pytest.approx(small["psnr_fovea"] - rrm["psnr_fovea"], abs=1e-4)
+    assert [s["baseline"] for s in result["summary"]] == ["full", "rrm"]
+    assert result["score_space"] == "linear" and all(r["score_space"] == "linear" for r in result["rows"])
+    assert "as fast as rrm" in stdout or "compared with rrm" in stdout
+    assert "of linear radiance images" in stdout
+
+
+def test_methods_declare_the_history_they_need():
+    scene = load_scene("whitted")
+    with Whitted(scene) as tracer:
+        assert MethodChoice.parse("full").make(tracer).warmup_frames == 0
+        assert MethodChoice.parse("regular").make(tracer).warmup_frames == 0
+        rrm = MethodChoice.parse("rrm").make(tracer)
+        assert rrm.warmup_frames == 12  # smith2013's N = 3 x 4
+        rrm.set_params(MethodChoice.parse("rrm?group_w=5&group_h=2").params)
+        assert rrm.warmup_frames == 10
+
+
+def _cluster_rows(labels: list[str], ms: list[float]) -> list[dict]:
+    """Rows of one group whose cells lie close together, as issue 16's full and weier16 small and large did."""
+    group = {"scene": "s", "profile": "p", "trace": "t", "score_space": "srgb"}
+    return [
+        {
+            **group,
+            "label": label,
+            "method": label.partition("?")[0],
+            "ms_per_frame": t,
+            "psnr_fovea": 30.0 + 0.01 * i,
+            "pareto": i % 2 == 0,
+        }  # fmt: skip
+        for i, (label, t) in enumerate(zip(labels, ms, strict=True))
+    ]
+
+
+@pytest.mark.parametrize(
+    "ms",
+    [
+        [3.0, 3.02, 3.04, 3.06, 1.2, 7.9],  # a decade apart at most: minor ticks labelled, formerly 3x10^0
+        [0.4, 0.41, 0.42, 2500.0, 2510.0, 40.0],  # four decades
+        [3.0, 3.0, 3.0, 3.0, 3.0, 3.0],  # all at one time
+    ],
+)
+def test_error_vs_time_labels_never_overlap_and_ticks_are_plain_numbers(ms):
+    from hmdrt.evaluate.plots import error_vs_time_figure, plt
+
+    labels = ["full", "weier16?frc=small", "weier16?frc=large", "rrm?fovea_deg=5.0", "kim21?n_f=4", "Sel_Fov"]
+    fig = error_vs_time_figure(_cluster_rows(labels, ms), "s at p, t")
+    fig.tight_layout()
+    fig.canvas.draw()
+    [ax] = fig.axes
+    renderer = fig.canvas.get_renderer()
+    texts = ax.get_legend().get_texts()
+    assert [t.get_text() for t in texts][: len(labels)] == labels
+    boxes = [t.get_window_extent(renderer) for t in texts]
+    assert not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1 :])
+    assert not ax.get_legend().get_window_extent(renderer).overlaps(ax.get_window_extent(renderer))  # beside the axes
+    assert fig.bbox.contains(*ax.get_legend().get_window_extent(renderer).p1)  # and inside the figure
+    ticks = [t.get_text() for t in ax.get_xticklabels(which="both") if t.get_text()]
+    assert ticks and all(float(t) > 0 for t in ticks)  # plain numbers: no 3x10^0, no mathtext
+    plt.close(fig)

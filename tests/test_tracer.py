@@ -11,6 +11,7 @@ from hmdrt.scene.model import Material, Mesh, PointLight
 from hmdrt.scene.pack import pack
 from hmdrt.scene.shapes import quad, sphere
 from hmdrt.spatial import Pose
+from hmdrt.trace.blocks import BLOCK
 from hmdrt.trace.tracer import Tracer
 
 from .helpers import render, trace_gbuffer
@@ -150,6 +151,21 @@ def test_intersect_validates_its_input():
         with pytest.raises(ValueError):
             tr.intersect(np.zeros((2, 3), np.float32), np.zeros((3, 3), np.float32))
         assert len(tr.intersect(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)).prim) == 0
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_occluded_reports_rays_it_does_not_trace_as_unoccluded(threads):
+    """tfar <= 0 (lighting's -1: the light is behind the surface) is not traced: False, though a wall blocks it."""
+    wall = quad("wall", (-50, -50, -2), (100, 0, 0), (0, 100, 0), "m")  # across every ray, 2 m ahead
+    n = 3 * BLOCK + 5  # several blocks, and a packet left partly empty
+    rng = np.random.default_rng(11)
+    far = rng.choice(np.float32([-1.0, 0.0, 1.0, 10.0]), n)  # untraced, untraced, short of the wall, through it
+    origins = np.zeros((n, 3), np.float32)
+    dirs = np.tile(np.float32([0.0, 0.0, -1.0]), (n, 1))
+    with Tracer(pack(Scene("t", [wall], {"m": Material()})).geometry, threads=threads) as tr:
+        blocked = tr.occluded(origins, dirs, far)
+        np.testing.assert_array_equal(blocked, far == 10.0)
+        assert not tr.occluded(origins, dirs, -1.0).any() and tr.occluded(origins, dirs, 10.0).all()
 
 
 def test_direct_embree_agrees_with_embreex_and_with_itself_on_two_threads():

@@ -4,11 +4,12 @@ sweeps; every cell of their product is rendered and scored. Paths are relative t
 
 from __future__ import annotations
 
+import collections
 import itertools
 import math
 import os
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Literal, NamedTuple
 
 import msgspec
 
@@ -16,10 +17,12 @@ from hmdrt.configfile import convert, read_toml
 from hmdrt.errors import ConfigError
 from hmdrt.evaluate import perceptual
 from hmdrt.foveation import MethodChoice
+from hmdrt.quality import ScoreSpace
 from hmdrt.spatial import parse_gaze
 
 Scalar = str | int | float | bool
 MAX_CELLS = 10_000  # method cells of one sweep: checked before any is built
+MAX_LISTED = 8  # labels an error message lists
 
 
 class _Table(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -54,23 +57,34 @@ class Trace(_Table):
         return self.name or (f"gaze {self.gaze}" if self.gaze else Path(self.path).stem if self.path else "builtin")
 
 
+class Cell(NamedTuple):
+    """One method setting of the eval: its choice, its label in tables and plots, and the label of the cell its
+    speed-up and PSNR delta are measured against ("": the group's full)."""
+
+    choice: MethodChoice
+    label: str
+    compare_to: str = ""
+
+
 class MethodSweep(_Table):
     """A method with fixed options and a sweep: one cell per combination of the sweep's values. A label names
-    the cell in tables and plots (a sweep's cells add their values to it)."""
+    the cell in tables and plots (a sweep's cells add their values to it); compare_to names the cell each of
+    them is compared with (a paper's baseline: kim2021 measures Sel_Fov against Selective), full by default."""
 
     name: str
     options: dict[str, Scalar] = {}
     sweep: dict[str, list[Scalar]] = {}
     label: str = ""
     scenes: list[str] = []  # only on these of the config's scenes ([]: on all)
+    compare_to: str = ""  # the label of another cell ("": full)
 
     def __post_init__(self) -> None:
         count = math.prod(len(values) for values in self.sweep.values())
         if count > MAX_CELLS:
             raise ValueError(f"method {self.name!r}: its sweep makes {count} cells, more than {MAX_CELLS}")
 
-    def cells(self) -> list[tuple[MethodChoice, str]]:
-        """(choice, label) of each cell; ConfigError for a bad name or value."""
+    def cells(self) -> list[Cell]:
+        """Each cell of the sweep; ConfigError for a bad name or value."""
         keys = list(self.sweep)
         combos = itertools.product(*(self.sweep[k] for k in keys)) if keys else [()]
         out = []
@@ -78,7 +92,7 @@ class MethodSweep(_Table):
             swept = dict(zip(keys, combo, strict=True))
             choice = MethodChoice.parse(self.name, **{**self.options, **swept})  # a swept key overrides its option
             label = " ".join([self.label, *(f"{k}={v}" for k, v in swept.items())]) if self.label else str(choice)
-            out.append((choice, label))
+            out.append(Cell(choice, label, self.compare_to))
         return out
 
 
@@ -100,6 +114,7 @@ class EvalConfig(_Table):
     jod: bool = False  # FovVideoVDP's foveated JOD per cell (needs the eval extra)
     tables: list[Literal["weier2016", "kim2021", "smith2013", "weier2018"]] = []  # the papers' tables to fill
     crop_px: Annotated[int, msgspec.Meta(ge=8, le=4096)] = 96  # side of the crops at the gaze point
+    score_space: ScoreSpace = "srgb"  # PSNR, SSIM and flicker of display-encoded images, or of linear radiance
     traces: list[Trace] = msgspec.field(default_factory=lambda: [Trace(gaze="0,0")])
     methods: list[MethodSweep] = msgspec.field(default_factory=lambda: [MethodSweep("full"), MethodSweep("rrm")])
     source: str = ""
@@ -113,11 +128,25 @@ class EvalConfig(_Table):
             if unknown := set(m.scenes) - set(self.scenes):
                 raise ValueError(f"method {m.name!r} names scenes not in scenes: {', '.join(sorted(unknown))}")
 
-    def cells(self, scene: str | None = None) -> dict[MethodChoice, str]:
-        """Every method cell (on `scene`; None: on any) and its label, in config order, without repeats."""
-        return dict(
-            cell for m in self.methods if scene is None or not m.scenes or scene in m.scenes for cell in m.cells()
-        )
+    def cells(self, scene: str | None = None) -> list[Cell]:
+        """Every method cell (on `scene`; None: on any) in config order, a repeated choice kept where it first is."""
+        found: dict[MethodChoice, Cell] = {}
+        for m in self.methods:
+            if scene is None or not m.scenes or scene in m.scenes:
+                for cell in m.cells():
+                    found.setdefault(cell.choice, cell)
+        return list(found.values())
+
+    def check_baselines(self) -> None:
+        """A ConfigError unless each compare_to names exactly one cell on every scene its method runs on."""
+        if not any(m.compare_to for m in self.methods):
+            return
+        for scene in self.scenes:
+            cells = self.cells(scene)
+            labels = collections.Counter(c.label for c in cells)
+            for cell in cells:
+                if cell.compare_to and labels[cell.compare_to] != 1:
+                    raise ConfigError(_baseline_error(cell, scene, labels))
 
 
 def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
@@ -133,6 +162,16 @@ def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
     ]
     cache = str(base / config.cache_dir) if config.cache_dir else default_cache_dir()
     config.cells()  # every method choice parsed: a bad one fails here
+    config.check_baselines()
     if config.jod:
         perceptual.require()
     return msgspec.structs.replace(config, traces=traces, cache_dir=cache, source=str(path))
+
+
+def _baseline_error(cell: Cell, scene: str, labels: collections.Counter[str]) -> str:
+    """Why a cell's compare_to does not name one cell of the scene, listing some of the labels there."""
+    count = labels[cell.compare_to]
+    more = ", ..." if len(labels) > MAX_LISTED else ""
+    listed = ", ".join(repr(label) for label in list(labels)[:MAX_LISTED]) + more
+    found = f"names {count} cells" if count else f"names no cell (labels there: {listed})"
+    return f"method {cell.choice.name!r} ({cell.label!r}): compare_to {cell.compare_to!r} {found} on scene {scene!r}"

@@ -10,12 +10,17 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib import ticker  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
 from hmdrt.evaluate.runner import Crops  # noqa: E402
 from hmdrt.present.encode import linear_to_srgb8  # noqa: E402
-from hmdrt.quality import BANDS  # noqa: E402
+from hmdrt.quality import BANDS, SPACE_NAMES  # noqa: E402
 
 DIFF_GAIN = 4.0  # differences are shown this many times brighter
+MARKERS = "osD^vPXph<>"  # after each round of the colour cycle the next marker: cells look apart up to 110 of them
+LEGEND_ROWS = 24  # entries per legend column
+LEGEND_WIDTH_IN = 2.6  # the figure widens by this much per legend column
 
 
 def _slug(*parts: str) -> str:
@@ -30,27 +35,48 @@ def _groups(rows: list[dict]) -> dict[tuple[str, str, str], list[dict]]:
 
 
 def error_vs_time(rows: list[dict], folder: Path) -> list[Path]:
-    """Per scene, profile and trace: foveal and whole-image PSNR against ms per frame, the Pareto front joined."""
+    """Per scene, profile and trace: foveal PSNR against ms per frame, the Pareto front joined."""
     paths = []
     for (scene, profile, trace), group in _groups(rows).items():
-        fig, ax = plt.subplots(figsize=(7, 4.5))
-        for r in group:
-            marker = "*" if r["method"] == "full" else "o"
-            ax.scatter(r["ms_per_frame"], r["psnr_fovea"], marker=marker, s=60 if r["pareto"] else 25)
-            ax.annotate(
-                r["label"], (r["ms_per_frame"], r["psnr_fovea"]), fontsize=6, xytext=(3, 3), textcoords="offset points"
-            )
-        front = sorted((r["ms_per_frame"], r["psnr_fovea"]) for r in group if r["pareto"])
-        if front:
-            ax.plot(*zip(*front, strict=True), "k--", lw=1, label="Pareto front (foveal PSNR)")
-            ax.legend(fontsize=7)
-        ax.set_xscale("log")
-        ax.set_xlabel("ms per frame (median, one eye)")
-        ax.set_ylabel("foveal PSNR vs ground truth (dB)")
-        ax.set_title(f"{scene} at {profile}, {trace}", fontsize=9)
-        ax.grid(True, which="both", alpha=0.3)
+        fig = error_vs_time_figure(group, f"{scene} at {profile}, {trace}")
         paths.append(_save(fig, folder / f"error_vs_time_{_slug(scene, profile, trace)}.png"))
     return paths
+
+
+def error_vs_time_figure(group: list[dict], title: str) -> Figure:
+    """One group's cells as points of foveal PSNR against ms per frame (log scale), each named in a legend beside
+    the axes, where no two labels overlap however close the points lie."""
+    fig, ax = plt.subplots(figsize=(7 + LEGEND_WIDTH_IN * _legend_columns(group), 4.5))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, r in enumerate(group):
+        marker = "*" if r["method"] == "full" else MARKERS[i // len(colours) % len(MARKERS)]
+        ms, psnr = r["ms_per_frame"], np.nan if r["psnr_fovea"] is None else r["psnr_fovea"]
+        size, above = (60, 2) if r["pareto"] else (25, 3)  # a small marker drawn over a large one at the same point
+        ax.scatter(ms, psnr, marker=marker, color=colours[i % len(colours)], s=size, zorder=above, label=r["label"])
+    front = sorted((r["ms_per_frame"], r["psnr_fovea"]) for r in group if r["pareto"])
+    if front:
+        ax.plot(*zip(*front, strict=True), "k--", lw=1, label="Pareto front (foveal PSNR)")
+    ax.set_xscale("log")
+    ax.xaxis.set_major_formatter(PlainLogFormatter())
+    ax.xaxis.set_minor_formatter(PlainLogFormatter())
+    ax.set_xlabel("ms per frame (median, one eye)")
+    space = SPACE_NAMES[group[0]["score_space"]]
+    ax.set_ylabel(f"foveal PSNR vs ground truth (dB)\nof {space} images")
+    ax.set_title(title, fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, fontsize=7, ncol=_legend_columns(group))
+    return fig
+
+
+class PlainLogFormatter(ticker.LogFormatter):
+    """Log-axis tick labels as plain numbers (3, 30, 300, not 3x10^0) on the ticks LogFormatter labels."""
+
+    def __call__(self, x: float, pos: int | None = None) -> str:
+        return f"{x:g}" if super().__call__(x, pos) else ""
+
+
+def _legend_columns(group: list[dict]) -> int:
+    return -(-(len(group) + 1) // LEGEND_ROWS)  # a cell per entry, and the Pareto front
 
 
 def band_psnr(rows: list[dict], folder: Path) -> list[Path]:
@@ -64,7 +90,7 @@ def band_psnr(rows: list[dict], folder: Path) -> list[Path]:
             values = [r[f"psnr_{b}"] if r[f"psnr_{b}"] is not None else np.nan for b in bands]
             ax.bar(np.arange(len(bands)) + i * width, np.minimum(values, 99.0), width, label=r["label"])
         ax.set_xticks(np.arange(len(bands)) + 0.4 - width / 2, [b.replace("_", " ") for b in bands], fontsize=8)
-        ax.set_ylabel("PSNR (dB)")
+        ax.set_ylabel(f"PSNR (dB) of {SPACE_NAMES[group[0]['score_space']]} images")
         ax.set_title(f"PSNR per band: {scene} at {profile}, {trace}", fontsize=9)
         ax.legend(fontsize=6, ncol=2)
         paths.append(_save(fig, folder / f"band_psnr_{_slug(scene, profile, trace)}.png"))

@@ -2,14 +2,19 @@
 virtual time, timed per frame, and scored per eccentricity band against the cached ground truth.
 
 Within a scene, profile and trace the methods render frame by frame in turn, so that load on a shared machine
-hits every method alike; the first warmup_frames frames (empty temporal history, RRM's first refresh cycle) are
-rendered but neither timed nor scored (full and regular, which keep no history, skip them). ms_per_frame is the
-median of the timed frames.
+hits every method alike. Warm-up frames come first, rendered but neither timed nor scored: the config's
+warmup_frames, or as many as the method of the group that needs the longest history declares
+(Method.warmup_frames: RRM's refresh cycle), so that no method is scored before its images are steady; methods
+without history (warmup_frames 0: full, regular) skip them. frames - warmup_frames frames follow, timed and
+scored; ms_per_frame is their median. Each cell is compared with a baseline cell (its compare_to, else full):
+speed-up and foveal PSNR delta.
 """
 
 from __future__ import annotations
 
 import itertools
+import logging
+import math
 import os
 import platform
 import statistics
@@ -26,21 +31,23 @@ from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.foveation import Method, MethodChoice
 from hmdrt.optics import get_profile
 from hmdrt.optics.camera import eccentricity_map
-from hmdrt.quality import BandScores
+from hmdrt.quality import BandScores, ScoreSpace
 from hmdrt.scene import load_scene
 from hmdrt.sequence import eye_cameras, frame_requests, sequence_inputs
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
 
-REFERENCES = ("full", "regular")  # not foveated (never the "best foveated" cell) and stateless (no warm-up)
+REFERENCES = ("full", "regular")  # not foveated: never the "best foveated" cell of the summary
+log = logging.getLogger(__name__)
 
 
 @dataclass
 class _Cell:
     choice: MethodChoice
     label: str
+    compare_to: str  # the label of the baseline cell ("": full)
     method: Method
-    scores: BandScores = field(default_factory=BandScores)
+    scores: BandScores
     ms: list[float] = field(default_factory=list)
     rays: list[int] = field(default_factory=list)
     fractions: list[float] = field(default_factory=list)
@@ -70,12 +77,14 @@ class Evaluation:
     truths_rendered: int
     truths_read: int
     seconds: float
+    score_space: ScoreSpace
 
     def to_dict(self, config: EvalConfig) -> dict:
         return {
             "config": config.source,
             "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
             "seconds": round(self.seconds, 1),
+            "score_space": self.score_space,
             "truth": {
                 "method": f"regular?spp={config.truth_spp}",
                 "cache_dir": config.cache_dir,
@@ -111,38 +120,54 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
                     profile = _profile(profile_name, config.resolution)
                     bar.set_description(f"{scene_name} {profile_name} {trace.label}")
                     group = {"scene": scene_name, "profile": profile.name, "trace": trace.label}
+                    cells = [
+                        _Cell(*cell, cell.choice.make(tracer), BandScores(config.score_space))
+                        for cell in config.cells(scene_name)
+                    ]
+                    warmup = group_warmup(config.warmup_frames, cells, group)
+                    bar.total += (warmup - config.warmup_frames) * len(cells)
                     inputs, _ = sequence_inputs(
                         scene.start,
                         profile.period_ns,
-                        config.frames,
+                        warmup + config.frames - config.warmup_frames,
                         trace=trace.source,
                         gaze=trace.gaze or "0,0",
                         seed=config.seed,
                     )
-                    cells = [
-                        _Cell(choice, label, choice.make(tracer)) for choice, label in config.cells(scene_name).items()
-                    ]
                     jod = JodScorer(profile, config.eye) if config.jod else None
-                    last = _render(inputs, cells, profile, truth, config, bar.update, jod)
-                    rows += _rows(group, cells, profile)
+                    last = _render(inputs, cells, profile, truth, config, warmup, bar.update, jod)
+                    rows += _rows(group, cells, profile, warmup, config.score_space)
                     crops.append(Crops(**group, **last, images={c.label: c.last for c in cells}))
-    return Evaluation(rows, summarise(rows), crops, cache.rendered, cache.read, time.perf_counter() - started)
+    seconds = time.perf_counter() - started
+    return Evaluation(rows, summarise(rows), crops, cache.rendered, cache.read, seconds, config.score_space)
 
 
-def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, tick, jod: JodScorer | None) -> dict:
+def group_warmup(configured: int, cells: list[_Cell], group: dict) -> int:
+    """The warm-up frames of a group: the config's, or more where a method of the group needs a longer history."""
+    longest = max(cells, key=lambda c: c.method.warmup_frames)
+    needed = longest.method.warmup_frames
+    if needed <= configured:
+        return configured
+    log.info("%s: %d warm-up frames, as %s needs", " ".join(group.values()), needed, longest.label)
+    return needed
+
+
+def _render(
+    inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, warmup: int, tick, jod: JodScorer | None
+) -> dict:
     """Each input frame through every cell's method in turn; the frames after the warm-up timed and scored.
     Returns the last scored frame's truth and gaze pixel."""
     last: dict = {}
     for inp in inputs:
         [request] = frame_requests(inp, eye_cameras(profile, inp.pose, (config.eye,)), config.seed)
-        scored = inp.frame >= config.warmup_frames
+        scored = inp.frame >= warmup
         if scored:
             truth = truth_of(request.camera)
             eccentricity = eccentricity_map(request.camera, request.gaze)
             last = {"truth": truth, "gaze_xy": tuple(float(v) for v in request.camera.gaze_pixel(request.gaze))}
         for cell in cells:
-            if not scored and cell.method.name in REFERENCES:
-                tick()  # stateless: nothing to warm up
+            if not scored and not cell.method.warmup_frames:
+                tick()  # no history: nothing to warm up
                 continue
             stats = FrameStats()
             t = time.perf_counter()
@@ -166,7 +191,7 @@ def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, t
     return last
 
 
-def _rows(group: dict, cells: list[_Cell], profile) -> list[dict]:
+def _rows(group: dict, cells: list[_Cell], profile, warmup: int, space: ScoreSpace) -> list[dict]:
     rows = []
     for cell in cells:
         rows.append(
@@ -178,22 +203,44 @@ def _rows(group: dict, cells: list[_Cell], profile) -> list[dict]:
                 "params": str(cell.choice),
                 "label": cell.label,
                 "frames": len(cell.ms),
+                "warmup_frames": warmup if cell.method.warmup_frames else 0,
                 "ms_per_frame": round(statistics.median(cell.ms), 3),
                 "rays_per_frame": round(float(np.mean(cell.rays))),
                 **{f"rays_{k}": round(n / len(cell.ms)) for k, n in cell.rays_by_kind.items()},
                 "sample_fraction": round(float(np.mean(cell.fractions)), 5),
+                "score_space": space,
                 **{k: _round(v) for k, v in cell.scores.result().items()},
                 **({"jod": round(float(np.mean(cell.jod)), 4)} if cell.jod else {}),
                 "stages_ms": {k: round(v / len(cell.ms), 3) for k, v in cell.stages_ms.items()},
             }
         )
     full = next((r for r in rows if r["method"] == "full"), None)
-    for row in rows:
+    for row, cell in zip(rows, cells, strict=True):
         row["speedup_vs_full"] = round(full["ms_per_frame"] / row["ms_per_frame"], 3) if full else None
+        baseline = next((r for r in rows if r["label"] == cell.compare_to), None) if cell.compare_to else full
+        row.update(_comparison(row, baseline))
     front = pareto_front([(r["ms_per_frame"], r["psnr_fovea"]) for r in rows])
     for row, on in zip(rows, front, strict=True):
         row["pareto"] = on
     return rows
+
+
+def _comparison(row: dict, baseline: dict | None) -> dict:
+    """The row against its baseline row: the baseline's label, the speed-up and the foveal PSNR delta (dB)."""
+    if baseline is None:
+        return {"baseline": None, "speedup_vs_baseline": None, "psnr_fovea_vs_baseline": None}
+    return {
+        "baseline": baseline["label"],
+        "speedup_vs_baseline": round(baseline["ms_per_frame"] / row["ms_per_frame"], 3),
+        "psnr_fovea_vs_baseline": _delta(row["psnr_fovea"], baseline["psnr_fovea"]),
+    }
+
+
+def _delta(value: float | None, baseline: float | None) -> float | None:
+    """value - baseline, rounded; None where either is missing or both are infinite (the truth against itself)."""
+    if value is None or baseline is None or (math.isinf(value) and value == baseline):
+        return None
+    return _round(value - baseline)
 
 
 def _round(value: float | None) -> float | None:
@@ -212,32 +259,42 @@ def pareto_front(points: list[tuple[float, float | None]]) -> list[bool]:
 
 
 def summarise(rows: list[dict]) -> list[dict]:
-    """Per scene, profile and trace: full's time and foveal PSNR, and the fastest foveated cell on the Pareto
-    front whose foveal PSNR is at least full's (issue 6's criterion), with its speed-up."""
+    """Per scene, profile, trace and baseline (a cell others are compared with: full unless a compare_to names
+    another): the baseline's time and foveal PSNR, and the fastest foveated cell compared with it whose foveal
+    PSNR is at least the baseline's (issue 6's criterion against full), with its speed-up and PSNR delta."""
     out = []
-    groups = dict.fromkeys((r["scene"], r["profile"], r["trace"]) for r in rows)
-    for scene, profile, trace in groups:
-        group = [r for r in rows if (r["scene"], r["profile"], r["trace"]) == (scene, profile, trace)]
-        full = next((r for r in group if r["method"] == "full"), None)
-        entry = {"scene": scene, "profile": profile, "trace": trace, "full_ms": None, "full_psnr_fovea": None}
-        best = None
-        if full is not None:
-            entry.update(full_ms=full["ms_per_frame"], full_psnr_fovea=full["psnr_fovea"])
-            candidates = [
-                r
-                for r in group
-                if r["pareto"]
-                and r["method"] not in REFERENCES
-                and r["psnr_fovea"] is not None
-                and full["psnr_fovea"] is not None
-                and r["psnr_fovea"] >= full["psnr_fovea"]
-            ]
-            best = min(candidates, key=lambda r: r["ms_per_frame"], default=None)
-        entry.update(
-            best=None if best is None else best["label"],
-            best_ms=None if best is None else best["ms_per_frame"],
-            best_psnr_fovea=None if best is None else best["psnr_fovea"],
-            best_speedup=None if best is None else best["speedup_vs_full"],
-        )
-        out.append(entry)
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["profile"], r["trace"]), []).append(r)
+    for (scene, profile, trace), group in groups.items():
+        baselines = list(dict.fromkeys(r["baseline"] for r in group if r["baseline"] is not None)) or [None]
+        for name in baselines:
+            out.append({"scene": scene, "profile": profile, "trace": trace, **_best_against(group, name)})
     return out
+
+
+def _best_against(group: list[dict], name: str | None) -> dict:
+    """The summary of one baseline (by label; None: the group has none) and the best cell compared with it."""
+    base = next((r for r in group if r["label"] == name), None) if name is not None else None
+    floor = None if base is None else base["psnr_fovea"]
+    candidates = [
+        r
+        for r in group
+        if r["baseline"] == name
+        and r["label"] != name
+        and r["method"] not in REFERENCES
+        and r["psnr_fovea"] is not None
+        and floor is not None
+        and r["psnr_fovea"] >= floor
+    ]
+    best = min(candidates, key=lambda r: (r["ms_per_frame"], -r["psnr_fovea"]), default=None)
+    return {
+        "baseline": name,
+        "baseline_ms": None if base is None else base["ms_per_frame"],
+        "baseline_psnr_fovea": floor,
+        "best": None if best is None else best["label"],
+        "best_ms": None if best is None else best["ms_per_frame"],
+        "best_psnr_fovea": None if best is None else best["psnr_fovea"],
+        "best_speedup": None if best is None else best["speedup_vs_baseline"],
+        "best_psnr_fovea_delta": None if best is None else best["psnr_fovea_vs_baseline"],
+    }

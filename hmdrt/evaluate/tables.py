@@ -4,7 +4,8 @@ A table takes, per scene, the rows whose labels it names; a scene without all of
 - weier2016 Table 1: "full" and "weier16": rays, per-stage ms (reproject, trace, cache update, merge, post),
   total and speed-up (section 4.1);
 - kim2021 Table 2: "Regular_36", "full" (the paper's Regular_1), "Selective", "Sel_Fov": ms, rays and PSNR in
-  the four central bands (section 5);
+  the four central bands (section 5), and each cell's speed-up and foveal PSNR delta against its baseline (a
+  cell's compare_to: Sel_Fov against Selective shows the paper's claim);
 - smith2013: "full" and "rrm" on a scene with and without secondary rays: ms and speed-up (section 5);
 - weier2018 Table 1: "weier18" and "weier18 full": ray tracing, TAA, PPI, CoC, filter, combine, total and
   samples (section 4.1).
@@ -13,6 +14,8 @@ A table takes, per scene, the rows whose labels it names; a scene without all of
 from __future__ import annotations
 
 from collections.abc import Callable
+
+from hmdrt.quality import SPACE_NAMES
 
 Row = dict
 
@@ -42,9 +45,9 @@ def _mrays(row: Row) -> str:
     return f"{n / 1e6:.2f}M" if n >= 1e5 else f"{n / 1e3:.1f}k"
 
 
-def _db(value: float | None) -> str:
+def _db(value: float | None, spec: str = ".2f") -> str:
     """dB; infinite: the image is the truth itself (Regular_36 against the truth it renders)."""
-    return "-" if value is None else "= truth" if value == float("inf") else f"{value:.2f}"
+    return "-" if value is None else "= truth" if value == float("inf") else format(value, spec)
 
 
 def weier2016(rows: list[Row]) -> str:
@@ -70,20 +73,28 @@ KIM21_LABELS = ("Regular_36", "full", "Selective", "Sel_Fov")  # full is the pap
 
 
 def kim2021(rows: list[Row]) -> str:
-    header = ["scene", "method", "ms", "rays (k)", "fovea dB", "parafovea dB", "perifovea dB", "near periphery dB"]
+    header = ["scene", "method", "ms", "rays (k)", "fovea dB", "parafovea dB", "perifovea dB", "near periphery dB",
+              "compared with", "speed-up", "fovea delta dB"]  # fmt: skip
     lines = [
         [
             scene,
-            "Regular_1" if label == "full" else label,
+            _kim2021_name(label),
             f"{r['ms_per_frame']:.1f}",
             f"{r['rays_per_frame'] / 1e3:,.0f}",
             *(_db(r[f"psnr_{b}"]) for b in ("fovea", "parafovea", "perifovea", "near_periphery")),
+            "-" if r["baseline"] is None else _kim2021_name(r["baseline"]),
+            "-" if r["speedup_vs_baseline"] is None else f"{r['speedup_vs_baseline']:.2f}",
+            _db(r["psnr_fovea_vs_baseline"], "+.2f"),
         ]
         for scene, found in _by_scene(rows, KIM21_LABELS)
         for label in KIM21_LABELS
         for r in [found[label]]
     ]
     return _markdown(header, lines)
+
+
+def _kim2021_name(label: str) -> str:
+    return "Regular_1" if label == "full" else label
 
 
 def smith2013(rows: list[Row]) -> str:
@@ -121,6 +132,7 @@ def weier2018(rows: list[Row]) -> str:
     return _markdown(header, lines)
 
 
+SCORED = ("kim2021",)  # the tables that show PSNR: their headings say in which space it was scored
 TABLES: dict[str, tuple[str, Callable[[list[Row]], str]]] = {
     "weier2016": ("weier2016 Table 1: ms per stage, full vs foveated (weier16, r0 10, r1 20, p_min 0.05)", weier2016),
     "kim2021": ("kim2021 Table 2: time, rays and PSNR per band against regular 36 spp", kim2021),
@@ -131,4 +143,6 @@ TABLES: dict[str, tuple[str, Callable[[list[Row]], str]]] = {
 
 def paper_tables(rows: list[Row], names: list[str]) -> str:
     """The named tables as one Markdown document."""
-    return "\n\n".join(f"### {TABLES[name][0]}\n\n{TABLES[name][1](rows)}" for name in names) + "\n"
+    space = SPACE_NAMES[rows[0]["score_space"]] if rows else ""
+    titles = {name: TABLES[name][0] + (f" (PSNR of {space} images)" if name in SCORED else "") for name in names}
+    return "\n\n".join(f"### {titles[name]}\n\n{TABLES[name][1](rows)}" for name in names) + "\n"

@@ -8,7 +8,8 @@ Parameters can change between frames (Method.set_params): a method derives every
 its parameters in one _configure(params), which its constructor calls too, and keeps its temporal state
 (caches, history, persistent buffers, fixation filters) wherever the new parameters leave it meaningful.
 A method also declares its cost knobs (Method.knobs): the parameters the compositor's budget controller
-may trade for time, each with a floor from its paper, so that the controller knows no method by name.
+may trade for time, each with a floor from its paper, so that the controller knows no method by name, and
+the history it needs before its images are steady (Method.warmup_frames), which the eval renders unscored.
 """
 
 from __future__ import annotations
@@ -107,6 +108,12 @@ class Method(Protocol):
         """Every field's configured value as the knobs read it (level 1)."""
         ...
 
+    @property
+    def warmup_frames(self) -> int:
+        """Frames to render from a fresh start before the images are steady: the temporal history the current
+        parameters need (RRM: its refresh cycle); 0 for a method that keeps none."""
+        ...
+
     def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         """Linear RGB image (height, width, 3) float32 of this eye's frame, written into `out` when given (a
         C-contiguous buffer of that shape) and returned; the caller's to keep: the method never writes to an
@@ -132,6 +139,11 @@ class Configurable(ABC):
     @classmethod
     def knob_values(cls, params: msgspec.Struct) -> dict[str, Any]:
         return msgspec.structs.asdict(params)
+
+    @property
+    def warmup_frames(self) -> int:
+        """One previous frame, unless the method declares the history it needs (Method.warmup_frames)."""
+        return 1
 
     def set_params(self, params: msgspec.Struct) -> None:
         if not isinstance(params, self.Params):

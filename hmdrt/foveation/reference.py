@@ -26,6 +26,7 @@ class Full(Configurable):
     name = "full"
     Params = NoParams
     stages = (Stage("trace"),)
+    warmup_frames = 0  # no history: every frame is rendered afresh
 
     def __init__(self, tracer: Whitted, params: NoParams):
         self.tracer = tracer
@@ -57,6 +58,7 @@ class Regular(Configurable):
     name = "regular"
     Params = RegularParams
     stages = (Stage("trace"), Stage("resolve"))
+    warmup_frames = 0  # no history: every frame is rendered afresh
 
     def __init__(self, tracer: Whitted, params: RegularParams):
         self.tracer = tracer

@@ -237,6 +237,11 @@ class Rrm(Configurable):
         self._filters = {eye: _refilter(f, params) for eye, f in self._filters.items()}
         self.params = params
 
+    @property
+    def warmup_frames(self) -> int:
+        """The refresh cycle N: from a black buffer, every peripheral pixel has been traced once after N frames."""
+        return self.params.cycle
+
     def _sample_arrays(self, camera: EyeCamera) -> Samples:
         """The persistent sample arrays, grown to most_samples when the parameters or the image need more."""
         s, most = self._samples, most_samples(camera, self.params)
