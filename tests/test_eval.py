@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -321,37 +322,59 @@ def test_paper_tables_are_filled_from_the_labelled_cells_of_each_scene(tmp_path)
     assert main(["eval", str(config), "--out", str(tmp_path / "out"), "--no-plots"]) == 0
     rows = json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
     assert {r["scene"] for r in rows if r["label"] == "weier18"} == {"whitted?max_depth=0"}  # scenes = [...]
-    assert (
-        len(rows) == 6 + 4
-    )  # whitted: full, weier16, Regular_36, Selective, Sel_Fov, rrm; the other: full, rrm, 2 x weier18
+    # ahead: whitted full, weier16, Regular_36, Selective, Sel_Fov, rrm; the other full, rrm, 2 x weier18; on each
+    # of the two grid traces (traces = [...]): full, rrm and rrm N=4 on both scenes
+    assert len(rows) == 6 + 4 + 2 * 2 * 3
     markdown = (tmp_path / "out" / "tables.md").read_text()
-    by = {(r["scene"], r["label"]): r for r in rows}
+    by = {(r["scene"], r["trace"], r["label"]): r for r in rows}
 
     [weier16] = table_lines(markdown, "weier2016")
-    full, ours = by["whitted", "full"], by["whitted", "weier16"]
-    assert weier16[0] == "whitted" and float(weier16[-1]) == pytest.approx(
+    full, ours = by["whitted", "ahead", "full"], by["whitted", "ahead", "weier16"]
+    assert weier16[:2] == ["whitted", "ahead"] and float(weier16[-1]) == pytest.approx(
         full["ms_per_frame"] / ours["ms_per_frame"], abs=0.01
     )
-    assert weier16[5] == f"{ours['stages_ms']['trace']:.2f}"  # the trace stage's mean ms
+    assert weier16[6] == f"{ours['stages_ms']['trace']:.2f}"  # the trace stage's mean ms
 
     kim = table_lines(markdown, "kim2021")
-    assert [line[1] for line in kim] == ["Regular_36", "Regular_1", "Selective", "Sel_Fov"]
-    assert kim[1][2] == f"{full['ms_per_frame']:.1f}"  # Regular_1 is full's cell
+    assert [line[2] for line in kim] == ["Regular_36", "Regular_1", "Selective", "Sel_Fov"]
+    assert kim[1][3] == f"{full['ms_per_frame']:.1f}"  # Regular_1 is full's cell
     assert "kim2021 Table 2: time, rays and PSNR per band against regular 36 spp (PSNR of display-encoded" in markdown
-    assert [line[8] for line in kim] == ["Regular_1", "Regular_1", "Regular_1", "Selective"]  # compare_to
-    selective, sel_fov = by["whitted", "Selective"], by["whitted", "Sel_Fov"]
-    assert kim[3][9] == f"{sel_fov['speedup_vs_baseline']:.2f}"
+    assert [line[9] for line in kim] == ["Regular_1", "Regular_1", "Regular_1", "Selective"]  # compare_to
+    selective, sel_fov = by["whitted", "ahead", "Selective"], by["whitted", "ahead", "Sel_Fov"]
+    assert kim[3][10] == f"{sel_fov['speedup_vs_baseline']:.2f}"
     assert sel_fov["speedup_vs_baseline"] == pytest.approx(selective["ms_per_frame"] / sel_fov["ms_per_frame"], 1e-3)
-    assert float(kim[3][10]) == pytest.approx(sel_fov["psnr_fovea"] - selective["psnr_fovea"], abs=0.01)
-    assert (kim[1][9], kim[1][10]) == ("1.00", "+0.00")  # full against itself
-    assert by["whitted", "Regular_36"]["rays_primary"] == 3 * 48 * 54
+    assert float(kim[3][11]) == pytest.approx(sel_fov["psnr_fovea"] - selective["psnr_fovea"], abs=0.01)
+    assert (kim[1][10], kim[1][11]) == ("1.00", "+0.00")  # full against itself
+    assert by["whitted", "ahead", "Regular_36"]["rays_primary"] == 3 * 48 * 54
 
     smith = table_lines(markdown, "smith2013")
-    assert sorted(line[1] for line in smith) == ["no", "yes"]  # with and without secondary rays
+    assert sorted(line[2] for line in smith if line[1] == "ahead (1)") == ["no", "yes"]  # with and without
+    grid = [line for line in smith if line[0] == "whitted" and line[1] == "grid (2)"]
+    assert [line[3] for line in grid] == ["2", "4"]  # each cell's N
+    for line, label in zip(grid, ("rrm", "rrm N=4"), strict=True):  # averaged over the group's fovea positions
+        f = statistics.fmean(by["whitted", t, "full"]["ms_per_frame"] for t in ("left", "right"))
+        r = statistics.fmean(by["whitted", t, label]["ms_per_frame"] for t in ("left", "right"))
+        assert (line[4], line[5], line[8]) == (f"{f:.1f}", f"{r:.1f}", f"{f / r:.2f}")
 
     foveated, every = table_lines(markdown, "weier2018")
-    assert (foveated[1], every[1]) == ("foveated", "full")
+    assert (foveated[2], every[2]) == ("foveated", "full")
     assert int(every[-1].replace(",", "")) == 48 * 54 > int(foveated[-1].replace(",", ""))
+
+
+def test_methods_run_on_the_traces_they_name_and_unknown_names_are_refused(tmp_path):
+    config = tmp_path / "e.toml"
+    config.write_text(EVAL + '\n[[traces]]\nname = "a"\ngaze = "5,0"\ngroup = "g"\n')
+    load = load_eval_config(config)
+    traces = {t.label: t for t in load.traces}
+    assert [t.group_label for t in load.traces][-1] == "g"
+    assert all(load.cells("whitted", t) == load.cells("whitted") for t in load.traces)  # traces = []: all
+    config.write_text(config.read_text().replace('name = "rrm"', 'name = "rrm"\ntraces = ["g"]', 1))
+    load = load_eval_config(config)
+    assert [c.label for c in load.cells("whitted", traces["a"])] == [c.label for c in load.cells("whitted")]
+    assert all(c.choice.name != "rrm" for t in load.traces if t.label != "a" for c in load.cells("whitted", t))
+    config.write_text(config.read_text().replace('traces = ["g"]', 'traces = ["nowhere"]'))
+    with pytest.raises(ConfigError, match="names traces not in traces: nowhere"):
+        load_eval_config(config)
 
 
 def test_full_and_regular_skip_the_warm_up_frames(tmp_path, monkeypatch):
@@ -388,16 +411,21 @@ def test_jod_without_the_eval_extra_is_a_one_line_error(tmp_path, monkeypatch):
         load_eval_config(config)
 
 
-def test_jod_scores_foveated_output_against_the_truth_when_the_eval_extra_is_installed(tmp_path):
+def test_jod_scores_sequences_in_video_mode_when_the_eval_extra_is_installed(tmp_path):
+    """FovVideoVDP's video mode: a sequence equal to its truth scores 10; noise that changes every frame scores
+    below the same amount of noise held still (a temporal artefact that frame-by-frame scoring cannot see)."""
     pytest.importorskip("pyfvvdp")
-    from hmdrt.evaluate.perceptual import JodScorer
+    from hmdrt.evaluate.perceptual import JodScorer, encode
 
     profile = get_profile("sim-cpu").with_resolution_text("64x72")
     scorer = JodScorer(profile, "left")
-    truth = RNG.random((72, 64, 3), dtype=np.float32) * 0.5
-    noisy = np.clip(truth + RNG.normal(0, 0.05, truth.shape).astype(np.float32), 0, 1)
-    assert scorer.score(truth, truth, (32, 36)) == pytest.approx(10.0, abs=1e-3)
-    assert 0 < scorer.score(noisy, truth, (32, 36)) < 9.9
+    truth = [encode(np.full((72, 64, 3), 0.2, np.float32))] * 8
+    noise = RNG.normal(0, 0.04, (8, 72, 64, 3)).astype(np.float32)
+    steady = [encode(np.clip(0.2 + noise[0], 0, 1))] * 8
+    flicker = [encode(np.clip(0.2 + n, 0, 1)) for n in noise]
+    gazes = [(32.0, 36.0)] * 8
+    assert scorer.score(truth, truth, gazes) == pytest.approx(10.0, abs=1e-3)
+    assert 0 < scorer.score(flicker, truth, gazes) < scorer.score(steady, truth, gazes) < 10
     config = tmp_path / "e.toml"
     config.write_text(EVAL.replace("frames = 4", "jod = true\nframes = 3"))
     assert main(["eval", str(config), "--out", str(tmp_path / "out"), "--no-plots"]) == 0

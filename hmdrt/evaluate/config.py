@@ -37,6 +37,9 @@ class Trace(_Table):
     gaze: str = ""  # "YAW,PITCH" in degrees
     path: str = ""  # a gaze/pose trace (JSONL, CSV, EyeLink ASC)
     builtin: bool = False
+    # traces of one group are averaged in the papers' tables (smith2013 section 4: one frame for every fovea
+    # position); "": the trace is its own group
+    group: str = ""
 
     def __post_init__(self) -> None:
         if sum((bool(self.gaze), bool(self.path), self.builtin)) != 1:
@@ -55,6 +58,14 @@ class Trace(_Table):
     @property
     def label(self) -> str:
         return self.name or (f"gaze {self.gaze}" if self.gaze else Path(self.path).stem if self.path else "builtin")
+
+    @property
+    def group_label(self) -> str:
+        return self.group or self.label
+
+    def named(self, names: list[str]) -> bool:
+        """Whether `names` selects this trace, by its label or its group ([]: every trace)."""
+        return not names or self.label in names or self.group_label in names
 
 
 class Cell(NamedTuple):
@@ -76,6 +87,7 @@ class MethodSweep(_Table):
     sweep: dict[str, list[Scalar]] = {}
     label: str = ""
     scenes: list[str] = []  # only on these of the config's scenes ([]: on all)
+    traces: list[str] = []  # only on these of the config's traces, by label or group ([]: on all)
     compare_to: str = ""  # the label of another cell ("": full)
 
     def __post_init__(self) -> None:
@@ -124,29 +136,33 @@ class EvalConfig(_Table):
             raise ValueError(f"warmup_frames ({self.warmup_frames}) must be fewer than frames ({self.frames})")
         if not (self.scenes and self.profiles and self.traces and self.methods):
             raise ValueError("scenes, profiles, traces and methods each need at least one entry")
+        traces = {t.label for t in self.traces} | {t.group_label for t in self.traces}
         for m in self.methods:
             if unknown := set(m.scenes) - set(self.scenes):
                 raise ValueError(f"method {m.name!r} names scenes not in scenes: {', '.join(sorted(unknown))}")
+            if unknown := set(m.traces) - traces:
+                raise ValueError(f"method {m.name!r} names traces not in traces: {', '.join(sorted(unknown))}")
 
-    def cells(self, scene: str | None = None) -> list[Cell]:
-        """Every method cell (on `scene`; None: on any) in config order, a repeated choice kept where it first is."""
+    def cells(self, scene: str | None = None, trace: Trace | None = None) -> list[Cell]:
+        """Every method cell (on `scene` and `trace`; None: on any) in config order, a repeated choice kept where it
+        first is."""
         found: dict[MethodChoice, Cell] = {}
         for m in self.methods:
-            if scene is None or not m.scenes or scene in m.scenes:
+            if (scene is None or not m.scenes or scene in m.scenes) and (trace is None or trace.named(m.traces)):
                 for cell in m.cells():
                     found.setdefault(cell.choice, cell)
         return list(found.values())
 
     def check_baselines(self) -> None:
-        """A ConfigError unless each compare_to names exactly one cell on every scene its method runs on."""
+        """A ConfigError unless each compare_to names exactly one cell on every scene and trace its method runs on."""
         if not any(m.compare_to for m in self.methods):
             return
-        for scene in self.scenes:
-            cells = self.cells(scene)
+        for scene, trace in itertools.product(self.scenes, self.traces):
+            cells = self.cells(scene, trace)
             labels = collections.Counter(c.label for c in cells)
             for cell in cells:
                 if cell.compare_to and labels[cell.compare_to] != 1:
-                    raise ConfigError(_baseline_error(cell, scene, labels))
+                    raise ConfigError(_baseline_error(cell, f"{scene!r}, trace {trace.label!r}", labels))
 
 
 def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
@@ -168,10 +184,10 @@ def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
     return msgspec.structs.replace(config, traces=traces, cache_dir=cache, source=str(path))
 
 
-def _baseline_error(cell: Cell, scene: str, labels: collections.Counter[str]) -> str:
+def _baseline_error(cell: Cell, where: str, labels: collections.Counter[str]) -> str:
     """Why a cell's compare_to does not name one cell of the scene, listing some of the labels there."""
     count = labels[cell.compare_to]
     more = ", ..." if len(labels) > MAX_LISTED else ""
     listed = ", ".join(repr(label) for label in list(labels)[:MAX_LISTED]) + more
     found = f"names {count} cells" if count else f"names no cell (labels there: {listed})"
-    return f"method {cell.choice.name!r} ({cell.label!r}): compare_to {cell.compare_to!r} {found} on scene {scene!r}"
+    return f"method {cell.choice.name!r} ({cell.label!r}): compare_to {cell.compare_to!r} {found} on scene {where}"

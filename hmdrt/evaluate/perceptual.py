@@ -1,9 +1,11 @@
-"""The optional perceptual score: FovVideoVDP (pyfvvdp, Mantiuk et al. 2021) in its foveated mode, which
-takes the gaze point and so scores foveated output as the eye sees it. Installed with the `eval` extra
-(pip install -e '.[eval]', CPU torch); results in JOD, 10 meaning no visible difference from the reference.
+"""The optional perceptual score: FovVideoVDP (pyfvvdp, Mantiuk et al. 2021) in its foveated video mode, which
+takes the gaze point of every frame and the frame rate, and so scores foveated output as the eye sees it over
+time: a stale periphery, ghosting and reused pixels are temporal artefacts that single images do not show.
+Installed with the `eval` extra (pip install -e '.[eval]', CPU torch); results in JOD, 10 meaning no visible
+difference from the reference.
 
-Each scored frame is one image pair (the metric's image mode) on a display with the profile's pixels and
-horizontal field of view and the photometry of pyfvvdp's "standard_hmd"; a cell's JOD is their mean.
+A cell's scored frames are one video on a display with the profile's pixels, horizontal field of view and
+refresh rate and the photometry of pyfvvdp's "standard_hmd", the fixation following the gaze frame by frame.
 """
 
 from __future__ import annotations
@@ -44,12 +46,23 @@ class JodScorer:
                 device=torch.device("cpu"),
             )
         self._torch = torch
+        self._fps = float(profile.refresh_hz)
 
-    def score(self, image: np.ndarray, reference: np.ndarray, gaze_xy: tuple[float, float]) -> float:
-        """JOD of a linear RGB image against its reference, fixating pixel gaze_xy."""
-        test, ref = (linear_to_srgb8(np.ascontiguousarray(a, dtype=np.float32)).astype(np.float32) / 255.0
-                     for a in (image, reference))  # fmt: skip
-        fixation = np.array([round(gaze_xy[0]), round(gaze_xy[1])])
+    def score(
+        self, images: list[np.ndarray], references: list[np.ndarray], gaze_xy: list[tuple[float, float]]
+    ) -> float:
+        """JOD of a sequence of display-encoded frames (encode) against its reference frames, fixating pixel
+        gaze_xy[k] in frame k, played at the profile's refresh rate."""
+        test, ref = (np.stack(frames).astype(np.float32) / 255.0 for frames in (images, references))
+        fixation = np.rint(np.asarray(gaze_xy, dtype=np.float64)).astype(np.int64)
         with self._torch.no_grad():
-            jod, _ = self._metric.predict(test, ref, dim_order="HWC", fixation_point=fixation)
+            jod, _ = self._metric.predict(
+                test, ref, dim_order="FHWC", frames_per_second=self._fps, fixation_point=fixation
+            )
         return float(jod)
+
+
+def encode(image: np.ndarray) -> np.ndarray:
+    """A linear RGB frame as the display shows it (8-bit sRGB): what JodScorer scores, kept at a quarter of the
+    float frame's memory while a sequence is collected."""
+    return linear_to_srgb8(np.ascontiguousarray(image, dtype=np.float32))

@@ -22,11 +22,12 @@ import time
 from dataclasses import dataclass, field
 from functools import partial
 
+import msgspec
 import numpy as np
 from tqdm import tqdm
 
 from hmdrt.evaluate.config import EvalConfig
-from hmdrt.evaluate.perceptual import JodScorer
+from hmdrt.evaluate.perceptual import JodScorer, encode
 from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.foveation import Method, MethodChoice
 from hmdrt.optics import get_profile
@@ -52,7 +53,7 @@ class _Cell:
     rays: list[int] = field(default_factory=list)
     fractions: list[float] = field(default_factory=list)
     stages_ms: dict[str, float] = field(default_factory=dict)  # summed over the timed frames, top-level stages
-    jod: list[float] = field(default_factory=list)
+    frames: list[np.ndarray] = field(default_factory=list)  # the scored frames, display-encoded (with jod only)
     rays_by_kind: dict[str, int] = field(default_factory=lambda: dict.fromkeys(RAY_KINDS, 0))  # summed likewise
     last: np.ndarray | None = None
 
@@ -105,8 +106,8 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
     """Render and score every cell of `config`; a progress bar on stderr when `progress` and it is a terminal."""
     started = time.perf_counter()
     cache = TruthCache(config.cache_dir, config.truth_spp, config.seed)
-    cells_per_scene = sum(len(config.cells(scene)) for scene in config.scenes)
-    total = len(config.profiles) * len(config.traces) * config.frames * cells_per_scene
+    cells = sum(len(config.cells(scene, trace)) for scene in config.scenes for trace in config.traces)
+    total = len(config.profiles) * config.frames * cells
     rows: list[dict] = []
     crops: list[Crops] = []
     with tqdm(total=total, unit="frame", disable=None if progress else True, leave=False) as bar:
@@ -117,12 +118,14 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
             with Whitted(scene, threads=config.threads or None) as tracer:
                 truth = partial(cache.get, tracer, scene_digest(scene))
                 for profile_name, trace in itertools.product(config.profiles, config.traces):
+                    if not config.cells(scene_name, trace):
+                        continue
                     profile = _profile(profile_name, config.resolution)
                     bar.set_description(f"{scene_name} {profile_name} {trace.label}")
                     group = {"scene": scene_name, "profile": profile.name, "trace": trace.label}
                     cells = [
                         _Cell(*cell, cell.choice.make(tracer), BandScores(config.score_space))
-                        for cell in config.cells(scene_name)
+                        for cell in config.cells(scene_name, trace)
                     ]
                     warmup = group_warmup(config.warmup_frames, cells, group)
                     bar.total += (warmup - config.warmup_frames) * len(cells)
@@ -134,9 +137,12 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
                         gaze=trace.gaze or "0,0",
                         seed=config.seed,
                     )
-                    jod = JodScorer(profile, config.eye) if config.jod else None
-                    last = _render(inputs, cells, profile, truth, config, warmup, bar.update, jod)
-                    rows += _rows(group, cells, profile, warmup, config.score_space)
+                    last, scored = _render(inputs, cells, profile, truth, config, warmup, bar.update)
+                    jod = _jod(cells, scored, JodScorer(profile, config.eye)) if config.jod else {}
+                    rows += [
+                        {**row, "trace_group": trace.group_label, **jod.get(row["label"], {})}
+                        for row in _rows(group, cells, profile, warmup, config.score_space)
+                    ]
                     crops.append(Crops(**group, **last, images={c.label: c.last for c in cells}))
     seconds = time.perf_counter() - started
     return Evaluation(rows, summarise(rows), crops, cache.rendered, cache.read, seconds, config.score_space)
@@ -152,12 +158,17 @@ def group_warmup(configured: int, cells: list[_Cell], group: dict) -> int:
     return needed
 
 
-def _render(
-    inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, warmup: int, tick, jod: JodScorer | None
-) -> dict:
+def _jod(cells: list[_Cell], scored: dict, scorer: JodScorer) -> dict[str, dict]:
+    """Each cell's JOD ({label: {"jod": value}}): its scored frames as one video against the truths'."""
+    truths, gazes = scored["truths"], scored["gazes"]
+    return {c.label: {"jod": round(scorer.score(c.frames, truths, gazes), 4)} for c in cells}
+
+
+def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, warmup: int, tick) -> tuple[dict, dict]:
     """Each input frame through every cell's method in turn; the frames after the warm-up timed and scored.
-    Returns the last scored frame's truth and gaze pixel."""
+    Returns the last scored frame's truth and gaze pixel, and (with jod) every scored truth, encoded, and gaze."""
     last: dict = {}
+    truths, gazes = [], []
     for inp in inputs:
         [request] = frame_requests(inp, eye_cameras(profile, inp.pose, (config.eye,)), config.seed)
         scored = inp.frame >= warmup
@@ -165,6 +176,9 @@ def _render(
             truth = truth_of(request.camera)
             eccentricity = eccentricity_map(request.camera, request.gaze)
             last = {"truth": truth, "gaze_xy": tuple(float(v) for v in request.camera.gaze_pixel(request.gaze))}
+            if config.jod:
+                truths.append(encode(truth))
+                gazes.append(last["gaze_xy"])
         for cell in cells:
             if not scored and not cell.method.warmup_frames:
                 tick()  # no history: nothing to warm up
@@ -182,13 +196,13 @@ def _render(
                 cell.fractions.append(stats.metrics.get("sample_fraction", stats.rays["primary"] / pixels))
                 cell.scores.add(image, truth, eccentricity)
                 cell.last = image.copy()
-                if jod is not None:
-                    cell.jod.append(jod.score(image, truth, last["gaze_xy"]))
+                if config.jod:
+                    cell.frames.append(encode(image))
                 for stage, stage_ms in stats.stages_ms.items():
                     if "/" not in stage:
                         cell.stages_ms[stage] = cell.stages_ms.get(stage, 0.0) + stage_ms
             tick()
-    return last
+    return last, {"truths": truths, "gazes": gazes}
 
 
 def _rows(group: dict, cells: list[_Cell], profile, warmup: int, space: ScoreSpace) -> list[dict]:
@@ -201,6 +215,7 @@ def _rows(group: dict, cells: list[_Cell], profile, warmup: int, space: ScoreSpa
                 "height": profile.height,
                 "method": cell.choice.name,
                 "params": str(cell.choice),
+                "options": msgspec.to_builtins(cell.choice.params),
                 "label": cell.label,
                 "frames": len(cell.ms),
                 "warmup_frames": warmup if cell.method.warmup_frames else 0,
@@ -210,7 +225,6 @@ def _rows(group: dict, cells: list[_Cell], profile, warmup: int, space: ScoreSpa
                 "sample_fraction": round(float(np.mean(cell.fractions)), 5),
                 "score_space": space,
                 **{k: _round(v) for k, v in cell.scores.result().items()},
-                **({"jod": round(float(np.mean(cell.jod)), 4)} if cell.jod else {}),
                 "stages_ms": {k: round(v / len(cell.ms), 3) for k, v in cell.stages_ms.items()},
             }
         )

@@ -1,18 +1,21 @@
 """The papers' tables filled from eval rows (configs/eval/paper_tables.toml), as Markdown.
 
-A table takes, per scene, the rows whose labels it names; a scene without all of them is left out:
+A table takes, per scene and trace, the rows whose labels it names; a scene without all of them is left out:
 - weier2016 Table 1: "full" and "weier16": rays, per-stage ms (reproject, trace, cache update, merge, post),
   total and speed-up (section 4.1);
 - kim2021 Table 2: "Regular_36", "full" (the paper's Regular_1), "Selective", "Sel_Fov": ms, rays and PSNR in
   the four central bands (section 5), and each cell's speed-up and foveal PSNR delta against its baseline (a
   cell's compare_to: Sel_Fov against Selective shows the paper's claim);
-- smith2013: "full" and "rrm" on a scene with and without secondary rays: ms and speed-up (section 5);
+- smith2013: "full" and every rrm cell, per scene (with and without secondary rays) and trace group, averaged
+  over the group's traces (section 4: a frame at every fovea position, averaged), with each cell's refresh
+  cycle N (Figure 9 sweeps N from 12 to 132): ms, rays, speed-up and PSNR over the image;
 - weier2018 Table 1: "weier18" and "weier18 full": ray tracing, TAA, PPI, CoC, filter, combine, total and
   samples (section 4.1).
 """
 
 from __future__ import annotations
 
+import statistics
 from collections.abc import Callable
 
 from hmdrt.quality import SPACE_NAMES
@@ -26,13 +29,13 @@ def _markdown(header: list[str], lines: list[list[str]]) -> str:
     return "\n".join(out)
 
 
-def _by_scene(rows: list[Row], labels: tuple[str, ...]) -> list[tuple[str, dict[str, Row]]]:
-    """(scene, {label: row}) for each scene, profile and trace that has a row for every label."""
+def _by_scene(rows: list[Row], labels: tuple[str, ...]) -> list[tuple[str, str, dict[str, Row]]]:
+    """(scene, trace, {label: row}) for each scene, profile and trace that has a row for every label."""
     groups: dict[tuple, dict[str, Row]] = {}
     for r in rows:
         if r["label"] in labels:
             groups.setdefault((r["scene"], r["profile"], r["trace"]), {})[r["label"]] = r
-    return [(key[0], found) for key, found in groups.items() if set(found) == set(labels)]
+    return [(key[0], key[2], found) for key, found in groups.items() if set(found) == set(labels)]
 
 
 def _ms(row: Row, stage: str) -> str:
@@ -51,11 +54,12 @@ def _db(value: float | None, spec: str = ".2f") -> str:
 
 
 def weier2016(rows: list[Row]) -> str:
-    header = ["scene", "rays full", "rays ours", "full ms", "reproject", "trace", "cache update", "merge", "post",
-              "ours ms", "speed-up"]  # fmt: skip
+    header = ["scene", "trace", "rays full", "rays ours", "full ms", "reproject", "trace", "cache update", "merge",
+              "post", "ours ms", "speed-up"]  # fmt: skip
     lines = [
         [
             scene,
+            trace,
             _mrays(f),
             _mrays(o),
             f"{f['ms_per_frame']:.1f}",
@@ -63,7 +67,7 @@ def weier2016(rows: list[Row]) -> str:
             f"{o['ms_per_frame']:.1f}",
             f"{f['ms_per_frame'] / o['ms_per_frame']:.2f}",
         ]
-        for scene, found in _by_scene(rows, ("full", "weier16"))
+        for scene, trace, found in _by_scene(rows, ("full", "weier16"))
         for f, o in [(found["full"], found["weier16"])]
     ]
     return _markdown(header, lines)
@@ -73,11 +77,12 @@ KIM21_LABELS = ("Regular_36", "full", "Selective", "Sel_Fov")  # full is the pap
 
 
 def kim2021(rows: list[Row]) -> str:
-    header = ["scene", "method", "ms", "rays (k)", "fovea dB", "parafovea dB", "perifovea dB", "near periphery dB",
-              "compared with", "speed-up", "fovea delta dB"]  # fmt: skip
+    header = ["scene", "trace", "method", "ms", "rays (k)", "fovea dB", "parafovea dB", "perifovea dB",
+              "near periphery dB", "compared with", "speed-up", "fovea delta dB"]  # fmt: skip
     lines = [
         [
             scene,
+            trace,
             _kim2021_name(label),
             f"{r['ms_per_frame']:.1f}",
             f"{r['rays_per_frame'] / 1e3:,.0f}",
@@ -86,7 +91,7 @@ def kim2021(rows: list[Row]) -> str:
             "-" if r["speedup_vs_baseline"] is None else f"{r['speedup_vs_baseline']:.2f}",
             _db(r["psnr_fovea_vs_baseline"], "+.2f"),
         ]
-        for scene, found in _by_scene(rows, KIM21_LABELS)
+        for scene, trace, found in _by_scene(rows, KIM21_LABELS)
         for label in KIM21_LABELS
         for r in [found[label]]
     ]
@@ -98,35 +103,58 @@ def _kim2021_name(label: str) -> str:
 
 
 def smith2013(rows: list[Row]) -> str:
-    header = ["scene", "secondary rays", "full ms", "rrm ms", "rays full", "rays rrm", "speed-up"]
-    lines = [
-        [
-            scene,
-            "yes" if f["rays_secondary"] else "no",
-            f"{f['ms_per_frame']:.1f}",
-            f"{r['ms_per_frame']:.1f}",
-            _mrays(f),
-            _mrays(r),
-            f"{f['ms_per_frame'] / r['ms_per_frame']:.2f}",
-        ]
-        for scene, found in _by_scene(rows, ("full", "rrm"))
-        for f, r in [(found["full"], found["rrm"])]
-    ]
+    header = ["scene", "trace", "secondary rays", "N", "full ms", "rrm ms", "rays full", "rays rrm", "speed-up",
+              "image dB"]  # fmt: skip
+    lines = []
+    for (scene, group), cells in _averaged(rows, lambda r: r["label"] == "full" or r["method"] == "rrm").items():
+        if "full" not in cells:
+            continue
+        full = cells["full"]
+        for label, rrm in cells.items():
+            if label != "full":
+                n = rrm["options"]["group_w"] * rrm["options"]["group_h"]
+                lines.append([scene, f"{group} ({full['traces']})", "yes" if full["rays_secondary"] else "no", str(n),
+                              f"{full['ms_per_frame']:.1f}", f"{rrm['ms_per_frame']:.1f}", _mrays(full), _mrays(rrm),
+                              f"{full['ms_per_frame'] / rrm['ms_per_frame']:.2f}", _db(rrm["psnr_image"])])  # fmt: skip
     return _markdown(header, lines)
 
 
+AVERAGED = ("ms_per_frame", "rays_per_frame", "rays_secondary", "psnr_image")
+
+
+def _averaged(rows: list[Row], keep: Callable[[Row], bool]) -> dict[tuple[str, str], dict[str, Row]]:
+    """{(scene, trace group): {label: row}} of the rows kept, the AVERAGED fields their mean over the group's
+    traces, and "traces" how many there were."""
+    found: dict[tuple[str, str], dict[str, list[Row]]] = {}
+    for r in rows:
+        if keep(r):
+            found.setdefault((r["scene"], r["trace_group"]), {}).setdefault(r["label"], []).append(r)
+    return {
+        key: {
+            label: {**group[0], "traces": len(group), **{k: _mean([r[k] for r in group]) for k in AVERAGED}}
+            for label, group in labels.items()
+        }
+        for key, labels in found.items()
+    }
+
+
+def _mean(values: list) -> float | None:
+    return None if any(v is None for v in values) else statistics.fmean(values)
+
+
 def weier2018(rows: list[Row]) -> str:
-    header = ["scene", "mode", "ray tracing", "TAA", "PPI", "CoC", "filter", "combine", "total", "samples"]
+    header = ["scene", "trace", "mode", "ray tracing", "TAA", "PPI", "CoC", "filter", "combine", "total", "samples"]
     stages = ("trace", "taa", "ppi", "coc", "dof_filter", "combine")
     lines = [
         [
             scene,
+            trace,
             mode,
             *(_ms(r, s) for s in stages),
             f"{r['ms_per_frame']:.2f}",
             f"{round(r['sample_fraction'] * r['width'] * r['height']):,d}",
         ]
-        for scene, found in _by_scene(rows, ("weier18", "weier18 full"))
+        for scene, trace, found in _by_scene(rows, ("weier18", "weier18 full"))
         for mode, r in (("foveated", found["weier18"]), ("full", found["weier18 full"]))
     ]
     return _markdown(header, lines)

@@ -203,6 +203,12 @@ class Weier18(Configurable):
         self._tables_for = (self.foveal, params.table_seed, params.density)
         self.features = frozenset({DOF} if params.preset() else set())
 
+    @property
+    def warmup_frames(self) -> int:
+        """TAA's history (section 3.1): the frames until the first one weighs under 5% of the running estimate."""
+        a = self.params.alpha_min
+        return 1 if a >= 1.0 else math.ceil(math.log(0.05) / math.log1p(-a))
+
     def _state(self, request: FrameRequest) -> tuple[_EyeState, bool]:
         """This eye's state and whether it holds a previous frame of the same size."""
         cam = request.camera
