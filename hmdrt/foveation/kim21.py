@@ -9,11 +9,16 @@ reusability test copies a pixel from the previous frame when its back-projected 
 subpixel: geometry discordance with any of the three neighbours selects tau_sel, then Mitchell's
 contrast is compared with (1.36, 1.02, 2.04) x tau_fov(e) x tau_sel, tau_fov from two C1 quadratic
 Bezier segments. Section 4.6.2: problematic subpixels take (n_f, n_p, n_m, n_np) stratified jittered
-samples by band; the others take the colour interpolated from the four surrounding pixel centres.
-Section 4.7: temporal smoothing over up to 4 back-projected earlier frames with alpha(e) piecewise
-linear through 0.9, 0.8, 0.7, 0.5, 0.2, 0.1 at 0, e_f, e_p, e_m, e_np, e_max.
+samples by band; in every central pixel rendered, the others take the colour interpolated from the
+four surrounding pixel centres (Figure 2), or with interpolate=false the presampled colour as in Jin
+et al.'s selective supersampling. Section 4.7: temporal smoothing over up to 4 back-projected earlier
+frames with alpha(e) piecewise linear through 0.9, 0.8, 0.7, 0.5, 0.2, 0.1 at 0, e_f, e_p, e_m, e_np,
+e_max.
 
 The paper leaves open when two normals disagree; here, when their dot product is below normal_cos.
+Reuse also needs the copied colour rendered at no lower class (samples per problematic subpixel) than
+the pixel needs now, or a saccade copies one-sample colours into the new fovea, and where the colour was
+sampled may drift at most reuse_px pixels over the chain of copies (docs/methods.md, kim21, says why).
 The supersampling jitter is fixed per subpixel across frames: with a still view the frames agree,
 and temporal smoothing works on what the paper targets, the noise of the received poses (Table 3).
 """
@@ -81,10 +86,14 @@ class Kim21Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     tau_ssc: Threshold = 0.06
     tau_ste: Threshold = 0.02
     normal_cos: Annotated[float, msgspec.Meta(ge=-1.0, le=1.0)] = 0.95
+    # the colour of a non-problematic subpixel: interpolated from the four surrounding pixel centres (kim2021,
+    # Figure 2), or the pixel's own presampled colour as in Jin et al.'s selective supersampling
+    interpolate: bool = True
     # pixel reuse (section 4.4) and temporal smoothing (section 4.7)
     reuse: bool = True
     n_reuse_max: Annotated[int, msgspec.Meta(ge=0, le=1000)] = 5
     tau_reuse: Threshold = 1.0
+    reuse_px: Annotated[float, msgspec.Meta(ge=0.0, le=10.0)] = 0.1  # how far a reused colour may drift, pixels
     smooth: bool = True
     smooth_frames: Annotated[int, msgspec.Meta(ge=0, le=4)] = 4
     alpha: tuple[Weight, Weight, Weight, Weight, Weight, Weight] = (0.9, 0.8, 0.7, 0.5, 0.2, 0.1)
@@ -145,15 +154,19 @@ class Tests(NamedTuple):
     tau_reuse: float
     n_reuse_max: int
     rel_depth: float
+    reuse_px: float
 
 
 class Kept(NamedTuple):
-    """A frame's buffers that the next frame reads: presampled colour, hit distance, reuse count, rendered colour."""
+    """A frame's buffers that the next frame reads: presampled colour, hit distance, reuse count, rendered colour,
+    and what the rendered colour is worth to a later reuse: its class and where it was sampled."""
 
     ref: np.ndarray  # (n, 3) float32 the presampled colour at the pixel centres
     depth: np.ndarray  # (n,) float32 the history's depth slot: distance of the first hit, inf on a miss
     flags: np.ndarray  # (n,) int32 times in a row the pixel was reused; 0 where rendered
     rendered: np.ndarray  # (n, 3) float32 the history's colour slot, before smoothing
+    level: np.ndarray  # (n,) uint8 samples per problematic subpixel the colour was rendered with; 0 outside e_np
+    drift: np.ndarray  # (n, 2) float32 where the colour was rendered, in pixels from the pixel centre
 
 
 @serial
@@ -295,16 +308,17 @@ def _tau_sel(i, a, b, c, primary, secondary, thresholds, normal_cos):
 
 @serial
 def _store_row(y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples):
-    """Row y of `frame`, rendered as presampled (color, hits); with `reuse`, kim2021 section 4.4's test per central
-    pixel with a hit: back-projected into the previous frame (through its relative_view `view`; onto itself when
-    `same`) it must meet a hit within rel_depth of its distance, reused fewer than n_reuse_max times in a row, that
-    agrees in the primary attributes and passes the contrast test at tau_sel x tau_reuse; it takes that pixel's
-    rendered colour then. Returns the row's reused pixels."""
-    ref, depth, flags, rendered = frame
-    prev_ref, prev_depth, prev_flags, prev_rendered = prev
+    """Row y of `frame`, rendered as presampled (color, hits) at its band's class `samples`; with `reuse`, kim2021
+    section 4.4's test per central pixel with a hit: back-projected into the previous frame (through its relative_view
+    `view`; onto itself when `same`) it must meet a hit within rel_depth of its distance, reused fewer than n_reuse_max
+    times in a row and rendered at no lower class than the pixel needs now, that agrees in the primary attributes and
+    passes the contrast test at tau_sel x tau_reuse, with the drift of where its colour was sampled staying within
+    reuse_px; it takes that pixel's rendered colour, class and drift then. Returns the row's reused pixels."""
+    ref, depth, flags, rendered, level, drift = frame
+    prev_ref, prev_depth, prev_flags, prev_rendered, prev_level, prev_drift = prev
     hit_depth, geometry, prev_geometry = hits.depth, _geometry(hits), _geometry(prev_hits)
     obj, prev_obj = geometry[0], prev_geometry[0]
-    thresholds, normal_cos, tau_reuse, n_max, rel_depth = tests
+    thresholds, normal_cos, tau_reuse, n_max, rel_depth, reuse_px = tests
     height = depth.shape[0] // width
     reused = 0
     for x in range(width):
@@ -314,24 +328,29 @@ def _store_row(y, width, color, hits, frustum, frame, view, prev_hits, prev, sam
         for c in range(3):
             ref[i, c] = color[i, c]
             rendered[i, c] = color[i, c]
-        flags[i] = 0
+        flags[i], level[i] = 0, samples[i]
+        drift[i, 0] = drift[i, 1] = 0.0
         if not reuse or samples[i] == 0 or math.isinf(d) or obj[i] < 0:
             continue
-        if same:
-            j, dist = i, min(np.float64(d), FAR)
-        else:
+        j, dist, ox, oy = i, min(np.float64(d), FAR), 0.0, 0.0
+        if not same:
             px, py, pz = eye_point(frustum, x + 0.5, y + 0.5, d)
             qx, qy, dist = view_project(view, px, py, pz)
             j = nearest_index(qx, qy, width, height)
-        if j < 0 or prev_flags[j] >= n_max or math.isinf(prev_depth[j]) or prev_obj[j] < 0:
+            ox, oy = qx - (j % width + 0.5), qy - (j // width + 0.5)
+        if j < 0 or prev_flags[j] >= n_max or prev_level[j] < samples[i]:
             continue
-        if abs(prev_depth[j] - dist) > rel_depth * dist:
+        if math.isinf(prev_depth[j]) or prev_obj[j] < 0 or abs(prev_depth[j] - dist) > rel_depth * dist:
+            continue
+        dx, dy = prev_drift[j, 0] - ox, prev_drift[j, 1] - oy
+        if dx * dx + dy * dy > reuse_px * reuse_px:
             continue
         tau = _discordant_threshold(geometry, i, prev_geometry, j, thresholds, 1, normal_cos)
         tau = thresholds[0] if tau == math.inf else tau
         if _pair_contrast_fails(color, i, prev_ref, j, tau * tau_reuse):
             continue
-        flags[i] = prev_flags[j] + 1
+        flags[i], level[i] = prev_flags[j] + 1, prev_level[j]
+        drift[i, 0], drift[i, 1] = dx, dy
         for c in range(3):
             rendered[i, c] = prev_rendered[j, c]
         reused += 1
@@ -481,43 +500,75 @@ def _mean3(rows, start, count):
 
 
 @serial
-def _resolve_row(y, image, sub_mask, samples, first, extra, out):
-    width = image.shape[1]
+def _tent(up, mid, down, x, ch):
+    """Channel ch of the mean of pixel x's four subpixels, each interpolated from the four surrounding pixel
+    centres (kim2021 Figure 2), given its row and the rows above and below (w, 3), clamped at the border as
+    bilinear3 is: bilinear weights 3/4 and 1/4 per axis average to (1, 6, 1) / 8 over the 3 x 3 neighbourhood."""
+    a, c = np.float32(0.125), np.float32(0.75)
+    xl, xr = max(x - 1, 0), min(x + 1, mid.shape[0] - 1)
+    left = a * (up[xl, ch] + down[xl, ch]) + c * mid[xl, ch]
+    centre = a * (up[x, ch] + down[x, ch]) + c * mid[x, ch]
+    right = a * (up[xr, ch] + down[xr, ch]) + c * mid[xr, ch]
+    return a * (left + right) + c * centre
+
+
+@serial
+def _subpixel_color(image, x, y, s, interpolate):
+    """Subpixel s (NW, NE, SW, SE) of pixel (x, y) when not problematic: interpolated at its centre from the four
+    surrounding pixel centres (kim2021 Figure 2), or the pixel's presampled colour (Jin et al.)."""
+    if interpolate:
+        return bilinear3(image, x + 0.25 + 0.5 * (s & 1), y + 0.25 + 0.5 * (s >> 1))
+    return np.float64(image[y, x, 0]), np.float64(image[y, x, 1]), np.float64(image[y, x, 2])
+
+
+@serial
+def _resolve_row(y, image, sub_mask, samples, flags, first, extra, interpolate, out):
+    height, width, y = image.shape[0], image.shape[1], np.int64(y)
+    up, mid, down = image[max(y - 1, 0)], image[y], image[min(y + 1, height - 1)]
     j = first[y]
-    for i in range(y * width, (y + 1) * width):
-        if sub_mask[i] == 0:
+    for x in range(width):
+        i = y * width + x
+        if samples[i] == 0 or flags[i] != 0:
             continue
-        x, k = i - y * width, np.int64(samples[i])
+        m, k = sub_mask[i], np.int64(samples[i])
+        if m == 0:
+            for ch in range(3 if interpolate else 0):
+                out[i, ch] = _tent(up, mid, down, x, ch)
+            continue
         r = g = b = 0.0
         for s in range(4):
-            if (sub_mask[i] >> s) & 1:
+            if (m >> s) & 1:
                 cr, cg, cb = _mean3(extra, j, k)
                 j += k
             else:
-                cr, cg, cb = bilinear3(image, x + 0.25 + 0.5 * (s & 1), y + 0.25 + 0.5 * (s >> 1))
+                cr, cg, cb = _subpixel_color(image, x, y, s, interpolate)
             r, g, b = r + cr, g + cg, b + cb
         out[i, 0], out[i, 1], out[i, 2] = 0.25 * r, 0.25 * g, 0.25 * b
 
 
 @kernel
-def _resolve(image, sub_mask, samples, first, extra, out):
-    """Each pixel with problematic subpixels is the mean of its four subpixels: the mean of a problematic one's
-    samples, or the presampled colour (image, (h, w, 3)) interpolated from the four surrounding pixel centres at
-    the subpixel's centre."""
+def _resolve(image, sub_mask, samples, flags, first, extra, interpolate, out):
+    """Section 4.6.2 and Figure 2: each central pixel that was rendered (flags 0) is the mean of its four subpixels,
+    a problematic one the mean of its extra samples, the others their _subpixel_color from the presampled colours
+    (image, (h, w, 3)); out already holds the presampled colour, which stays where nothing is interpolated."""
     for y in nb.prange(image.shape[0]):
-        _resolve_row(y, image, sub_mask, samples, first, extra, out)
+        _resolve_row(y, image, sub_mask, samples, flags, first, extra, interpolate, out)
 
 
 class _Buffers(NamedTuple):
-    """A frame's G-buffer, presampled colour and reuse counts, which the next frame's reuse test reads."""
+    """A frame's G-buffer, presampled colour, reuse counts, classes and drifts, which the next frame's reuse test
+    reads (Kept)."""
 
     gbuffer: GBuffer
     ref: np.ndarray  # (n, 3) float32
     flags: np.ndarray  # (n,) int32
+    level: np.ndarray  # (n,) uint8
+    drift: np.ndarray  # (n, 2) float32
 
     @classmethod
     def empty(cls, n: int) -> _Buffers:
-        return cls(GBuffer.empty(n), np.empty((n, 3), np.float32), np.zeros(n, np.int32))
+        ref, flags = np.empty((n, 3), np.float32), np.zeros(n, np.int32)
+        return cls(GBuffer.empty(n), ref, flags, np.zeros(n, np.uint8), np.zeros((n, 2), np.float32))
 
 
 class _EyeState:
@@ -547,6 +598,13 @@ class _EyeState:
             self.extra_xy, self.extra_keys = np.empty((size, 2), np.float32), np.empty(size, np.int64)
             self.extra_color = np.empty((size, 3), np.float32)
         return self.extra_xy[:count], self.extra_keys[:count], self.extra_color[:count]
+
+
+def _kept(buffers: _Buffers, history: History, slot: int) -> Kept:
+    """A frame's Kept: its buffers, with the depth and colour of its history slot."""
+    n = len(buffers.flags)
+    depth, color = history.depth[slot].reshape(n), history.color[slot].reshape(n, 3)
+    return Kept(buffers.ref, depth, buffers.flags, color, buffers.level, buffers.drift)
 
 
 class _Frame(NamedTuple):
@@ -595,6 +653,13 @@ class Kim21(Configurable):
         self._keys_seed: int | None = None
         self._configure(params)
 
+    @property
+    def warmup_frames(self) -> int:
+        """The earlier frames temporal smoothing blends (section 4.7), and one for pixel reuse (section 4.4); none
+        for Jin et al.'s selective supersampling (neither)."""
+        p = self.params
+        return max(p.smooth_frames if p.smooth else 0, 1 if p.reuse else 0)
+
     def _configure(self, params: Kim21Params) -> None:
         """Keeps each eye's previous frame (pixel reuse goes on, its reuse counts included) and its
         smoothing history; new bands, sample counts and thresholds act on the next frame. Only a larger
@@ -609,6 +674,7 @@ class Kim21(Configurable):
             p.tau_reuse,
             p.n_reuse_max,
             p.depth_tolerance,
+            p.reuse_px,
         )
         self.bounds = np.array([p.e_f, p.e_p, p.e_m])
         self.counts = np.array([p.n_f, p.n_p, p.n_m, p.n_np], np.uint8)
@@ -650,13 +716,11 @@ class Kim21(Configurable):
         problematic, extra_xy, extra_keys, extra_color = self._inspect_subpixels(f, stats)
         with stats.stage("supersample"):
             extra = self.tracer.trace_samples(f.camera, extra_xy, extra_keys, stats, out=extra_color)
-        with stats.stage("resolve"):
-            h, w = f.state.shape
-            _resolve(f.cur.ref.reshape(h, w, 3), f.state.sub_mask, f.fov.samples, f.state.first, extra, f.kept.rendered)
+        self._resolve_pixels(f, extra, stats)
         image = self._smooth(f, out, stats)
         f.state.history.commit(f.camera)
         f.state.previous = f.camera
-        n = h * w
+        n = f.state.shape[0] * f.state.shape[1]
         stats.metrics["central_pixels"] = f.state.central
         stats.metrics["reused_pixels"] = reused
         stats.metrics["problematic_subpixels"] = problematic
@@ -668,7 +732,7 @@ class Kim21(Configurable):
         """The eye's state and this frame's foveation, buffers (this frame's and the previous one's) and history
         slot, with the plan of its stages."""
         cam = request.camera
-        h, w, n = cam.height, cam.width, cam.height * cam.width
+        h, w = cam.height, cam.width
         state = self._state(request.eye, h, w)
         steps = plan(self.stages, frozenset({HISTORY}) if state.previous is not None else frozenset())
         with stats.stage("eccentricity"):
@@ -677,8 +741,7 @@ class Kim21(Configurable):
         cur, last = state.buffers
         history = state.history
         slot, newest = history.begin((h, w)), max(history.newest((h, w)), 0)
-        kept = Kept(cur.ref, history.depth[slot].reshape(n), cur.flags, history.color[slot].reshape(n, 3))
-        prev = Kept(last.ref, history.depth[newest].reshape(n), last.flags, history.color[newest].reshape(n, 3))
+        kept, prev = _kept(cur, history, slot), _kept(last, history, newest)
         return _Frame(request, state, fov, cur, last, slot, kept, prev, steps)
 
     def _presample(self, f: _Frame, stats: FrameStats) -> np.ndarray:
@@ -723,6 +786,13 @@ class Kim21(Configurable):
             seed_key = int(pixel_keys(np.zeros(1), f.request.seed, stream=1)[0])
             _subpixel_samples(w, state.sub_mask, f.fov.samples, state.first, seed_key, extra_xy, extra_keys)
         return problematic, extra_xy, extra_keys, extra_color
+
+    def _resolve_pixels(self, f: _Frame, extra: np.ndarray, stats: FrameStats) -> None:
+        """Section 4.6.2 and Figure 2: the rendered pixels' colours from their subpixels (_resolve)."""
+        state, (h, w) = f.state, f.state.shape
+        with stats.stage("resolve"):
+            image, flags, interpolate = f.cur.ref.reshape(h, w, 3), f.cur.flags, self.params.interpolate
+            _resolve(image, state.sub_mask, f.fov.samples, flags, state.first, extra, interpolate, f.kept.rendered)
 
     def _smooth(self, f: _Frame, out: np.ndarray | None, stats: FrameStats) -> np.ndarray:
         """Section 4.7: exponential smoothing over the history by eccentricity; the frame as resolved without it."""
