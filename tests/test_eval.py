@@ -10,12 +10,13 @@ import sys
 import time
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
 from hmdrt.cli import main
 from hmdrt.errors import ConfigError
-from hmdrt.evaluate.config import load_eval_config
+from hmdrt.evaluate.config import MethodSweep, load_eval_config
 from hmdrt.evaluate.runner import pareto_front, summarise
 from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.foveation import MethodChoice
@@ -23,6 +24,7 @@ from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.present.encode import linear_to_srgb8
 from hmdrt.quality import BANDS, BandScores, band_psnr, psnr, srgb_encode, ssim_map, to_space
 from hmdrt.scene import load_scene
+from hmdrt.sequence import FrameInput
 from hmdrt.spatial import Pose
 from hmdrt.trace.integrator import Whitted
 from tests.helpers import DATA
@@ -401,6 +403,29 @@ def test_full_and_regular_skip_the_warm_up_frames(tmp_path, monkeypatch):
     runner.evaluate(load, progress=False)
     assert calls["full"] == 2 * 2  # two traces x the two timed frames
     assert calls["rrm?fovea_deg=5.0&group_w=1&group_h=1"] == 2 * 5
+
+
+def test_a_longer_warm_up_holds_the_first_frame_so_every_group_scores_the_same_frames(tmp_path):
+    """A method that needs more history than warmup_frames warms up before the trace starts: the scored frames,
+    and so the truths, are those of a group without it (all read from the cache)."""
+    config = tmp_path / "e.toml"
+    config.write_text(EVAL.replace('[[traces]]\ngaze = "0,0"\n\n', ""))  # the head path only
+    first = load_eval_config(config)
+    full_only = msgspec.structs.replace(first, methods=first.methods[:1])
+    from hmdrt.evaluate import runner
+
+    alone = runner.evaluate(full_only, progress=False)
+    longer = msgspec.structs.replace(
+        first, methods=[*first.methods[:1], MethodSweep("rrm", options={"group_w": 2, "group_h": 3})]
+    )
+    both = runner.evaluate(longer, progress=False)
+    assert (alone.truths_rendered, both.truths_rendered, both.truths_read) == (3, 0, 3)
+    assert [r["warmup_frames"] for r in both.rows] == [0, 6]  # rrm's N = 6 > warmup_frames = 1
+    assert both.rows[0]["psnr_image"] == alone.rows[0]["psnr_image"]
+    inputs = [FrameInput(k, 7 * k, Pose.looking([0, 1, 0], 10.0 * k), {}) for k in range(3)]
+    held = runner.held_start(inputs, 2, 5)
+    assert [(i.frame, i.t_ns) for i in held] == [(k, 5 * k) for k in range(5)]
+    assert [i.pose for i in held] == [inputs[0].pose] * 3 + [inputs[1].pose, inputs[2].pose]
 
 
 def test_jod_without_the_eval_extra_is_a_one_line_error(tmp_path, monkeypatch):

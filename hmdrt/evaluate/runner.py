@@ -2,16 +2,18 @@
 virtual time, timed per frame, and scored per eccentricity band against the cached ground truth.
 
 Within a scene, profile and trace the methods render frame by frame in turn, so that load on a shared machine
-hits every method alike. Warm-up frames come first, rendered but neither timed nor scored: the config's
-warmup_frames, or as many as the method of the group that needs the longest history declares
-(Method.warmup_frames: RRM's refresh cycle), so that no method is scored before its images are steady; methods
-without history (warmup_frames 0: full, regular) skip them. frames - warmup_frames frames follow, timed and
+hits every method alike. Warm-up frames come first, rendered but neither timed nor scored: the trace's first
+warmup_frames frames, and where a method of the group declares a longer history (Method.warmup_frames: RRM's
+refresh cycle) as many more frames before them holding the trace's first frame, so that no method is scored
+before its images are steady and every group scores the same frames of the trace; methods without history
+(warmup_frames 0: full, regular) skip them. The trace's frames after its first warmup_frames follow, timed and
 scored; ms_per_frame is their median. Each cell is compared with a baseline cell (its compare_to, else full):
 speed-up and foveal PSNR delta.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -34,7 +36,7 @@ from hmdrt.optics import get_profile
 from hmdrt.optics.camera import eccentricity_map
 from hmdrt.quality import BandScores, ScoreSpace
 from hmdrt.scene import load_scene
-from hmdrt.sequence import eye_cameras, frame_requests, sequence_inputs
+from hmdrt.sequence import FrameInput, eye_cameras, frame_requests, sequence_inputs
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
 
@@ -130,13 +132,9 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
                     warmup = group_warmup(config.warmup_frames, cells, group)
                     bar.total += (warmup - config.warmup_frames) * len(cells)
                     inputs, _ = sequence_inputs(
-                        scene.start,
-                        profile.period_ns,
-                        warmup + config.frames - config.warmup_frames,
-                        trace=trace.source,
-                        gaze=trace.gaze or "0,0",
-                        seed=config.seed,
+                        scene.start, profile.period_ns, config.frames, trace.source, trace.gaze or "0,0", config.seed
                     )
+                    inputs = held_start(inputs, warmup - config.warmup_frames, profile.period_ns)
                     last, scored = _render(inputs, cells, profile, truth, config, warmup, bar.update)
                     jod = _jod(cells, scored, JodScorer(profile, config.eye)) if config.jod else {}
                     rows += [
@@ -146,6 +144,13 @@ def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
                     crops.append(Crops(**group, **last, images={c.label: c.last for c in cells}))
     seconds = time.perf_counter() - started
     return Evaluation(rows, summarise(rows), crops, cache.rendered, cache.read, seconds, config.score_space)
+
+
+def held_start(inputs: list[FrameInput], extra: int, period_ns: int) -> list[FrameInput]:
+    """The trace's frames after `extra` frames that hold its first one, all renumbered from 0: a longer warm-up
+    comes before the trace starts, so every group scores the same stretch of it (and its truths are shared)."""
+    held = [inputs[0]] * extra + inputs
+    return [dataclasses.replace(inp, frame=k, t_ns=k * period_ns) for k, inp in enumerate(held)]
 
 
 def group_warmup(configured: int, cells: list[_Cell], group: dict) -> int:
