@@ -405,6 +405,14 @@ def test_full_and_regular_skip_the_warm_up_frames(tmp_path, monkeypatch):
     assert calls["rrm?fovea_deg=5.0&group_w=1&group_h=1"] == 2 * 5
 
 
+@pytest.mark.parametrize("path", sorted((DATA.parents[1] / "configs" / "eval").glob("*.toml")), ids=lambda p: p.name)
+def test_every_shipped_eval_config_loads(path):
+    """Every method spec, baseline and trace name of the configs the README runs is valid, and traces exist."""
+    config = load_eval_config(path)
+    assert all(Path(t.path).is_file() for t in config.traces if t.path)
+    assert all(config.cells(scene) for scene in config.scenes)
+
+
 def test_a_longer_warm_up_holds_the_first_frame_so_every_group_scores_the_same_frames(tmp_path):
     """A method that needs more history than warmup_frames warms up before the trace starts: the scored frames,
     and so the truths, are those of a group without it (all read from the cache)."""
