@@ -9,11 +9,29 @@ shows. A user's mistake stays a one-line error on stderr from the CLI, not a log
 from __future__ import annotations
 
 import logging
+import sys
 from collections.abc import Callable
+from typing import TextIO
 
 LEVELS = ("debug", "info", "warning", "error")
 PACKAGES = ("hmdrt", "drivers", "replay")
 FORMAT = "hmdrt: %(levelname)s: %(name)s: %(message)s"
+
+
+class _Console(logging.StreamHandler):
+    """A StreamHandler on whatever sys.stderr is when a record is written, as logging's last resort is: a program
+    (or a test) that swaps sys.stderr after configure() still gets its records, and none go to a closed stream."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self) -> TextIO:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value: TextIO) -> None:  # StreamHandler assigns it; the property always reads sys.stderr
+        pass
 
 
 _console: logging.Handler | None = None
@@ -25,7 +43,7 @@ def configure(level: str = "warning") -> None:
     root = logging.getLogger()
     if _console is not None:
         root.removeHandler(_console)
-    _console = logging.StreamHandler()
+    _console = _Console()
     _console.setLevel(level.upper())
     _console.setFormatter(logging.Formatter(FORMAT))
     root.addHandler(_console)

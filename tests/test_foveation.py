@@ -3,11 +3,13 @@
 import msgspec
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import METHODS, FrameRequest, MethodChoice, make_method
 from hmdrt.foveation.base import EYES, pixel_keys
 from hmdrt.foveation.rrm import Rrm, RrmParams, foveal_rectangle, refresh_phase
+from hmdrt.foveation.stages.dof import MAX_BLUR_PX
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.quality import band_psnr
 from hmdrt.scene import load_scene
@@ -217,7 +219,11 @@ def test_weier18_depth_of_field_blurs_only_out_of_focus():
     focused = np.abs(depth - 5.2) < 0.15  # the ball, inside the focus range
     near = depth < 2.0  # targets and floor well in front of it
     diff = np.abs(blurred - sharp).mean(axis=2)
-    assert diff[near].mean() > 5 * diff[focused].mean()
+    # the near field's blur spreads over what lies behind it (alpha-blended, section 3.2); beyond its reach the
+    # ball in focus is left exactly as it was
+    clear = focused & (ndimage.distance_transform_edt(~near) > MAX_BLUR_PX)
+    assert clear.sum() > 0.5 * focused.sum()
+    assert diff[near].mean() > 0.004 and diff[clear].max() < 1e-5
 
 
 def test_weier18_density_option_redraws_its_sampling_tables():

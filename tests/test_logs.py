@@ -1,6 +1,8 @@
 """Logging: the CLI's level on stderr, and the records a running compositor publishes on its telemetry."""
 
+import io
 import logging
+import sys
 
 import pytest
 
@@ -26,6 +28,15 @@ def test_the_cli_level_decides_what_reaches_stderr(capsys, restore_logging):
     logging.getLogger("replay.player").info("loud")
     err = capsys.readouterr().err.splitlines()
     assert err == ["hmdrt: WARNING: drivers.host: driver x crashed", "hmdrt: INFO: replay.player: loud"]
+
+
+def test_the_console_writes_to_stderr_as_it_is_when_a_record_comes(restore_logging, monkeypatch):
+    """A program (or a test) that swaps sys.stderr after configure() gets the records; none go to the old one."""
+    logs.configure("warning")
+    later = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", later)
+    logging.getLogger("hmdrt.compositor.daemon").warning("swapped")
+    assert later.getvalue() == "hmdrt: WARNING: hmdrt.compositor.daemon: swapped\n"
 
 
 def test_verbose_and_log_level_parse_to_a_level():
