@@ -34,21 +34,17 @@ class _Console(logging.StreamHandler):
         pass
 
 
-_console: logging.Handler | None = None
-
-
 def configure(level: str = "warning") -> None:
-    """Records of the packages at `level` and above on stderr (once, however often called)."""
-    global _console
+    """Records of the packages at `level` and above on stderr (one console handler, however often called)."""
     root = logging.getLogger()
-    if _console is not None:
-        root.removeHandler(_console)
-    _console = _Console()
-    _console.setLevel(level.upper())
-    _console.setFormatter(logging.Formatter(FORMAT))
-    root.addHandler(_console)
+    for handler in [h for h in root.handlers if isinstance(h, _Console)]:
+        root.removeHandler(handler)
+    console = _Console()
+    console.setLevel(level.upper())
+    console.setFormatter(logging.Formatter(FORMAT))
+    root.addHandler(console)
     for name in PACKAGES:
-        logging.getLogger(name).setLevel(min(logging.INFO, _console.level))
+        logging.getLogger(name).setLevel(min(logging.INFO, console.level))
 
 
 class TelemetryHandler(logging.Handler):
