@@ -379,12 +379,9 @@ def test_methods_run_on_the_traces_they_name_and_unknown_names_are_refused(tmp_p
         load_eval_config(config)
 
 
-def test_full_and_regular_skip_the_warm_up_frames(tmp_path, monkeypatch):
-    config = tmp_path / "e.toml"
-    config.write_text(EVAL.replace("frames = 4\nwarmup_frames = 1", "frames = 5\nwarmup_frames = 3"))
-    load = load_eval_config(config)
-    from hmdrt.evaluate import runner
-
+@pytest.fixture
+def render_calls(monkeypatch) -> dict[str, int]:
+    """Renders per method choice (str) of the methods made while the test runs."""
     calls: dict[str, int] = {}
     real = MethodChoice.make
 
@@ -400,9 +397,18 @@ def test_full_and_regular_skip_the_warm_up_frames(tmp_path, monkeypatch):
         return method
 
     monkeypatch.setattr(MethodChoice, "make", counting)
+    return calls
+
+
+def test_full_and_regular_skip_the_warm_up_frames(tmp_path, render_calls):
+    config = tmp_path / "e.toml"
+    config.write_text(EVAL.replace("frames = 4\nwarmup_frames = 1", "frames = 5\nwarmup_frames = 3"))
+    load = load_eval_config(config)
+    from hmdrt.evaluate import runner
+
     runner.evaluate(load, progress=False)
-    assert calls["full"] == 2 * 2  # two traces x the two timed frames
-    assert calls["rrm?fovea_deg=5.0&group_w=1&group_h=1"] == 2 * 5
+    assert render_calls["full"] == 2 * 2  # two traces x the two timed frames
+    assert render_calls["rrm?fovea_deg=5.0&group_w=1&group_h=1"] == 2 * 5
 
 
 @pytest.mark.parametrize("path", sorted((DATA.parents[1] / "configs" / "eval").glob("*.toml")), ids=lambda p: p.name)
@@ -504,25 +510,10 @@ compare_to = "rrm"
 
 
 def test_each_method_warms_up_for_the_history_it_declares_and_is_compared_with_its_baseline(
-    tmp_path, monkeypatch, capsys
+    tmp_path, render_calls, capsys
 ):
     config = tmp_path / "e.toml"
     config.write_text(WARMUP)
-    calls: dict[str, int] = {}
-    real = MethodChoice.make
-
-    def counting(choice, tracer):
-        method = real(choice, tracer)
-        render = method.render
-
-        def counted(request, stats):
-            calls[str(choice)] = calls.get(str(choice), 0) + 1
-            return render(request, stats)
-
-        method.render = counted
-        return method
-
-    monkeypatch.setattr(MethodChoice, "make", counting)
     assert main(["eval", str(config), "--out", str(tmp_path / "out"), "--no-plots"]) == 0
     stdout = capsys.readouterr().out
     result = json.loads((tmp_path / "out" / "results.json").read_text())
@@ -530,7 +521,7 @@ def test_each_method_warms_up_for_the_history_it_declares_and_is_compared_with_i
     # rrm's N = 2 x 2 frames refresh its whole buffer: the warm-up grows from 1 to 4 frames, full skips it
     assert (full["warmup_frames"], rrm["warmup_frames"], small["warmup_frames"]) == (0, 4, 4)
     cells = ("full", "rrm?group_w=2&group_h=2", "rrm?fovea_deg=5.0&group_w=2&group_h=2")
-    assert [calls[c] for c in cells] == [2, 4 + 2, 4 + 2]  # the truth's regular renders apart
+    assert [render_calls[c] for c in cells] == [2, 4 + 2, 4 + 2]  # the truth's regular renders apart
     assert all(r["frames"] == 2 for r in result["rows"])
     assert rrm["psnr_image"] == pytest.approx(full["psnr_image"], abs=1e-6)  # no pixel left black
     assert small["baseline"] == "rrm" and rrm["baseline"] == "full"
