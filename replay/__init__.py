@@ -6,17 +6,17 @@ import inspect
 from pathlib import Path
 
 from hmdrt.errors import ConfigError
-from replay.formats import csv_header, eyelink, gazebase, generic_csv, pupil_player
+from replay.formats import csv_header, eyelink, gazebase, generic_csv, pupil_player, refuse_columns
 from replay.trace import TraceReading, read_trace
 
 SUPPORTED = (
     "native hmdrt traces (.jsonl, .jsonl.gz), EyeLink ASC (.asc), and CSV (.csv) from GazeBaseVR, "
     "Pupil Player gaze_positions or hmdrt's t_ns/t_ms/t_s schema"
 )
-CSV_READERS = (
-    (pupil_player.matches, pupil_player.read_pupil_player),
-    (gazebase.matches, gazebase.read_gazebase),
-    (generic_csv.matches, generic_csv.read_generic_csv),
+CSV_READERS = (  # tried in this order; each format's module declares its NAME, NEEDS and matches()
+    (pupil_player, pupil_player.read_pupil_player),
+    (gazebase, gazebase.read_gazebase),
+    (generic_csv, generic_csv.read_generic_csv),
 )
 
 
@@ -35,7 +35,9 @@ def load_trace(path: str | Path, **options) -> TraceReading:
         reader = eyelink.read_asc
     elif name.endswith(".csv"):
         header = csv_header(path)
-        reader = next((read for matches, read in CSV_READERS if matches(header)), None)
+        reader = next((read for form, read in CSV_READERS if form.matches(header)), None)
+        if reader is None:
+            raise refuse_columns(path, header, {form.NAME: form.NEEDS for form, _ in CSV_READERS})
     if reader is None:
         raise ConfigError(f"{path} is not a trace format hmdrt reads; it reads {SUPPORTED}")
     known = inspect.signature(reader).parameters

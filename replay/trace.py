@@ -8,7 +8,7 @@
 The samples are the bus's gaze and pose messages (hmdrt.bus.messages, which documents the fields):
 t_host in integer nanoseconds, unit gaze vectors in the head frame per eye or combined, poses
 relative to where the trace started. Lines that do not parse or validate are counted and skipped,
-never fatal; a file without a valid header is an error.
+never fatal; a file without a valid header (its first line that is not blank) is an error.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import io
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, AnyStr
 
 import msgspec
 
@@ -32,6 +32,7 @@ __all__ = [
     "TraceReading",
     "TraceWriter",
     "capped_lines",
+    "first_line",
     "open_capped",
     "read_trace",
     "usable",
@@ -97,19 +98,25 @@ def capped_lines(stream: io.BufferedIOBase) -> Iterator[bytes | None]:
         yield line
 
 
+def first_line(lines: Iterator[AnyStr | None]) -> AnyStr | None:
+    """The first line that is not blank (editors and exporters leave blank lines before a header); None when
+    there is none, and for an over-long line."""
+    return next((line for line in lines if line is None or line.strip()), None)
+
+
 def read_trace(path: str | Path) -> TraceReading:
     """Read a native trace; malformed lines are counted in TraceReading.malformed."""
     path = Path(path)
     try:
         with open_capped(path) as stream:
             lines = capped_lines(stream)
-            first = next(lines, None)
+            first = first_line(lines)
             try:
                 header = _header_decoder.decode(first or b"")
             except (msgspec.DecodeError, RecursionError):  # RecursionError: nested deeper than msgspec follows
                 header = None
             if header is None or header.format != FORMAT:
-                raise ConfigError(f"{path} is not an {FORMAT} file (its first line must be the header)")
+                raise ConfigError(f"{path} is not an {FORMAT} file (the header must come first)")
             if header.v != VERSION:
                 raise ConfigError(f"{path} is {FORMAT} version {header.v}; this hmdrt reads version {VERSION}")
             reading = TraceReading(header.device, [])

@@ -3,21 +3,27 @@
 from __future__ import annotations
 
 import csv
+import logging
 import math
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from hmdrt import cli
 from hmdrt.bus.messages import Gaze, usable
 from hmdrt.errors import ConfigError
 from replay import load_trace
+from replay.formats.pupil_player import read_pupil_player
 from replay.trace import write_trace
 
 TRACES = Path(__file__).parent / "data" / "traces"
 MONOCULAR = TRACES / "raccoons.asc"
 BINOCULAR = TRACES / "eyelink_binocular_example.asc"
 GAZEBASE = TRACES / "gazebase_vr_example.csv"
+EYELINK_2KHZ = TRACES / "eyelink_mono2000_excerpt.asc"  # real bytes: tests/data/traces/README.md
+PUPIL_V1 = TRACES / "pupil_player_v1_gaze_positions.csv"
 
 
 def asc_file(path: Path) -> tuple[list[list[str]], tuple[str, ...], list[tuple[str, int, int]]]:
@@ -136,6 +142,7 @@ def test_eyelink_malformed_lines_are_counted(tmp_path):
         tmp_path,
         "5|100.0|100.0|1.0\n"  # before START: layout unknown
         "START|10 |LEFT|RIGHT|SAMPLES|EVENTS\n"
+        "SAMPLES|GAZE|LEFT|RIGHT|RATE|nan\n"
         "10|100.0|100.0|1.0|200.0|200.0|1.0|.....\n"
         "11|abc|100.0|1.0|200.0|200.0|1.0|.....\n"
         "12|100.0|100.0\n"
@@ -146,7 +153,55 @@ def test_eyelink_malformed_lines_are_counted(tmp_path):
     )
     reading = load_trace(path)
     assert [s.t_host // 1_000_000 for s in reading.samples] == [10, 14]
-    assert reading.malformed == 6
+    assert reading.malformed == 7
+
+
+def test_eyelink_2khz_pairs_of_whole_milliseconds_are_spaced_by_the_recorded_rate(caplog):
+    """cili's 2000 Hz EyeLink CL recording (real bytes) gives each millisecond twice: the second sample of a
+    pair lies 0.5 ms (1 / RATE 2000.00) after the first, the gaze is the file's own, and a log line says so."""
+    lines, eyes, _ = asc_file(EYELINK_2KHZ)
+    assert "RATE\t2000.00" in EYELINK_2KHZ.read_text() and eyes == ("R",)
+    with caplog.at_level(logging.INFO, logger="replay.formats.eyelink"):
+        reading = load_trace(EYELINK_2KHZ, screen_width_mm=400.0, screen_height_mm=300.0)
+    assert reading.malformed == 0 and len(reading.samples) == len(lines) == 50
+    first_of_ms = [k == 0 or fields[0] != lines[k - 1][0] for k, fields in enumerate(lines)]
+    assert first_of_ms == [True, False] * 25  # the recording's own times repeat in pairs
+    for sample, fields, first in zip(reading.samples, lines, first_of_ms, strict=True):
+        assert sample.t_host == sample.t_dev == int(fields[0]) * 1_000_000 + (0 if first else 500_000)
+        x_mm, y_mm = (float(fields[1]) - 512) * 400 / 1024, (384 - float(fields[2])) * 300 / 768  # DISPLAY_COORDS
+        assert np.allclose(sample.R, np.array([x_mm, y_mm, -600.0]) / math.hypot(x_mm, y_mm, 600.0), atol=1e-12)
+    assert set(np.diff([s.t_host for s in reading.samples])) == {500_000}  # strictly 2 kHz throughout
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{EYELINK_2KHZ.name}: 25 samples repeat the millisecond of the sample before; each placed 0.5 ms after it"
+        " (1 / RATE)"
+    ]
+
+
+@pytest.mark.parametrize(
+    "change",
+    ["drop the second of each pair", "RATE 1000", "times with -ftime fractions"],
+)
+def test_eyelink_times_that_do_not_repeat_or_come_below_1khz_are_kept(tmp_path, caplog, change):
+    """No spacing is invented: distinct times (every other sample of the real 2 kHz file, or edf2asc -ftime's
+    fractional times) and repeats in a block recorded at 1000 Hz keep the file's times, and nothing is logged."""
+    text = EYELINK_2KHZ.read_text()
+    kept, seen = [], set()
+    for line in text.splitlines():
+        stamp = line.split("\t")[0]
+        if change == "drop the second of each pair" and stamp.isdigit() and stamp in seen:
+            continue
+        if change == "times with -ftime fractions" and stamp.isdigit():
+            line = line.replace(stamp, f"{stamp}.{5 if stamp in seen else 0}", 1)
+        seen.add(stamp)
+        kept.append(line.replace("RATE\t2000.00", "RATE\t1000.00") if change == "RATE 1000" else line)
+    path = tmp_path / "kept.asc"
+    path.write_text("\n".join(kept) + "\n")
+    with caplog.at_level(logging.INFO, logger="replay.formats.eyelink"):
+        reading = load_trace(path)
+    lines, _, _ = asc_file(path)
+    assert reading.malformed == 0 and len(reading.samples) == len(lines) == (25 if change.startswith("drop") else 50)
+    assert [s.t_host for s in reading.samples] == [round(Decimal(f[0]) * 1_000_000) for f in lines]
+    assert not caplog.records
 
 
 def test_gazebase_vr_rows_convert_with_yaw_right_and_pitch_up():
@@ -220,6 +275,38 @@ def test_pupil_player_normals_become_head_frame_directions(tmp_path):
 
 
 @pytest.mark.parametrize(
+    "names",
+    [("timestamp", "index"), ("world_timestamp", "world_index"), ("gaze_timestamp", "world_index")],
+)
+def test_pupil_player_v1_export_reads_like_a_current_one(tmp_path, names):
+    """A real export of the older Raw Data Exporter (header `timestamp,index,...`, from gaze2svg) reads row by
+    row like a current one, and so does the same file under the late-2018 and the current time column names."""
+    text = PUPIL_V1.read_bytes().decode()
+    assert text.startswith("timestamp,index,confidence,") and "\r\n" in text
+    path = tmp_path / "gaze_positions.csv"
+    path.write_bytes(text.replace("timestamp,index,", ",".join(names) + ",", 1).encode())
+    rows = list(csv.DictReader(PUPIL_V1.open(newline="")))
+    reading = load_trace(path)
+    assert reading.malformed == 0 and len(reading.samples) == len(rows) == 12
+    for sample, row in zip(reading.samples, rows, strict=True):
+        assert sample.t_host == sample.t_dev == round(Decimal(row["timestamp"]) * 10**9)
+        assert sample.valid == (float(row["confidence"]) >= 0.6)
+        for eye, prefix in (("R", "gaze_normal0_"), ("L", "gaze_normal1_"), ("C", "gaze_point_3d_")):
+            cells = [float(row[prefix + axis] or "nan") for axis in "xyz"]
+            got = getattr(sample, eye)
+            assert (got is None) if math.isnan(cells[0]) else np.allclose(got, opencv_to_head(cells), atol=1e-12)
+    assert {(s.L is None, s.R is None) for s in reading.samples} == {(True, False), (False, True), (False, False)}
+    assert [s.valid for s in reading.samples] == [False] * 5 + [True, True, False] + [True] * 4
+
+
+def test_pupil_reader_refuses_a_foreign_header_naming_its_columns(tmp_path):
+    path = tmp_path / "pupil_positions.csv"
+    path.write_text("pupil_timestamp,world_index,eye_id,confidence,diameter\n1.0,0,0,0.9,30\n")
+    with pytest.raises(ConfigError, match=r"found columns \[pupil_timestamp, world_index, eye_id, confidence"):
+        read_pupil_player(path)
+
+
+@pytest.mark.parametrize(
     "header, row, expect",
     [
         ("t_ms,yaw_deg,pitch_deg", "4.5,10,-5", {"t": 4_500_000, "C": (10.0, -5.0)}),
@@ -258,7 +345,7 @@ def test_generic_csv_valid_column_missing_gaze_and_overlong_lines(tmp_path):
         ("t_ms,yaw_deg,pitch_deg,cx,cy,cz", "combined gaze twice"),
         ("t_ms,lx,ly", "but not lz"),
         ("t_ms,pupil_size", "no gaze columns"),
-        ("time,yaw,pitch", "not a trace format hmdrt reads"),
+        ("time,yaw,pitch", r"not a known gaze CSV: found columns \[time, yaw, pitch\]; Pupil Player needs"),
     ],
 )
 def test_csv_schema_errors_are_one_clear_sentence(tmp_path, header, message):
@@ -266,6 +353,45 @@ def test_csv_schema_errors_are_one_clear_sentence(tmp_path, header, message):
     path.write_text(f"{header}\n0,0,0\n")
     with pytest.raises(ConfigError, match=message):
         load_trace(path)
+
+
+@pytest.mark.parametrize("source", ["pupil v1", "gazebase", "hmdrt csv", "native"])
+def test_blank_lines_before_a_header_are_skipped(tmp_path, source):
+    """Blank (and whitespace-only) lines before the header row of each CSV format, and before a native trace's
+    header, are skipped: the file reads as it does without them."""
+    if source == "native":
+        plain = tmp_path / "t.jsonl"
+        write_trace(plain, [Gaze(seq=k, t_host=k * 4_000_000, C=(0.0, 0.0, -1.0)) for k in range(3)], device="eye")
+    elif source == "hmdrt csv":
+        plain = tmp_path / "ours.csv"
+        plain.write_text("t_ms,yaw_deg,pitch_deg\n0,1,2\n4,3,4\n")
+    else:
+        plain = PUPIL_V1 if source == "pupil v1" else GAZEBASE
+    padded = tmp_path / f"padded{''.join(plain.suffixes)}"
+    padded.write_bytes(b"\n\r\n  \t\n" + plain.read_bytes())
+    expected = load_trace(plain)
+    assert load_trace(padded) == expected and expected.samples
+
+
+def test_unknown_csv_names_found_and_expected_columns_and_the_cli_says_it_in_one_line(tmp_path, capsys):
+    """A CSV no format reads (here a Pupil export without confidence, with a long header) is refused naming the
+    columns found (the first 24, each cut at 40 characters) and what each CSV format needs; the CLI prints that
+    one line, no traceback."""
+    names = ["gaze_timestamp", "world_index", "x" * 100, *(f"c{k}" for k in range(30))]
+    path = tmp_path / "gaze_positions.csv"
+    path.write_text(",".join(names) + "\n" + ",".join("0" * len(names)) + "\n")
+    with pytest.raises(ConfigError) as refused:
+        load_trace(path)
+    message = str(refused.value)
+    assert message == (
+        f"{path} is not a known gaze CSV: found columns [gaze_timestamp, world_index, {'x' * 40}..., "
+        + ", ".join(f"c{k}" for k in range(21))
+        + ", ... (33 in all)]; Pupil Player needs [gaze_timestamp, confidence] or [world_timestamp, world_index,"
+        " confidence] or [timestamp, index, confidence]; GazeBaseVR needs [n, x, y, lx, ly, rx, ry]; hmdrt CSV"
+        " needs one of [t_ns, t_ms, t_s] and gaze columns"
+    )
+    assert cli.main(["emulate", "smi", "--trace", str(path), "--port", "0", "--duration", "0.01"]) == 1
+    assert capsys.readouterr().err == f"hmdrt: error: {message}\n"
 
 
 def test_native_traces_still_load_plain_and_gzipped(tmp_path):
@@ -282,7 +408,7 @@ def test_native_traces_still_load_plain_and_gzipped(tmp_path):
         ("trace.txt", "t_ms,yaw_deg,pitch_deg\n0,0,0\n", {}, "EyeLink ASC"),
         ("missing.asc", None, {}, "not found"),
         ("blank.asc", "** nothing here\nMSG\t1 hello\n", {}, "no valid eyelink gaze samples"),
-        ("empty.csv", "", {}, "not a trace format"),
+        ("empty.csv", "", {}, "not a known gaze CSV: found no columns"),
         ("g.csv", "n,x,y,lx,ly,rx,ry\n0,nan,nan,nan,nan,nan,nan\n", {}, "no valid gazebase_vr"),
         ("o.csv", "t_ms,yaw_deg,pitch_deg\n0,0,0\n", {"distance_mm": 600}, "takes no option 'distance_mm'"),
         ("e.asc", "START\t1\tLEFT\n1\t0\t0\t1\n", {"distance_mm": -1}, "positive number of millimetres"),

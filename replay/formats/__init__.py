@@ -4,7 +4,8 @@ gaze angles and vectors, and the normalised sample they all produce.
 Every importer turns a file into a TraceReading of Gaze samples numbered in file order, with t_host =
 t_dev = the file's own time in integer nanoseconds (relative values kept, so replay can re-base
 them). A line that does not parse is counted in TraceReading.malformed and skipped; a file that
-yields no valid sample is a ConfigError. Files are read under the native format's size caps.
+yields no valid sample is a ConfigError. Files are read under the native format's size caps; a CSV's
+header is its first line that is not blank.
 """
 
 from __future__ import annotations
@@ -19,10 +20,11 @@ from pathlib import Path
 from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
 from hmdrt.spatial import gaze_direction
-from replay.trace import TraceReading, capped_lines, open_capped
+from replay.trace import TraceReading, capped_lines, first_line, open_capped
 
 NS, MS, S = 1, 1_000_000, 1_000_000_000  # nanoseconds per unit of a time column
 MAX_TIME_NS = 2**62
+SHOWN_COLUMNS, SHOWN_CHARS = 24, 40  # how much of a refused header its error message quotes
 Vec3 = tuple[float, float, float]
 
 
@@ -49,12 +51,21 @@ def _names(line: str | None) -> list[str]:
 
 
 def csv_header(path: Path) -> list[str]:
-    """The column names of a CSV file's first row (empty when the file is empty)."""
+    """The column names of a CSV file's header row (empty when the file has none)."""
     lines = text_lines(path)
     try:
-        return _names(next(lines, None))
+        return _names(first_line(lines))
     finally:
         lines.close()
+
+
+def refuse_columns(path: Path, header: list[str], needs: dict[str, str]) -> ConfigError:
+    """The error for a CSV no format reads: the columns it has (the first few, cut short) and what each needs."""
+    shown = [name if len(name) <= SHOWN_CHARS else name[:SHOWN_CHARS] + "..." for name in header[:SHOWN_COLUMNS]]
+    more = f", ... ({len(header)} in all)" if len(header) > SHOWN_COLUMNS else ""
+    found = f"found columns [{', '.join(shown)}{more}]" if header else "found no columns"
+    wanted = "; ".join(f"{name} needs {columns}" for name, columns in needs.items())
+    return ConfigError(f"{path} is not a known gaze CSV: {found}; {wanted}")
 
 
 def number(text: str) -> float:
@@ -116,14 +127,14 @@ def require_valid(path: Path, reading: TraceReading) -> TraceReading:
 
 
 def read_csv(path: Path, device: str, convert: Callable[[dict[str, str], int], Gaze]) -> TraceReading:
-    """Samples of a CSV file whose first row names the columns; convert(row, seq) makes one sample.
+    """Samples of a CSV file whose header row names the columns; convert(row, seq) makes one sample.
 
     Rows of the wrong width, over-long lines and rows that convert raises ValueError for are counted
     as malformed; blank lines are skipped.
     """
     reading = TraceReading(device, [])
     lines = text_lines(path)
-    names = _names(next(lines, None))
+    names = _names(first_line(lines))
     for line in lines:
         if line is None:
             reading.malformed += 1

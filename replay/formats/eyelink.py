@@ -20,18 +20,26 @@ pointing exactly at the point elsewhere. The defaults, a 24-inch 16:9 monitor (5
 
 A monocular recording gives L or R (the recorded eye), a binocular one L and R. A sample is valid
 only when every recorded eye has a gaze point outside a blink.
+
+Above 1000 Hz, whole-millisecond times repeat: edf2asc without -ftime writes both samples of a 2000 Hz
+millisecond with that millisecond. A sample whose time repeats the one before is then placed one sample
+period (1 / RATE of the block's SAMPLES line) after it, and the reader logs how many it placed; times that
+do not repeat are kept as recorded, and so are all times of a block without a RATE above 1000 Hz.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 from hmdrt.errors import ConfigError
-from replay.formats import MS, Vec3, gaze_sample, number, require_valid, text_lines, time_ns, unit
+from replay.formats import MS, S, Vec3, gaze_sample, number, require_valid, text_lines, time_ns, unit
 from replay.trace import TraceReading
 
+log = logging.getLogger(__name__)
 DEFAULT_COORDS = (0.0, 0.0, 1919.0, 1079.0)
 EYES = {"LEFT": "L", "RIGHT": "R"}
 
@@ -68,6 +76,14 @@ def _coords(tokens: list[str], keyword: str) -> tuple[float, float, float, float
     return left, top, right, bottom
 
 
+def _period_ns(tokens: list[str]) -> int:
+    """The sample period of a SAMPLES line's `RATE HZ`, in ns (ValueError for a rate outside 1 Hz to 1 MHz)."""
+    rate_hz = float(tokens[tokens.index("RATE") + 1])
+    if not 1.0 <= rate_hz <= 1e6:  # also false for NaN
+        raise ValueError(f"no sample rate {rate_hz!r}")
+    return round(S / rate_hz)
+
+
 def read_asc(
     path: str | Path,
     screen_width_mm: float = Screen.width_mm,
@@ -88,6 +104,9 @@ def read_asc(
     eyes: tuple[str, ...] = ()
     blinking = {"L": False, "R": False}
     blink_end_ns = {"L": -math.inf, "R": -math.inf}
+    period_ns = MS  # no spacing until a SAMPLES line gives a rate above 1000 Hz
+    last_ns, repeats = None, 0
+    spaced: Counter[int] = Counter()  # samples placed after the one before, by the period they were placed at
     reading = TraceReading("eyelink", [])
     for line in text_lines(path):
         if line is None:
@@ -107,9 +126,16 @@ def read_asc(
                     in_blink = blinking[eye] or t_ns <= blink_end_ns[eye]
                     gaze[eye] = None if in_blink else screen.direction(x, y)
                 valid = all(v is not None for v in gaze.values())
-                reading.samples.append(gaze_sample(len(reading.samples), t_ns, valid, **gaze))
+                repeats = repeats + 1 if t_ns == last_ns else 0
+                last_ns = t_ns
+                offset_ns = repeats * period_ns if period_ns < MS else 0
+                if offset_ns:
+                    spaced[period_ns] += 1
+                reading.samples.append(gaze_sample(len(reading.samples), t_ns + offset_ns, valid, **gaze))
             elif tokens[0] in ("START", "SAMPLES"):
                 eyes = tuple(EYES[t] for t in tokens if t in EYES) or eyes
+                if "RATE" in tokens:
+                    period_ns = _period_ns(tokens)
             elif tokens[0] == "SBLINK":
                 blinking[_eye(tokens[1])] = True
             elif tokens[0] == "EBLINK":
@@ -122,4 +148,11 @@ def read_asc(
                 screen = replace(screen, coords=_coords(tokens, "GAZE_COORDS"))
         except (ValueError, IndexError):
             reading.malformed += 1
+    if spaced:
+        log.info(
+            "%s: %d samples repeat the millisecond of the sample before; each placed %s ms after it (1 / RATE)",
+            path.name,
+            spaced.total(),
+            " or ".join(f"{period / MS:g}" for period in sorted(spaced)),
+        )
     return require_valid(path, reading)

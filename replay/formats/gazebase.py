@@ -17,6 +17,7 @@ from replay.formats import MS, direction, gaze_sample, number, read_csv, time_ns
 from replay.trace import TraceReading
 
 COLUMNS = ("n", "x", "y", "lx", "ly", "rx", "ry")
+NAME, NEEDS = "GazeBaseVR", f"[{', '.join(COLUMNS)}]"
 
 
 def matches(header: list[str]) -> bool:

@@ -1,6 +1,6 @@
 """hmdrt's own CSV gaze format, for traces made by hand or by other tools.
 
-The first row names the columns (any order; other columns are ignored):
+The header row (the first line that is not blank) names the columns (any order; others are ignored):
 
     t_ns | t_ms | t_s        the sample's time on the file's own clock (exactly one of them)
     yaw_deg, pitch_deg       combined gaze C as angles: yaw positive right, pitch positive up
@@ -31,6 +31,7 @@ TIME_COLUMNS = {"t_ns": NS, "t_ms": MS, "t_s": S}
 ANGLES = ("yaw_deg", "pitch_deg")
 VECTORS = {"C": ("cx", "cy", "cz"), "L": ("lx", "ly", "lz"), "R": ("rx", "ry", "rz")}
 FLAGS = {"1": True, "true": True, "0": False, "false": False}
+NAME, NEEDS = "hmdrt CSV", f"one of [{', '.join(TIME_COLUMNS)}] and gaze columns"
 
 
 def matches(header: list[str]) -> bool:
