@@ -6,15 +6,22 @@ does: offset = t_pupil - (t_send + rtt / 2), docs/protocols.md, Pupil) and subsc
 on the backbone. read() decodes the msgpack gaze datums of section 3.2 and converts them once, here:
 Pupil's 3D camera space is OpenCV's (x right, y down, z forward, mm), ours is right-handed with +Y up
 and -Z forward (docs/architecture.md), so vectors map (x, y, z) -> (x, -y, -z), a half turn about X. Eye 0 is the
-right eye (section 3.2): binocular "gaze.3d.01." gives R from gaze_normals_3d["0"] and L from ["1"];
-monocular "gaze.3d.0." / "gaze.3d.1." give R / L from gaze_normal_3d. C is the mean of the eyes,
-depth_m the distance of gaze_point_3d (mm -> m), valid = confidence >= 0.6 (section 3.2's pairing
-threshold). t_dev is Pupil time in ns. When the stream stays silent for `timeout` seconds the driver
-asks Pupil Remote for the time again; no answer raises DeviceLost.
+right eye (section 3.2): binocular "gaze.3d.01." gives R from gaze_normals_3d[0] and L from [1] (keyed by
+the integers 0 and 1 up to Capture 2.6, by the strings "0" and "1" from 3.0); monocular "gaze.3d.0." /
+"gaze.3d.1." give R / L from gaze_normal_3d. C is the mean of the eyes, depth_m the distance of
+gaze_point_3d (mm -> m), valid = confidence >= 0.6 (section 3.2's pairing threshold). t_dev is Pupil time
+in ns.
+
+Any client may rebase Pupil time with `T` (Pupil's own example scripts send `T 0.0`). When the clock sync
+sees Pupil time jump, or a datum's timestamp no longer fits the measured offset, the driver measures the
+offset again with `t`; without that, one-way receive times would put every later t_host late by the whole
+capture-to-receipt delay. Each rebase is counted (`rebases`) and logged. When the stream stays silent for
+`timeout` seconds the driver asks Pupil Remote for the time again; no answer raises DeviceLost.
 """
 
 from __future__ import annotations
 
+import logging
 from typing import Annotated, Literal
 
 import msgspec
@@ -36,8 +43,13 @@ MAX_BATCH = 10_000  # messages taken per read(), so a flood cannot hold read() f
 TIME_PROBES = 3  # `t` round trips per offset measurement; the fastest is kept
 MAX_TIME_NS = 2**62  # the bus's time range
 MAX_DEPTH_M = 1e6  # the bus's vergence depth range (hmdrt.bus.messages.Gaze.depth_m)
+CLOCK_SLACK_NS = 20_000_000  # how far a datum may map past its receipt, or the offset move, without meaning a rebase
+MAX_LAG_NS = 500_000_000  # capture-to-receipt delay past which a datum makes the driver check the offset again
+
+log = logging.getLogger(__name__)
 
 Vec3 = tuple[Finite, Finite, Finite]
+EyeKey = Literal[0, 1, "0", "1"]  # Capture 1.x-2.6 key eyes by the msgpack integers 0 and 1, 3.0 on by "0" and "1"
 
 
 class GazeDatum(msgspec.Struct, frozen=True):
@@ -46,7 +58,7 @@ class GazeDatum(msgspec.Struct, frozen=True):
     confidence: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
     timestamp: Finite  # Pupil time, seconds
     gaze_point_3d: Vec3 | None = None  # mm, camera space
-    gaze_normals_3d: dict[Literal["0", "1"], Vec3] | None = None  # binocular, keyed by eye id
+    gaze_normals_3d: dict[EyeKey, Vec3] | None = None  # binocular, keyed by eye id
     gaze_normal_3d: Vec3 | None = None  # monocular
 
 
@@ -70,6 +82,16 @@ def _unit(v: Vec3) -> np.ndarray:
     return opencv_head(v) / norm
 
 
+def _by_eye(keyed: dict[EyeKey, Vec3] | None) -> dict[int, Vec3]:
+    """Binocular gaze_normals_3d by integer eye id, whichever key type the Capture version sent; MalformedDatum
+    unless eyes 0 and 1 appear once each."""
+    keyed = keyed or {}
+    by_eye = {int(key): v for key, v in keyed.items()}
+    if len(by_eye) != len(keyed) or set(by_eye) != {0, 1}:
+        raise MalformedDatum(f"binocular gaze needs gaze_normals_3d for eyes 0 and 1 once each, got keys {list(keyed)}")
+    return by_eye
+
+
 def _tuple(v: np.ndarray | None) -> tuple[float, float, float] | None:
     return None if v is None else tuple(float(c) for c in v)
 
@@ -87,10 +109,8 @@ def decode_gaze(topic: bytes, payload: bytes) -> Gaze:
         raise MalformedDatum("payload nested too deeply") from None
     eyes = {b"gaze.3d.01.": "01", b"gaze.3d.0.": "0", b"gaze.3d.1.": "1"}.get(bytes(topic))
     if eyes == "01":
-        normals = datum.gaze_normals_3d or {}
-        if set(normals) != {"0", "1"}:
-            raise MalformedDatum("binocular gaze needs gaze_normals_3d for eyes 0 and 1")
-        right, left = _unit(normals["0"]), _unit(normals["1"])
+        normals = _by_eye(datum.gaze_normals_3d)
+        right, left = _unit(normals[0]), _unit(normals[1])
         centre = mean_direction(left, right)
         if centre is None:
             raise MalformedDatum("the eyes' gaze normals point in opposite directions")
@@ -133,6 +153,8 @@ class PupilDriver(Driver):
         self.address = (self.url.host or "127.0.0.1", self.url.port or DEFAULT_PORT)
         self.offset_ns: int | None = None  # Pupil time minus host time, from the fastest `t` round trip
         self.rtt_ns: int | None = None
+        self.rebases = 0  # times Pupil time was found rebased (a `T` from some client) and the offset measured again
+        self._queued_until: int | None = None  # Pupil time (ns) up to which late datums were found queued, not rebased
         self._remote: zmq.Socket | None = None
         self._sub: zmq.Socket | None = None
         self._seq = 0
@@ -155,6 +177,7 @@ class PupilDriver(Driver):
             self.close()
             raise DriverError(f"pupil://{host}:{port} answered SUB_PORT with {sub_port[:64]!r}, not a port")
         self._measure_offset()
+        self._queued_until = None
         self._sub = self._socket(zmq.SUB)
         self._sub.setsockopt(zmq.SUBSCRIBE, GAZE_TOPIC.encode())
         self._sub.connect(f"tcp://{host}:{sub_port}")
@@ -201,25 +224,67 @@ class PupilDriver(Driver):
             ) from None
         return reply.decode("utf-8", errors="replace")
 
-    def _measure_offset(self) -> None:
-        """Probe Pupil time with `t`; the clock sync keeps the fastest round trip to take out the latency floor."""
-        best: tuple[int, int] | None = None  # (rtt, offset)
-        for _ in range(TIME_PROBES):
-            t_send = self.clock.now_ns()
-            reply = self._ask("t")
-            t_reply = self.clock.now_ns()
-            try:
-                t_pupil_ns = float(reply) * 1e9
-            except ValueError:
-                t_pupil_ns = float("nan")
-            if not np.isfinite(t_pupil_ns) or abs(t_pupil_ns) > MAX_TIME_NS:
-                self.close()
-                raise DriverError(f"Pupil Remote answered t with {reply[:64]!r}, not a time")
-            self.sync.probe(t_send, round(t_pupil_ns), t_reply)
-            rtt = t_reply - t_send
-            if best is None or rtt < best[0]:
-                best = (rtt, round(t_pupil_ns - (t_send + rtt / 2)))
-        self.rtt_ns, self.offset_ns = best
+    def _probe(self) -> tuple[int, int, int]:
+        """One `t` round trip: host send time, Pupil time and host reply time (ns); DriverError for a reply
+        that is not a time."""
+        t_send = self.clock.now_ns()
+        reply = self._ask("t")
+        t_reply = self.clock.now_ns()
+        try:
+            t_pupil_ns = float(reply) * 1e9
+        except ValueError:
+            t_pupil_ns = float("nan")
+        if not np.isfinite(t_pupil_ns) or abs(t_pupil_ns) > MAX_TIME_NS:
+            self.close()
+            raise DriverError(f"Pupil Remote answered t with {reply[:64]!r}, not a time")
+        return t_send, round(t_pupil_ns), t_reply
+
+    def _measure_offset(self) -> bool:
+        """Measure the offset with `t` round trips, keeping the fastest (it takes out the latency floor), and hand
+        them to the clock sync. True when the offset moved since the last measurement beyond what the two round
+        trips explain: Pupil time was rebased, so the rebase is counted and logged and the sync starts afresh."""
+        probes = [self._probe() for _ in range(TIME_PROBES)]
+        rtt, offset = min((reply - send, round(t_pupil - (send + reply) / 2)) for send, t_pupil, reply in probes)
+        rebased = self.offset_ns is not None and (
+            abs(offset - self.offset_ns) > (rtt + self.rtt_ns) // 2 + CLOCK_SLACK_NS
+        )
+        if rebased:
+            self.rebases += 1
+            log.warning(
+                "pupil://%s:%d: Pupil time jumped by %+.3f s (a `T` from another client?); clock offset measured "
+                "again with `t` (rebase %d)",
+                *self.address,
+                (offset - self.offset_ns) / 1e9,
+                self.rebases,
+            )
+            self.sync.reset()
+            self._queued_until = None
+        self.rtt_ns, self.offset_ns = rtt, offset
+        for probe in probes:
+            self.sync.probe(*probe)
+        return rebased
+
+    def _fits_offset(self, t_dev: int, t_recv: int) -> bool:
+        """Whether a datum's Pupil time agrees with the measured offset: captured no later than received (within
+        half the round trip and some slack) and received within MAX_LAG_NS, unless it was found queued earlier."""
+        lag = t_recv - (t_dev - self.offset_ns)
+        if lag < -(self.rtt_ns // 2 + CLOCK_SLACK_NS):
+            return False
+        return lag <= MAX_LAG_NS or (self._queued_until is not None and t_dev <= self._queued_until)
+
+    def _host_time(self, t_dev: int, t_recv: int) -> int:
+        """A datum's capture time on the host clock. When the clock sync starts afresh (it saw Pupil time jump) or
+        the datum does not fit the offset, the offset is measured again with `t`: receive times alone would put
+        t_host late by the whole capture-to-receipt delay and understate gaze-to-photon latency."""
+        resets = self.sync.resets
+        t_host = self.sync.add(t_dev, t_recv)
+        if self.offset_ns is None or (self.sync.resets == resets and self._fits_offset(t_dev, t_recv)):
+            return t_host
+        if self._measure_offset():
+            self.sync.add(t_dev, t_recv)  # the sync starts afresh from this datum, in the new timebase
+        else:  # not rebased: a late datum had waited in a queue, as may the others captured before now
+            self._queued_until = self.clock.now_ns() + self.offset_ns
+        return min(self.sync.to_host(t_dev), t_recv)
 
     def _sample(self, frames: list[bytes], t_recv: int) -> Gaze | None:
         try:
@@ -230,4 +295,4 @@ class PupilDriver(Driver):
             self.counters.malformed += 1
             return None
         self._seq += 1
-        return msgspec.structs.replace(gaze, seq=self._seq - 1, t_host=self.sync.add(gaze.t_dev, t_recv))
+        return msgspec.structs.replace(gaze, seq=self._seq - 1, t_host=self._host_time(gaze.t_dev, t_recv))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 
 import msgpack
@@ -11,13 +12,21 @@ import zmq
 
 from drivers.base import DeviceLost
 from drivers.emulators.feed import GazeFeed
-from drivers.emulators.pupil_server import PupilEmulator
-from drivers.pupil import MalformedDatum, PupilDriver, decode_gaze
+from drivers.emulators.pupil_server import EYE_CAMERA_TO_WORLD, PupilEmulator, pupil_datum
+from drivers.pupil import TIME_PROBES, MalformedDatum, PupilDriver, decode_gaze
 from hmdrt.spatial import gaze_direction
 
 from .helpers import SECTION7_GAZE, assert_lost_when_stopped, at_least, collect, free_port, gaze_trace
 
 STILL_YAW, STILL_PITCH, STILL_DEPTH = 8.0, -4.0, 0.8
+# The keys of a Capture 3.5 3D pupil datum: PupilDetectorPlugin.create_pupil_datum's (pupil-labs/pupil,
+# pupil_src/shared_modules/pupil_detector_plugins/detector_base_plugin.py @ v3.5, 4760336) updated with pye3d
+# 0.3.0's Detector3D._prepare_result (pupil-labs/pye3d-detector, pye3d/detector_3d.py @ v0.3.0, 552441d).
+PYE3D_PUPIL_KEYS = {
+    *("id", "topic", "method", "norm_pos", "diameter", "confidence", "timestamp"),
+    *("sphere", "projected_sphere", "circle_3d", "diameter_3d", "ellipse", "location", "model_confidence"),
+    *("theta", "phi"),
+}
 
 
 def unit(v) -> np.ndarray:
@@ -56,6 +65,51 @@ def still_eyes() -> tuple[np.ndarray, np.ndarray]:
     centre = np.array(gaze_direction(STILL_YAW, STILL_PITCH))
     half = np.array([0.0635 / 2, 0.0, 0.0])
     return unit(centre * STILL_DEPTH + half), unit(centre * STILL_DEPTH - half)
+
+
+def capture_26_gaze(datum: dict) -> dict:
+    """A binocular gaze datum as Capture 2.6 builds it: Model3D_Binocular._predict_single keys eye_centers_3d and
+    gaze_normals_3d by the integers 0 and 1, Gazer3D.predict adds topic, the pupils' mean confidence and timestamp
+    and base_data (pupil-labs/pupil, pupil_src/shared_modules/gaze_mapping/gazer_3d/gazer_headset.py @ v2.6,
+    a319584; v1.x's calibration_routines/gaze_mappers.py keys them the same way)."""
+    base = datum.get("base_data") or []
+    return {
+        "eye_centers_3d": {0: datum["eye_centers_3d"]["0"], 1: datum["eye_centers_3d"]["1"]},
+        "gaze_normals_3d": {0: datum["gaze_normals_3d"]["0"], 1: datum["gaze_normals_3d"]["1"]},
+        "gaze_point_3d": datum["gaze_point_3d"],
+        "norm_pos": datum["norm_pos"],
+        "topic": "gaze.3d.01.",
+        "confidence": float(np.mean([p["confidence"] for p in base])) if base else datum["confidence"],
+        "timestamp": float(np.mean([p["timestamp"] for p in base])) if base else datum["timestamp"],
+        "base_data": base,
+    }
+
+
+def capture_packb(payload: dict) -> bytes:
+    """Msgpack bytes as Capture's Msg_Streamer.send packs a payload (zmq_tools.py @ v2.6: use_bin_type=True)."""
+    return msgpack.packb(payload, use_bin_type=True)
+
+
+def psychopy_binocular_sample(gaze: dict) -> dict | None:
+    """The pupil values PsychoPy ioHub's Pupil Core plugin records for a binocular eye sample, or None where it
+    records none: a paraphrase of eye_sample_from_gaze_3d and _binocular_eye_sample_from_gaze_3d
+    (psychopy/psychopy-eyetracker-pupil-labs, psychopy_eyetracker_pupil_labs/pupil_labs/pupil_core/data_parse.py
+    @ f848813; GPL-3.0, so paraphrased rather than vendored into this MIT project). EYE_ID_RIGHT is 0."""
+    right = left = None
+    for p in gaze["base_data"]:
+        if p["id"] == 0:
+            right = p
+        if p["id"] == 1:
+            left = p
+    if not (right and left):
+        return None
+    values = {}
+    for eye, p in (("right", right), ("left", left)):
+        eye_cam_x, eye_cam_y, eye_cam_z = p["sphere"]["center"]
+        raw_x, raw_y = p["norm_pos"]
+        values[eye] = (eye_cam_x, eye_cam_y, eye_cam_z, p["phi"], p["theta"], raw_x, raw_y, p["diameter"])
+        values[eye] += (p.get("diameter_3d", None),)
+    return values
 
 
 def driver_url(emulator: PupilEmulator, timeout: float = 1.0) -> str:
@@ -143,6 +197,16 @@ def test_section7_gaze_converts_to_head_frame_directions():
     assert gaze.valid and gaze.t_dev == round(535741.7153e9)
 
 
+def test_capture_26_integer_keyed_gaze_decodes_as_capture_3_string_keyed():
+    """Capture 1.x-2.6 key gaze_normals_3d by the msgpack integers 0 and 1 (capture_26_gaze); the driver took
+    every such binocular datum for malformed."""
+    payload = capture_packb(capture_26_gaze(SECTION7_GAZE))
+    assert set(msgpack.unpackb(payload, strict_map_key=False)["gaze_normals_3d"]) == {0, 1}  # integer keys on the wire
+    old = decode_gaze(b"gaze.3d.01.", payload)
+    assert old == decode_gaze(b"gaze.3d.01.", msgpack.packb(SECTION7_GAZE))
+    np.testing.assert_allclose(old.R, unit([0.06, 0.0, -0.998]), atol=1e-12)  # eye 0 is still the right eye
+
+
 def test_camera_y_down_becomes_head_y_up():
     datum = {**SECTION7_GAZE, "gaze_normals_3d": {"0": [0.0, 0.5, 0.866], "1": [0.0, 0.5, 0.866]}}
     gaze = decode_gaze(b"gaze.3d.01.", msgpack.packb(datum))
@@ -174,6 +238,11 @@ def test_validity_follows_the_pairing_threshold(confidence, valid):
         (b"gaze.3d.01.", msgpack.packb({**SECTION7_GAZE, "confidence": 1.5})),
         (b"gaze.3d.01.", msgpack.packb({**SECTION7_GAZE, "timestamp": "soon"})),
         (b"gaze.3d.01.", msgpack.packb({**SECTION7_GAZE, "gaze_normals_3d": {"0": [0.0, 0.0, 1.0]}})),
+        (
+            b"gaze.3d.01.",
+            msgpack.packb({**SECTION7_GAZE, "gaze_normals_3d": {0: [0, 0, 1], "0": [0, 0, 1], 1: [0, 0, 1]}}),
+        ),
+        (b"gaze.3d.01.", msgpack.packb({**SECTION7_GAZE, "gaze_normals_3d": {0: [0, 0, 1], 2: [0, 0, 1]}})),
         (b"gaze.3d.01.", msgpack.packb({**SECTION7_GAZE, "gaze_normals_3d": {"0": [0, 0, 1], "1": [0, 0, -1]}})),
         (b"gaze.3d.01.", msgpack.packb({**SECTION7_GAZE, "gaze_normals_3d": {"0": [0, 0, 0], "1": [0, 0, 1]}})),
         (b"gaze.3d.01.", msgpack.packb({**SECTION7_GAZE, "gaze_point_3d": [float("nan"), 0.0, 1.0]})),
@@ -230,9 +299,9 @@ def test_blinks_have_zero_confidence_and_are_invalid(tmp_path):
     invalid = [g for g in gaze if not g.valid]
     assert invalid and len(invalid) < len(gaze)
     assert driver.counters.invalid == len(invalid)
-    assert all(g.depth_m is None for g in invalid)
+    assert all(g.depth_m == pytest.approx(0.5) for g in invalid)  # Pupil's initial gaze distance, 500 mm
     assert {d["confidence"] for d in datums} == {0.0, 0.95}
-    assert all("gaze_point_3d" not in d for d in datums if d["confidence"] == 0.0)
+    assert all("gaze_point_3d" in d for d in datums)  # Pupil sends it with every 3D gaze datum, blinks too
 
 
 def test_relayed_datums_and_malformed_messages(tmp_path, sockets):
@@ -282,3 +351,167 @@ def test_device_lost_when_the_emulator_stops():
 
 def test_default_port_is_pupil_remotes():
     assert PupilDriver("pupil://127.0.0.1").address == ("127.0.0.1", 50020)
+
+
+def test_capture_26_gaze_over_the_backbone(tmp_path, sockets):
+    """Binocular gaze built as Capture 2.6 builds it (capture_26_gaze) and sent as its Msg_Streamer.send sends it
+    (topic frame, then msgpack with integer keys) reaches the driver through the backbone as gaze, not as a
+    malformed datum."""
+    with PupilEmulator(feed=GazeFeed(20.0, trace=still_trace(tmp_path / "still.jsonl"))) as emulator:
+        sub = backbone(emulator, b"gaze.3d.01.")
+        template = msgpack.unpackb(sub.recv_multipart()[1])  # a datum of the emulator's, for realistic base_data
+        sub.close()
+        driver = PupilDriver(driver_url(emulator))
+        driver.open()
+        pub = sockets(zmq.PUB)
+        pub.connect(f"tcp://127.0.0.1:{emulator.pub_port}")
+        try:
+            datum = capture_26_gaze(template)
+            datum["base_data"] = [{**p, "timestamp": 4321.0 + 0.004 * p["id"]} for p in datum["base_data"]]
+            datum["timestamp"] = float(np.mean([p["timestamp"] for p in datum["base_data"]]))  # Gazer3D.predict
+            target = round(datum["timestamp"] * 1e9)
+
+            def send(samples: list) -> bool:
+                pub.send_string(datum["topic"], flags=zmq.SNDMORE)
+                pub.send(capture_packb(datum))
+                return any(g.t_dev == target for g in samples)
+
+            match = next(g for g in collect(driver, send) if g.t_dev == target)
+        finally:
+            pub.close()
+            driver.close()
+    left, right = still_eyes()
+    np.testing.assert_allclose(match.R, right, atol=1e-9)
+    np.testing.assert_allclose(match.L, left, atol=1e-9)
+    assert match.valid and match.depth_m == pytest.approx(STILL_DEPTH)
+    assert driver.counters.malformed == 0
+
+
+@pytest.mark.parametrize(
+    "rebase",
+    [
+        pytest.param(lambda now: "T 0.0", id="T-0.0"),  # pupil-helpers python/pupil_remote_control.py
+        pytest.param(lambda now: f"T {now + 1.0}", id="T-forward-1s"),  # PsychoPy's PupilRemote.set_pupil_time
+    ],
+)
+def test_a_rebase_by_another_client_is_measured_again(tmp_path, remote, caplog, rebase):
+    """Another client rebases Pupil time as pupil-helpers' python/pupil_remote_control.py does (send_string("T 0.0"),
+    pupil-labs/pupil-helpers @ 21dee56) or as PsychoPy's Pupil Core plugin does (f"T {pupil_time}",
+    psychopy/psychopy-eyetracker-pupil-labs, .../pupil_core/pupil_remote.py @ f848813). The emulated capture is
+    60 ms before receipt: t_host must stay the capture time, not slip to the receipt time, and the rebase is counted
+    and logged. A forward jump of 1 s is within what the clock sync takes for a host stall, so only the driver's
+    check of the offset sees it."""
+    latency_ns = 60_000_000
+    feed = GazeFeed(200.0, trace=still_trace(tmp_path / "still.jsonl"), latency_ms=latency_ns / 1e6)
+    with PupilEmulator(feed=feed) as emulator:
+        assert remote(emulator, "T 1000.0") == "Timesync successful."
+        driver = PupilDriver(driver_url(emulator))
+        driver.open()
+        before = collect(driver, at_least(60))
+        epoch_before = emulator.epoch_ns
+        command = rebase(emulator.pupil_time())
+        with caplog.at_level(logging.WARNING, logger="drivers.pupil"):
+            assert remote(emulator, command) == "Timesync successful."
+            target_ns = round(float(command[2:]) * 1e9)
+            epoch_after = emulator.epoch_ns
+
+            def new_timebase(g) -> bool:
+                return target_ns <= g.t_dev < target_ns + 10**10
+
+            after = collect(driver, lambda s: sum(map(new_timebase, s)) >= 150)
+        driver.close()
+    rebased = [g for g in after if new_timebase(g)]
+    assert len(rebased) >= 150
+    for samples, epoch in ((before, epoch_before), (rebased, epoch_after)):
+        errors = [g.t_host - (g.t_dev + epoch) for g in samples]  # the emulator's capture time on the host clock
+        assert max(abs(e) for e in errors) <= 20_000_000, errors  # the receipt time would be 60 ms late
+    assert driver.rebases == 1
+    assert abs(driver.offset_ns + epoch_after) <= driver.rtt_ns + 1_000_000
+    assert any("Pupil time jumped" in r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
+
+
+def test_a_stalled_reader_is_not_a_rebase(tmp_path, caplog):
+    """A reader that stalls for 1 s finds datums up to 1 s late, past MAX_LAG_NS: one `t` measurement finds the
+    offset unchanged, so no rebase is counted or logged, and the queued datums behind it are not measured again
+    one by one."""
+
+    class CountingDriver(PupilDriver):
+        probes = 0
+
+        def _probe(self) -> tuple[int, int, int]:
+            self.probes += 1
+            return super()._probe()
+
+    with PupilEmulator(feed=GazeFeed(200.0, trace=still_trace(tmp_path / "still.jsonl"))) as emulator:
+        driver = CountingDriver(driver_url(emulator))
+        driver.open()
+        collect(driver, at_least(400))
+        probes = driver.probes
+        time.sleep(1.0)
+        with caplog.at_level(logging.WARNING, logger="drivers.pupil"):
+            late = collect(driver, at_least(400))
+        driver.close()
+        epoch = emulator.epoch_ns
+    assert driver.rebases == 0 and not caplog.records
+    assert TIME_PROBES <= driver.probes - probes <= 2 * TIME_PROBES  # measured again, not once per queued datum
+    assert abs(driver.offset_ns + epoch) <= driver.rtt_ns + 1_000_000 and len(late) >= 400
+
+
+def test_emulated_datums_carry_what_pupil_sends(tmp_path):
+    """Gaze datums carry gaze_point_3d, blinks too (gazer_headset.py always sets it), and in base_data the two 3D
+    pupil datums they were mapped from, each also published on its pupil.<id>.3d topic. Checked against
+    Capture 3.5's Gazer3D.predict and Model3D_Binocular._predict_single (pupil-labs/pupil,
+    pupil_src/shared_modules/gaze_mapping/gazer_3d/gazer_headset.py @ v3.5, 4760336), the pye3d plugin's datum
+    (PYE3D_PUPIL_KEYS), pye3d 0.3.0's cart2sph (pye3d/geometry/utilities.py) and the values PsychoPy's ioHub
+    plugin reads (psychopy_binocular_sample): with empty base_data it recorded no eye samples at all."""
+    feed = GazeFeed(200.0, trace=still_trace(tmp_path / "blinks.jsonl", blink_share=0.5))
+    with PupilEmulator(feed=feed) as emulator:
+        sub = backbone(emulator, b"gaze.3d.01.")
+        sub.setsockopt(zmq.SUBSCRIBE, b"pupil.")
+        messages = [sub.recv_multipart() for _ in range(120)]
+        sub.close()
+    gaze = [msgpack.unpackb(payload) for topic, payload in messages if topic == b"gaze.3d.01."]
+    pupils = {}  # (topic, timestamp) -> pupil datum
+    for topic, payload in messages:
+        if topic != b"gaze.3d.01.":
+            pupils[topic, msgpack.unpackb(payload)["timestamp"]] = msgpack.unpackb(payload)
+    assert {d["confidence"] for d in gaze} == {0.0, 0.95}
+    assert {topic for topic, _ in pupils} == {b"pupil.0.3d", b"pupil.1.3d"}
+    for d in gaze:
+        assert len(d["gaze_point_3d"]) == 3
+        base = d["base_data"]
+        assert [p["id"] for p in base] == [0, 1]  # Gazer3D: pupil_match[0] is the right eye, eye 0
+        assert d["confidence"] == pytest.approx(np.mean([p["confidence"] for p in base]))
+        assert d["timestamp"] == pytest.approx(np.mean([p["timestamp"] for p in base]))
+        features = np.array([[p["id"], *p["sphere"]["center"], *p["circle_3d"]["normal"]] for p in base])
+        assert features.shape == (2, 7) and np.isfinite(features).all()  # Gazer3D._extract_pupil_features
+        for p in base:
+            assert set(p) == PYE3D_PUPIL_KEYS and p["topic"] == f"pupil.{p['id']}.3d" and "3d" in p["method"]
+            normal = np.array(p["circle_3d"]["normal"])
+            world = EYE_CAMERA_TO_WORLD @ normal  # s<id>_normal = rotation_matrix[id] @ pupil normal
+            np.testing.assert_allclose(d["gaze_normals_3d"][str(p["id"])], world, atol=1e-12)
+            assert p["phi"] == pytest.approx(np.arctan2(normal[2], normal[0]))  # pye3d's cart2sph
+            assert p["theta"] == pytest.approx(np.arccos(normal[1] / np.linalg.norm(normal)))
+            assert p["model_confidence"] == 1.0 and p["location"] == p["ellipse"]["center"]
+            assert 0.0 < p["norm_pos"][0] < 1.0 and 0.0 < p["norm_pos"][1] < 1.0
+            published = pupils.get((f"pupil.{p['id']}.3d".encode(), p["timestamp"]))
+            assert published is None or published == p
+        values = psychopy_binocular_sample(d)
+        assert values is not None and all(np.isfinite(v) for eye in values.values() for v in eye)
+    assert any(
+        (f"pupil.{p['id']}.3d".encode(), p["timestamp"]) in pupils for d in gaze for p in d["base_data"]
+    )  # the same datums went out on the pupil topics
+
+
+def test_pupil_datum_follows_the_eye():
+    """Looking right, up or straight moves the pupil ellipse in the eye image as the eye camera, facing the eye,
+    sees it, and tilts the pupil away from the camera (a narrower minor axis)."""
+    straight = pupil_datum(0, np.array([0.0, 0.0, 1.0]), 0.95, 1.0)
+    right = pupil_datum(0, unit([0.3, 0.0, 1.0]), 0.95, 1.0)
+    up = pupil_datum(0, unit([0.0, -0.3, 1.0]), 0.95, 1.0)  # OpenCV: y down
+    assert straight["norm_pos"] == pytest.approx([0.5, 0.5])
+    assert straight["ellipse"]["axes"][0] == pytest.approx(straight["ellipse"]["axes"][1])
+    assert right["norm_pos"][0] < 0.5  # the camera faces the eye: its image is mirrored left to right
+    assert up["norm_pos"][1] > 0.5  # norm_pos origin is bottom-left
+    assert right["ellipse"]["axes"][0] < right["ellipse"]["axes"][1]
+    assert right["diameter"] == pytest.approx(right["ellipse"]["axes"][1])

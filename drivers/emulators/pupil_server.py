@@ -9,10 +9,16 @@ not a msgpack map) is counted in `malformed` and answered "Unknown command.".
 The backbone is a PUB socket at SUB_PORT carrying the emulator's gaze, the notifications of R, r, C
 and c ("notify.<subject>") and whatever clients publish to the SUB socket at PUB_PORT, as Pupil's
 XSUB/XPUB proxy relays it. Gaze comes from a GazeFeed as binocular datums on "gaze.3d.01." (section
-3.2 keys) in OpenCV camera space (x right, y down, z forward, mm), with the world camera at the
-midpoint of the eyes and aligned with the head; eye 0 is the right eye. A blink or an invalid sample
-has confidence 0.0 (section 3.2). Pupil time is host time minus a timebase, epoch_ns (0 at start, so
-it reads the host's monotonic clock in seconds, as Pupil's does), that T moves.
+3.2 keys, as Capture 3.x sends them) in OpenCV camera space (x right, y down, z forward, mm), with the
+world camera at the midpoint of the eyes and aligned with the head; eye 0 is the right eye. A blink or an
+invalid sample has confidence 0.0 (section 3.2). Like Pupil, every gaze datum carries gaze_point_3d
+(at the feed's depth, else Pupil's initial 500 mm) and, in base_data, the two pupil datums it was mapped
+from, shaped as Capture 3.5's pye3d 0.3.0 detector publishes them; those also go out on "pupil.0.3d" and
+"pupil.1.3d". Each eye camera (192x192 px, f = 140 px, Pupil Cam3's default intrinsics) faces its eye, a
+half turn about y from the world camera, with the eyeball centre 35 mm in front of it; the projected
+pupil ellipse is a weak-perspective approximation of pye3d's exact conic. Pupil time is host time minus a
+timebase, epoch_ns (0 at start, so it reads the host's monotonic clock in seconds, as Pupil's does), that
+T moves.
 """
 
 from __future__ import annotations
@@ -34,6 +40,14 @@ VERSION = "3.5.1"
 GAZE_TOPIC = "gaze.3d.01."
 CONFIDENCE = 0.95  # of a tracked sample
 IPD_MM = 63.5
+GAZE_DISTANCE_MM = 500.0  # Pupil's gaze distance before it has seen the eyes converge (gazer_3d)
+PUPIL_METHOD = "pye3d 0.3.0 real-time"  # the 3D detector of Capture 3.5 (pye3d pinned to 0.3.0)
+EYE_RADIUS_MM = 10.392304845413264  # pye3d's eyeball model radius (_EYE_RADIUS_DEFAULT)
+PUPIL_DIAMETER_MM = 4.0
+EYE_IMAGE_PX = 192.0  # square eye camera images
+EYE_FOCAL_PX = 140.0
+EYE_CAMERA_TO_WORLD = np.diag([-1.0, 1.0, -1.0])  # rotation of each eye camera into the world camera; its own inverse
+SPHERE_IN_EYE_CAMERA = np.array([0.0, 0.0, 35.0])  # eyeball centre seen from its eye camera, mm
 UNKNOWN = "Unknown command."
 MAX_RELAY = 1000  # messages relayed per loop, so a flood cannot starve Pupil Remote
 
@@ -42,8 +56,55 @@ def _floats(v) -> list[float]:
     return [float(c) for c in v]
 
 
+def _eye_pixel(p: np.ndarray) -> np.ndarray:
+    """A point in eye camera space (mm) in eye image pixels, origin top-left, as pye3d's projections give it."""
+    return EYE_FOCAL_PX * p[:2] / p[2] + EYE_IMAGE_PX / 2
+
+
+def pupil_datum(eye_id: int, gaze_normal: np.ndarray, confidence: float, timestamp_s: float) -> dict:
+    """The 3D pupil datum of one eye (gaze_normal: its unit gaze in world camera space), with the keys, in the
+    order, of Capture 3.5's pye3d plugin: create_pupil_datum's, then pye3d 0.3.0's _prepare_result's."""
+    normal = EYE_CAMERA_TO_WORLD.T @ gaze_normal  # the pupil faces the eye camera
+    radius = PUPIL_DIAMETER_MM / 2
+    centre = SPHERE_IN_EYE_CAMERA + EYE_RADIUS_MM * normal
+    major = 2 * EYE_FOCAL_PX * radius / centre[2]
+    minor = major * abs(normal @ centre) / np.linalg.norm(centre)  # foreshortened along the tilt
+    location = _eye_pixel(centre)
+    sphere_px = float(2 * EYE_FOCAL_PX * EYE_RADIUS_MM / SPHERE_IN_EYE_CAMERA[2])
+    phi, theta = np.arctan2(normal[2], normal[0]), np.arccos(np.clip(normal[1], -1.0, 1.0))  # pye3d's cart2sph
+    plausible = abs(np.degrees(phi) + 90.0) <= 80 and abs(np.degrees(theta) - 90.0) <= 80
+    ellipse = {
+        "center": _floats(location),
+        "axes": [float(minor), float(major)],
+        "angle": float(np.degrees(np.arctan2(normal[1], normal[0]))),  # of the minor axis, the tilt's direction
+    }
+    return {
+        "id": eye_id,
+        "topic": f"pupil.{eye_id}.3d",
+        "method": PUPIL_METHOD,
+        "norm_pos": [float(location[0] / EYE_IMAGE_PX), float(1.0 - location[1] / EYE_IMAGE_PX)],
+        "diameter": float(major),
+        "confidence": confidence,
+        "timestamp": timestamp_s,
+        "sphere": {"center": _floats(SPHERE_IN_EYE_CAMERA), "radius": EYE_RADIUS_MM},
+        "projected_sphere": {
+            "center": _floats(_eye_pixel(SPHERE_IN_EYE_CAMERA)),
+            "axes": [sphere_px, sphere_px],
+            "angle": 0.0,
+        },
+        "circle_3d": {"center": _floats(centre), "normal": _floats(normal), "radius": radius},
+        "diameter_3d": PUPIL_DIAMETER_MM,
+        "ellipse": ellipse,
+        "location": ellipse["center"],
+        "model_confidence": 1.0 if plausible else 0.1,
+        "theta": float(theta),
+        "phi": float(phi),
+    }
+
+
 def gaze_datum(sample: FeedSample, timestamp_s: float) -> dict:
-    """A feed sample (our head frame) as a binocular Pupil gaze datum (section 3.2); untracked: confidence 0."""
+    """A feed sample (our head frame) as a binocular Pupil gaze datum (section 3.2) with its pupil datums in
+    base_data, as Capture 3.5's Gazer3D maps them; untracked: confidence 0."""
     centre = mean_direction(sample.left, sample.right) if sample.valid else None
     tracked = centre is not None
     if not tracked:
@@ -52,18 +113,19 @@ def gaze_datum(sample: FeedSample, timestamp_s: float) -> dict:
         left, right = sample.left, sample.right
     c = opencv_head(centre)
     u, v = 0.5 + 0.5 * c[0] / c[2], 0.5 - 0.5 * c[1] / c[2]  # a 90-degree pinhole; norm_pos origin is bottom-left
-    datum = {
-        "topic": GAZE_TOPIC,
-        "confidence": CONFIDENCE if tracked else 0.0,
-        "norm_pos": _floats((u, v)),
-        "timestamp": timestamp_s,
-        "gaze_normals_3d": {"0": _floats(opencv_head(right)), "1": _floats(opencv_head(left))},
+    normals = (opencv_head(right), opencv_head(left))  # eye 0 is the right eye
+    confidence = CONFIDENCE if tracked else 0.0
+    distance_mm = sample.depth_m * 1000.0 if tracked and sample.depth_m else GAZE_DISTANCE_MM
+    return {
         "eye_centers_3d": {"0": [IPD_MM / 2, 0.0, 0.0], "1": [-IPD_MM / 2, 0.0, 0.0]},
-        "base_data": [],
+        "gaze_normals_3d": {"0": _floats(normals[0]), "1": _floats(normals[1])},
+        "gaze_point_3d": _floats(c * distance_mm),
+        "norm_pos": _floats((u, v)),
+        "topic": GAZE_TOPIC,
+        "confidence": confidence,
+        "timestamp": timestamp_s,
+        "base_data": [pupil_datum(eye, normals[eye], confidence, timestamp_s) for eye in (0, 1)],
     }
-    if tracked and sample.depth_m:
-        datum["gaze_point_3d"] = _floats(c * sample.depth_m * 1000.0)
-    return datum
 
 
 class PupilEmulator(NetworkEmulator):
@@ -119,6 +181,8 @@ class PupilEmulator(NetworkEmulator):
     def _tick(self, now_ns: int) -> int:
         while self._sample.due_ns <= now_ns:
             datum = gaze_datum(self._sample, self.pupil_time(self._sample.capture_ns))
+            for pupil in datum["base_data"]:  # the eye processes publish before the gaze mapper
+                self._backbone.send_multipart([pupil["topic"].encode(), msgspec.msgpack.encode(pupil)])
             self._backbone.send_multipart([GAZE_TOPIC.encode(), msgspec.msgpack.encode(datum)])
             self._log_sent(self._sample.capture_ns - self.epoch_ns)
             self._sample = next(self._samples)
