@@ -280,6 +280,7 @@ def test_emulator_streams_at_a_lower_rate_on_request(client):
 
 def test_calibration_dialogue_in_order(client):
     client.send("ET_CAL 5")
+    assert client.recv() == "ET_CAL 5"
     mnemonic, area = smi.parse_line(client.recv())
     assert mnemonic == "ET_CSZ" and tuple(map(int, area)) == (get_profile("dk2").width, get_profile("dk2").height)
     points = [smi.parse_line(client.recv()) for _ in range(5)]
@@ -295,6 +296,7 @@ def test_calibration_dialogue_in_order(client):
 def test_calibration_abort_and_custom_area(emulator, client):
     assert client.reply("ET_CSZ 1280 1024") == "ET_CSZ 1280 1024"
     client.send("ET_CAL 9")
+    assert client.recv() == "ET_CAL 9"
     assert client.recv() == "ET_CSZ 1280 1024"
     assert client.recv() == "ET_PNT 1 640 512"  # the centre first, as in docs/protocols.md, Test vectors (SMI)
     for _ in range(9):
@@ -310,11 +312,35 @@ def test_client_calibration_points_until_reset(client):
     client.send("ET_PNT 2 100 200")
     client.send("ET_CAL 2")
     w, h = get_profile("dk2").width, get_profile("dk2").height
-    assert [client.recv() for _ in range(3)][1:] == [f"ET_PNT 1 {w // 2} {h // 2}", "ET_PNT 2 100 200"]
+    assert [client.recv() for _ in range(4)][2:] == [f"ET_PNT 1 {w // 2} {h // 2}", "ET_PNT 2 100 200"]
     assert client.recv() == "ET_CHG 1"
     client.send("ET_DEF")
     client.send("ET_CAL 2")
-    assert [client.recv() for _ in range(3)][2] != "ET_PNT 2 100 200"
+    assert [client.recv() for _ in range(4)][3] != "ET_PNT 2 100 200"
+
+
+def test_calibration_start_is_answered_as_pyviewx_and_winkorblush_expect(client):
+    """iView X answers ET_CAL n with ET_CAL n (the number of points) before ET_CSZ, the ET_PNT lines and ET_CHG 1:
+    the order of the iView X stand-in in gesztesigabor/winkorblush (experiment/test_smi.py, commit
+    ea7a525398efe78810889bd6d406e6452dc60ac3). PyViewX's calibrator (RyanHope/PyViewX,
+    pyviewx.pygame/pyviewx/pygame/calibrator.py, commit 1934f168186540bedbfa5b81cf42012ddeca2b32) sizes its
+    list from that reply (`calibrationPoints = [None] * int(inResponse[0])` on ET_CAL, after `_reset` left it
+    `[]`) and stores each ET_PNT at index i - 1, so without the reply its first ET_PNT raises IndexError.
+    Its handlers are replayed here, on the emulator's datagrams as they arrive."""
+    points: list = []  # PyViewX's calibrator after _reset()
+    current = -1
+    client.send("ET_CAL 9 2")  # PyViewX's startCalibration(9, eye=2): ET_CAL <points> <eye>
+    while current < 0:
+        mnemonic, args = smi.parse_line(client.recv())
+        if mnemonic == "ET_CAL":
+            points = [None] * int(args[0])
+        elif mnemonic == "ET_PNT":
+            points[int(args[0]) - 1] = (int(args[1]), int(args[2]))
+        elif mnemonic == "ET_CHG":
+            current = int(args[0]) - 1
+    display = get_profile("dk2")
+    assert len(points) == 9 and None not in points and current == 0
+    assert points[current] == (round(display.width / 2), round(display.height / 2))  # the centre first
 
 
 def test_validation_reports_the_feed_accuracy_per_eye():

@@ -14,8 +14,10 @@ Where section 1 is silent, the emulator chooses:
 - Replies: ET_PNG, ET_SRT <rate>, ET_CSZ <w> <h> (echoed: the tracker announces a changed area), ET_BRK
   (echoed to confirm the abort) and the recording commands (echoed; nothing is recorded). ET_FRM,
   ET_STR, ET_EST, ET_DEF, ET_PNT, ET_CPA, ET_LEV, ET_FIX and ET_EFX get no reply.
-- Calibration with n points shows the first n of: centre, corners, edge midpoints, inner points (at
-  10, 30, 50, 70 and 90 % of the area), except points a client set with ET_PNT (until ET_DEF).
+- Calibration with n points (ET_CAL n) is answered as iView X answers it: ET_CAL n (the number of points,
+  which clients size their list of points from), ET_CSZ <w> <h>, ET_PNT 1..n, then ET_CHG 1. The points
+  are the first n of: centre, corners, edge midpoints, inner points (at 10, 30, 50, 70 and 90 % of the
+  area), except points a client set with ET_PNT (until ET_DEF).
 - ET_VLS reports per eye, at the area's centre, the feed's RMS error in degrees: along x the accuracy
   offset with the precision noise, along y the noise, and both combined.
 - ET_FIX [dur disp] runs dispersion-threshold fixation detection per eye (smi_fixations; defaults 75 ms, 45 px, as
@@ -278,6 +280,7 @@ class SmiEmulator(NetworkEmulator):
             self._custom_points.get(i + 1, (round(fx * w), round(fy * h))) for i, (fx, fy) in enumerate(_LAYOUT[:n])
         ]
         self._calibration, self._point = (addr, points), 1
+        self._send(command("ET_CAL", n), addr)  # first: clients size their list of points from it (section 1.7)
         self._send(command("ET_CSZ", w, h), addr)
         for i, (x, y) in enumerate(points, start=1):
             self._send(command("ET_PNT", i, x, y), addr)

@@ -1,24 +1,28 @@
 """HATIRE binary head-tracker protocol (docs/protocols.md, HATIRE and Test vectors), free of I/O.
 
 Every frame is 30 bytes, little-endian: 0xAAAA, a u16, 24 bytes, 0x5555. A data frame's u16 is the frame
-counter Cpt (0..999, wrapping) and its 24 bytes are yaw, pitch, roll (float32 degrees) and three float32
-accelerations. An info frame has a code >= 1000 instead (2000 version, 3001-3007 init, 5000 begin,
-5001 start, 5002 stop, 5003 reset, 9xxx errors) and 24 bytes of NUL-padded text. The host sends single
-characters: S start, s stop, R reset, C calibrate, V version, I info (answered in plain text lines).
-HatireFramer takes byte chunks of any size, returns decoded frames, and discards (and counts) bytes
-that are not part of a frame.
+counter Cpt (0..999, wrapping) and its 24 bytes are three float32 rotation fields (degrees) and three more float32
+fields (HATino's gyro [Y, P, R] and acc [x, y, z]). An info frame has a code >= 1000 instead (2000 version,
+3001-3007 init, 5000 begin, 5001 start, 5002 stop, 5003 reset, 9xxx errors) and 24 bytes of NUL-padded text.
+The host sends single characters: S start, s stop, R reset, C calibrate, V version, I info (answered in plain
+text lines). HatireFramer takes byte chunks of any size, returns decoded frames, and discards (and counts)
+bytes that are not part of a frame.
 
-Angles: HATIRE gives no axes (docs/protocols.md, HATIRE); the firmware sends the MPU6050 DMP's yaw, pitch and roll,
-which this module takes in the Razor convention (X forward, Y right, Z down, yaw -> pitch -> roll), so
-drivers.protocols.razor.ypr_to_quat converts them to the head frame.
+Axes (docs/protocols.md, HATIRE): the protocol names no axes; a host maps fields to axes. AxisMapping is the mapping
+of opentrack's tracker-hatire (which frame field feeds each of yaw, pitch, roll and x, y, z, and which are inverted),
+its defaults opentrack's: yaw from rotation field 0, roll from 1, pitch from 2, each clamped to +-180 degrees,
+translations off. The angles are opentrack's (yaw positive turning right, pitch nose up, roll positive raising the
+right side, applied yaw -> pitch -> roll); opentrack_to_quat turns them into a head-frame orientation.
 """
 
 from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+from drivers.protocols import razor
 from drivers.protocols.framing import FrameFormatError, Framer
 
 BAUD = 115200
@@ -37,9 +41,17 @@ _MARK_BEGIN, _MARK_END = 0xAAAA, 0x5555
 MAX_ACCEL = 1e6
 
 
+ROTATIONS = ("yaw", "pitch", "roll")
+TRANSLATIONS = ("x", "y", "z")
+AXES = ROTATIONS + TRANSLATIONS
+OFF = "off"
+CLAMP_DEG = 180.0  # opentrack clamps each rotation field to +-180 degrees before mapping
+
+
 @dataclass(frozen=True)
 class HatireFrame:
-    """A data frame: counter, angles in degrees, accelerations as sent."""
+    """A data frame: counter, the three rotation fields (degrees) and the three trailing fields, under the names the
+    firmware gives them (HATino: gyro [Y, P, R] and acc [x, y, z]); AxisMapping decides what they mean."""
 
     cpt: int
     yaw: float
@@ -56,6 +68,78 @@ class HatireInfo:
 
 class HatireFormatError(FrameFormatError):
     """Bytes that are not a valid HATIRE frame."""
+
+
+@dataclass(frozen=True)
+class AxisMapping:
+    """Which frame field (0, 1, 2; None: the axis is off and reads 0) feeds each opentrack axis, and which axes are
+    negated: the axis settings of opentrack's tracker-hatire (TrackerSettings), with its defaults."""
+
+    yaw: int | None = 0
+    pitch: int | None = 2
+    roll: int | None = 1
+    x: int | None = None
+    y: int | None = None
+    z: int | None = None
+    invert: frozenset[str] = frozenset()
+
+    @classmethod
+    def parse(cls, fields: Mapping[str, str], invert: str = "") -> AxisMapping:
+        """A mapping from option text: fields maps an axis name to "0", "1", "2" or "off" (axes not given keep their
+        default), invert is a comma-separated list of axis names; ValueError names the first bad value."""
+        chosen: dict[str, int | None] = {}
+        for axis, text in fields.items():
+            if axis not in AXES:
+                raise ValueError(f"no axis {axis!r}; axes: {', '.join(AXES)}")
+            if text not in ("0", "1", "2", OFF):
+                raise ValueError(f"{axis}_axis must be 0, 1, 2 or {OFF}, got {text!r}")
+            chosen[axis] = None if text == OFF else int(text)
+        names = [name for name in invert.split(",") if name]
+        if unknown := [name for name in names if name not in AXES]:
+            raise ValueError(f"invert takes a comma-separated list of {', '.join(AXES)}; got {unknown[0]!r}")
+        return cls(**chosen, invert=frozenset(names))
+
+    def angles(self, frame: HatireFrame) -> tuple[float, float, float]:
+        """opentrack's (yaw, pitch, roll) in degrees of a data frame: rotation fields clamped to +-180, then mapped."""
+        rotation = [min(max(v, -CLAMP_DEG), CLAMP_DEG) for v in (frame.yaw, frame.pitch, frame.roll)]
+        yaw, pitch, roll = (self._value(axis, rotation) for axis in ROTATIONS)
+        return yaw, pitch, roll
+
+    def translation(self, frame: HatireFrame) -> tuple[float, float, float]:
+        """opentrack's (x, y, z) of a data frame, as sent (opentrack takes centimetres): the trailing fields, mapped."""
+        x, y, z = (self._value(axis, frame.acc) for axis in TRANSLATIONS)
+        return x, y, z
+
+    def rotation_fields(self, yaw: float, pitch: float, roll: float) -> tuple[float, float, float]:
+        """The rotation fields a device sends for these opentrack angles under this mapping (what an emulated device
+        writes); a field no axis reads is 0."""
+        fields = [0.0, 0.0, 0.0]
+        for axis, value in zip(ROTATIONS, (yaw, pitch, roll), strict=True):
+            if (field := getattr(self, axis)) is not None:
+                fields[field] = -value if axis in self.invert else value
+        return fields[0], fields[1], fields[2]
+
+    def _value(self, axis: str, values: Sequence[float]) -> float:
+        field = getattr(self, axis)
+        value = 0.0 if field is None else float(values[field])
+        return -value if axis in self.invert else value
+
+
+def opentrack_to_quat(yaw: float, pitch: float, roll: float) -> tuple[float, float, float, float]:
+    """Head-frame orientation (w, x, y, z) of opentrack angles in degrees: Razor's convention with roll negated."""
+    return razor.ypr_to_quat(yaw, pitch, -roll)
+
+
+def quat_to_opentrack(q) -> tuple[float, float, float]:
+    """opentrack's (yaw, pitch, roll) in degrees of a head-frame orientation (w, x, y, z); the inverse of
+    opentrack_to_quat with pitch within +-90 degrees."""
+    yaw, pitch, roll = razor.quat_to_ypr(q)
+    return yaw, pitch, -roll
+
+
+def opentrack_to_position(x_cm: float, y_cm: float, z_cm: float) -> tuple[float, float, float]:
+    """Head-frame position in metres of opentrack's translation in centimetres (x positive left, y up, z back)."""
+    return -x_cm / 100.0, y_cm / 100.0, z_cm / 100.0
 
 
 def encode_frame(f: HatireFrame) -> bytes:

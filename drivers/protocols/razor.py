@@ -23,6 +23,7 @@ from drivers.protocols.framing import FrameFormatError, Framer
 
 BAUD = 57600
 RATE_HZ = 50.0
+START = b"#ot#o1#s00"  # text output, streaming on, and a sync token (#SYNCH00) that shows the firmware listens
 MAX_LINE = 128  # longer than any frame the firmware sends (#YPRAG= with nine values)
 
 _NUMBER = rb"-?\d{1,6}(?:\.\d{1,6})?"
