@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import zmq
+from tqdm import tqdm
 
 from drivers.emulators import EMULATORS
 from hmdrt import __version__, logs
@@ -24,6 +25,7 @@ from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.foveation import METHODS, MethodChoice
 from hmdrt.optics import get_profile
 from hmdrt.present.encode import linear_to_srgb8, write_png
+from hmdrt.progress import StatusLine
 from hmdrt.scene import load_scene
 from hmdrt.sequence import render_frames, sequence_inputs
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
@@ -100,6 +102,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         method = choice.make(tracer)
         setup_ms = (time.perf_counter() - t0) * 1e3
         frames = render_frames(method, profile, inputs, eyes, args.seed)
+        bar = tqdm(total=len(inputs), unit="frame", disable=not sequence or None, file=sys.stderr)
         while True:
             t1 = time.perf_counter()
             try:
@@ -117,6 +120,8 @@ def cmd_render(args: argparse.Namespace) -> int:
                     **_record(stats, ms, srgb.shape[1], srgb.shape[0], method.name, scene.name),
                 }
             )
+            bar.update()
+        bar.close()
     if sequence:
         try:
             with (out / "frames.jsonl").open("w") as f:
@@ -225,7 +230,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     stop = _stop_on_signals()  # before the start-up, so a SIGTERM during it still ends with a report
     reloads = threading.Event()
     signal.signal(signal.SIGHUP, lambda *_: reloads.set())
-    compositor = Compositor(config)
+    with StatusLine(lambda s: f"starting: compiling kernels (a minute on a first run), connecting drivers: {s:.0f} s"):
+        compositor = Compositor(config)
     if reloads.is_set():
         compositor.reload()
     stop_relay = threading.Thread(target=lambda: (stop.wait(), compositor.stop.set()), daemon=True)
@@ -239,7 +245,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         flush=True,
     )
     try:
-        report = compositor.run()
+        with StatusLine(lambda _: _run_status(compositor.summary())):
+            report = compositor.run()
     finally:
         compositor.close()
     if report_path:
@@ -252,6 +259,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         + (f"; report {report_path}" if report_path else "")
     )
     return 0
+
+
+def _run_status(report: dict) -> str:
+    """One line of a run so far, for the terminal."""
+    gaze = report["latency_ms"]["gaze_to_photon"]
+    return (
+        f"{report['vsyncs']} VSyncs, {report['achieved_hz']:g} Hz, misses {report['miss_rate']:.1%}, "
+        f"repeats {report['repeat_rate']:.1%}, gaze-to-photon p99 {gaze['p99']} ms"
+    )
 
 
 def cmd_status(args: argparse.Namespace) -> int:
