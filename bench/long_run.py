@@ -78,7 +78,7 @@ def main() -> None:
         print(f"  {label:>6} at 30 Hz ({seconds * 30:>6} frames): {summary:6.3f} ms")
     config = load_config(Path(__file__).resolve().parent.parent / "configs" / "default.toml")
     any_port = "tcp://127.0.0.1:*"
-    compositor = Compositor(msgspec.structs.replace(config, bus=Bus(any_port, any_port, any_port)))
+    compositor = Compositor(msgspec.structs.replace(config, bus=Bus(any_port, any_port)))
     try:
         frozen, objects = best_of(gc.collect), gc.get_freeze_count()
         gc.unfreeze()

@@ -4,19 +4,30 @@ controller off and on where the method alone cannot hold the rate; and graceful 
 nothing can. Each row states the display it ran and the image buffers the run allocated (a pool of a few
 per eye; more would mean images copied or kept).
 
-    python bench/runtime.py [--duration 60] [--controller-duration 30] [--only default,controller,rift_s]
+    python bench/runtime.py [--duration 60] [--controller-duration 30] [--only default,controller,rift_s] [--watch]
 
 Each scenario runs the daemon in-process on its config with the bus on free loopback ports, for the given
 wall time, and prints the run report's figures. These machines are shared: a busy neighbour shows up as
 misses, so run it on a quiet machine and read the figures together, as measured in one run.
+
+With --watch the default scenario runs once as it is and once watched (in place of its controller-off run): an
+`hmdrt watch` process on the compositor and a websocket client of it taking every message, previews included, as
+an open page would; it prints the compositor overhead and frame times of both runs side by side, and what the
+previews cost (made on the compositor's preview thread).
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import json
+import os
+import re
+import subprocess
 import sys
 from pathlib import Path
 
+import aiohttp
 import msgspec
 
 # bench/drivers.py shares the drivers package's name: keep this folder from shadowing the package
@@ -29,13 +40,115 @@ CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 ANY_PORT = "tcp://127.0.0.1:*"
 
 
-def run(config: RunConfig) -> dict:
+class Watcher:
+    """`hmdrt watch` on a compositor and a websocket client of its page taking every message, each in a process of
+    its own (as a browser would be), so that neither takes the compositor's interpreter lock."""
+
+    def __init__(self, control: str):
+        self.server = subprocess.Popen(
+            [sys.executable, "-m", "hmdrt", "watch", "--control", control, "--port", "0"],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        line = self.server.stdout.readline()
+        found = re.search(r"\(read-only: (http://\S+)\)", line)
+        if not found:
+            self.server.kill()
+            raise SystemExit(f"hmdrt watch did not start: {line!r}")
+        self._started_cpu_s = self._server_cpu_s()  # its start-up (imports) is not the watching
+        self.client = subprocess.Popen(
+            [sys.executable, __file__, "--watch-client", found[1] + "ws"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+
+    def close(self) -> dict:
+        """Stop both; what the client took (previews, their bytes, other messages) and the server's CPU seconds."""
+        counts, _ = self.client.communicate("", timeout=30)  # its stdin closed: it stops and prints its counts
+        cpu_s = self._server_cpu_s() - self._started_cpu_s
+        self.server.terminate()
+        self.server.wait(10)
+        return {**json.loads(counts), "server_cpu_s": cpu_s}
+
+    def _server_cpu_s(self) -> float:
+        """The watch process's CPU seconds so far: utime + stime of /proc/PID/stat (proc(5))."""
+        fields = Path(f"/proc/{self.server.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+async def take_messages(url: str) -> dict:
+    """Take every message of a watch page's websocket until stdin closes; the counts (Watcher's client)."""
+    counts = {"previews": 0, "preview_bytes": 0, "messages": 0}
+    closed = asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
+    async with aiohttp.ClientSession() as session, session.ws_connect(url) as ws:
+        while not closed.done():
+            receiving = asyncio.ensure_future(ws.receive())
+            await asyncio.wait({receiving, closed}, return_when=asyncio.FIRST_COMPLETED)
+            if not receiving.done():
+                receiving.cancel()
+                break
+            message = receiving.result()
+            if message.type == aiohttp.WSMsgType.BINARY:
+                counts["previews"] += 1
+                counts["preview_bytes"] += len(message.data)
+            elif message.type == aiohttp.WSMsgType.TEXT:
+                counts["messages"] += 1
+            else:
+                break
+    return counts
+
+
+def run(config: RunConfig, watched: bool = False) -> dict:
+    """The run report of a config; watched: with a Watcher, and its figures under "watch"."""
     config = msgspec.structs.replace(config, bus=Bus(ANY_PORT, ANY_PORT, ANY_PORT))
     compositor = Compositor(config)
     try:
-        return compositor.run()
+        if not watched:
+            return compositor.run()
+        watcher = Watcher(compositor.control.address)
+        try:
+            report = compositor.run()
+        finally:
+            taken = watcher.close()
+        preview = compositor.preview
+        report["watch"] = {
+            "previews_received": taken["previews"],
+            "preview_kb": taken["preview_bytes"] / 1024,
+            "messages_received": taken["messages"],
+            "previews_made": preview.sent,
+            "replaced": preview.replaced,
+            "preview_ms": 1e3 * preview.busy_s / max(preview.sent, 1),
+            "preview_thread_share": preview.busy_s / config.run.duration_s,
+            "server_share": taken["server_cpu_s"] / config.run.duration_s,
+        }
+        return report
     finally:
         compositor.close()
+
+
+def compare_watched(plain: dict, watched: dict) -> None:
+    """The compositor's overhead and frame times without and with a watcher, and what the previews cost."""
+    w = watched["watch"]
+    rows = {
+        "compositor overhead ms": lambda r: r["compositor_overhead_ms"],
+        "frame ms": lambda r: r["frame_ms"],
+        "gaze-to-photon ms": lambda r: r["latency_ms"]["gaze_to_photon"],
+    }
+    for label, of in rows.items():
+        a, b = of(plain), of(watched)
+        print(f"  {label}: p50 {a['p50']} -> {b['p50']}, p99 {a['p99']} -> {b['p99']} (without -> with a watcher)")
+    print(
+        f"  misses after warm-up {plain['miss_rate_after_warmup']:.2%} -> {watched['miss_rate_after_warmup']:.2%}, "
+        f"achieved {plain['achieved_hz']:g} -> {watched['achieved_hz']:g} Hz"
+    )
+    print(
+        f"  watcher: {w['previews_received']} previews received ({w['preview_kb']:.0f} KiB), "
+        f"{w['messages_received']} other messages; the compositor made {w['previews_made']} previews "
+        f"({w['replaced']} replaced before encoding) at {w['preview_ms']:.2f} ms each on its preview thread "
+        f"({w['preview_thread_share']:.1%} of one core's wall time); the hmdrt watch process used "
+        f"{w['server_share']:.1%} of a core after its start"
+    )
 
 
 def with_controller(config: RunConfig, kind: str) -> RunConfig:
@@ -82,14 +195,25 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=60.0, help="seconds for configs/default.toml")
     ap.add_argument("--controller-duration", type=float, default=30.0, help="seconds per controller run")
     ap.add_argument("--only", default="default,controller,rift_s")
+    ap.add_argument("--watch", action="store_true", help="the default scenario also with hmdrt watch attached")
+    ap.add_argument("--watch-client", metavar="URL", help=argparse.SUPPRESS)  # Watcher's client process
     args = ap.parse_args()
+    if args.watch_client:
+        print(json.dumps(asyncio.run(take_messages(args.watch_client))))
+        return
     only = set(args.only.split(","))
 
     if "default" in only:
         print(f"configs/default.toml, {args.duration:g} s real time")
         config = load_config(CONFIGS / "default.toml", duration_s=args.duration)
-        describe("default", run(config))
-        describe("default, controller off", run(with_controller(config, "none")))
+        plain = run(config)
+        describe("default", plain)
+        if args.watch:
+            watched = run(config, watched=True)
+            describe("default, watched", watched)
+            compare_watched(plain, watched)
+        else:
+            describe("default, controller off", run(with_controller(config, "none")))
     if "controller" in only:
         config = load_config(CONFIGS / "bench" / "controller.toml", duration_s=args.controller_duration)
         print(f"configs/bench/controller.toml, {args.controller_duration:g} s real time each")

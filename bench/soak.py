@@ -42,7 +42,6 @@ name = "rrm"
 [bus]
 ingest = "{ingest}"
 telemetry = "tcp://127.0.0.1:{telemetry}"
-control = "tcp://127.0.0.1:{control}"
 [run]
 kernel_threads = 1
 """
@@ -92,7 +91,7 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="hmdrt-soak-"))
     ingest = f"tcp://127.0.0.1:{free_port()}"
     config = work / "soak.toml"
-    config.write_text(CONFIG.format(ingest=ingest, telemetry=free_port(), control=free_port()))
+    config.write_text(CONFIG.format(ingest=ingest, telemetry=free_port()))
     report_path = work / "report.json"
     python = sys.executable
     compositor = subprocess.Popen(

@@ -24,6 +24,7 @@ REGISTRY: dict[str, str] = {
     "pupil": "drivers.pupil:PupilDriver",
     "hid": "drivers.hid:HidDriver",
     "serial": "drivers.serial_port:SerialDriver",
+    "lsl": "drivers.lsl:LslDriver",
 }
 
 __all__ = [

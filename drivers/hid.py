@@ -14,7 +14,7 @@ the raw wrapping timestamp in ns), position (0, 0, 0); valid once the first acce
 levelled the filter. The report's magnetometer reading holds yaw (mag=0 leaves it to drift, for a
 device whose magnetometer is disturbed).
 
-Axes (section 9 leaves the IMU axes unconfirmed): the DK2 sensor frame is taken to be the head frame,
+Axes (section 10 leaves the IMU axes unconfirmed): the DK2 sensor frame is taken to be the head frame,
 as OpenHMD does (+X right, +Y up, +Z back), so samples enter the filter unchanged. Only this module
 would change if hardware showed otherwise.
 """

@@ -19,17 +19,20 @@ from tqdm import tqdm
 from drivers.emulators import EMULATORS
 from hmdrt import __version__, logs
 from hmdrt.atomic import check_writable, write_atomic
-from hmdrt.bus import CONTROL, INGEST
+from hmdrt.bus import INGEST
+from hmdrt.bus.local import find_control
 from hmdrt.bus.security import ClientKeys, is_loopback, write_keypair
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.foveation import METHODS, MethodChoice
 from hmdrt.optics import get_profile
 from hmdrt.present.encode import linear_to_srgb8, write_png
 from hmdrt.progress import StatusLine
+from hmdrt.resources import run_config
 from hmdrt.scene import load_scene
 from hmdrt.sequence import render_frames, sequence_inputs
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
+from replay.convert import READER_OPTIONS, convert_trace
 
 UNTIL = "stop after SEC seconds (default: until SIGINT/SIGTERM)"
 # make_emulator's keywords: the emulate command's options store their values under these names
@@ -213,24 +216,31 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the compositor daemon until stopped, the frame count or the duration; write the run report."""
+    import msgspec
+
     from hmdrt.compositor.config import load_config
     from hmdrt.compositor.daemon import Compositor
 
     if args.frames is not None and args.frames < 1:
         raise ConfigError(f"--frames must be at least 1, got {args.frames}")
     config = load_config(
-        args.config,
+        run_config(args.config),
         frames=args.frames,
         duration_s=_duration(args),
         virtual_time=True if args.virtual_time else None,
     )
+    if args.frames_log:
+        output = msgspec.structs.replace(config.output, frames_log=args.frames_log)
+        config = msgspec.structs.replace(config, output=output)
     report_path = args.report or config.output.report
     if report_path:
         check_writable(Path(report_path).parent)
     stop = _stop_on_signals()  # before the start-up, so a SIGTERM during it still ends with a report
     reloads = threading.Event()
     signal.signal(signal.SIGHUP, lambda *_: reloads.set())
-    with StatusLine(lambda s: f"starting: compiling kernels (a minute on a first run), connecting drivers: {s:.0f} s"):
+    with StatusLine(
+        lambda s: f"starting: compiling kernels (about a minute on a first run), connecting drivers: {s:.0f} s"
+    ):
         compositor = Compositor(config)
     if reloads.is_set():
         compositor.reload()
@@ -274,7 +284,8 @@ def cmd_status(args: argparse.Namespace) -> int:
     """Ask a running compositor for its status."""
     from hmdrt.compositor.endpoints import request
 
-    reply = request(args.control, {"cmd": "stats" if args.report else "status"}, args.timeout, _client_keys(args))
+    endpoint = args.control or find_control()
+    reply = request(endpoint, {"cmd": "stats" if args.report else "status"}, args.timeout, _client_keys(args))
     if not reply.get("ok"):
         raise HmdrtError(f"the compositor refused: {reply.get('error')}")
     reply.pop("ok")
@@ -287,15 +298,19 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"{reply['method']} on {reply['scene']} at {reply['profile']} ({reply['vsync_hz']:g} Hz): "
         f"{shown['new']} on time, {shown['late']} late, {shown['repeat']} repeated; "
         f"devices {', '.join(sorted(set(chain(*reply['devices'].values())))) or 'none'}; pacing {json.dumps(pacing)}"
-        + _access(reply.get("security", {}))
+        + _access(reply)
     )
     return 0
 
 
-def _access(security: dict) -> str:
-    if not security.get("curve"):
-        return "; access: loopback"
-    return f"; access: CURVE, {security['admitted']} handshakes admitted, {security['refused']} refused"
+def _access(status: dict) -> str:
+    """Who may reach the compositor, from its status: CURVE clients, this user (ipc://) or any local user (tcp://)."""
+    security = status.get("security", {})
+    if security.get("curve"):
+        return f"; access: CURVE, {security['admitted']} handshakes admitted, {security['refused']} refused"
+    if status["endpoints"]["control"].startswith("tcp://"):
+        return "; access: loopback, control read-only"
+    return "; access: this user"
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
@@ -305,8 +320,33 @@ def cmd_keys(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_watch(args: argparse.Namespace) -> int:
+    """Serve a live view of a running compositor (frames, plots, drivers, controls) until stopped."""
+    from hmdrt.watch.server import WatchOptions, serve
+
+    options = WatchOptions(
+        control=args.control or find_control(),
+        telemetry=args.telemetry or "",
+        bind=args.bind,
+        port=args.port,
+        allow_hosts=tuple(args.allow_host),
+        keys=_client_keys(args),
+    )
+    serve(
+        options, lambda server: print(f"hmdrt watch: {server.url(token=True)} (read-only: {server.url()})", flush=True)
+    )
+    return 0
+
+
 def _client_keys(args: argparse.Namespace) -> ClientKeys | None:
     return ClientKeys.from_options(args.server_key, args.client_key)
+
+
+def _cluster_spec(text: str) -> str:
+    """--cluster's value, checked by hmdrt.evaluate.cluster (imported only when the option is given)."""
+    from hmdrt.evaluate.cluster import cluster_spec
+
+    return cluster_spec(text)
 
 
 def _key_options(parser: argparse.ArgumentParser) -> None:
@@ -322,19 +362,61 @@ def _key_options(parser: argparse.ArgumentParser) -> None:
 def cmd_eval(args: argparse.Namespace) -> int:
     """Render every cell of an eval config, score it against the ground truth, write results and plots."""
     from hmdrt.evaluate.config import load_eval_config
+    from hmdrt.evaluate.partial import PartialResults
     from hmdrt.evaluate.results import table, write_results
     from hmdrt.evaluate.runner import evaluate
     from hmdrt.evaluate.tables import paper_tables
 
     config = load_eval_config(args.config, frames=args.frames, warmup_frames=args.warmup_frames)
-    out = Path(args.out)
+    out = Path(args.resume or args.out)
     check_writable(out)
-    evaluation = evaluate(config)
+    if args.cluster:
+        from hmdrt.evaluate import cluster
+
+        with cluster.connect(args.cluster) as client:
+            print(f"hmdrt eval: Dask dashboard at {client.dashboard_link}", file=sys.stderr)
+            evaluation = cluster.evaluate(config, client, PartialResults(out, config, resume=bool(args.resume)))
+    else:
+        evaluation = evaluate(config, saved=PartialResults(out, config, resume=bool(args.resume)))
     written = write_results(evaluation, config, out, with_plots=not args.no_plots)
     print(table(evaluation))
     if config.tables:
         print(paper_tables(evaluation.rows, config.tables))
     print(f"wrote {len(written)} files to {out}: {', '.join(p.name for p in written)}")
+    return 0
+
+
+def cmd_export_perfetto(args: argparse.Namespace) -> int:
+    """Write a frames log as a timeline in Chrome trace-event JSON, for Perfetto and chrome://tracing."""
+    from hmdrt.telemetry.frames_log import read_frames_log
+    from hmdrt.telemetry.perfetto import write_trace
+
+    reading = read_frames_log(args.frames_log)
+    events = write_trace(reading, args.out)
+    print(f"{args.out}: {events} trace events of {len(reading.records)} VSyncs (open in ui.perfetto.dev)")
+    return 0
+
+
+def cmd_report_plot(args: argparse.Namespace) -> int:
+    """Plot a run's frame times, misses, latency and controller level from its frames log or run report."""
+    from hmdrt.telemetry.plot import plot_run
+
+    written, note = plot_run(args.input, args.out)
+    print(f"wrote {len(written)} files to {args.out}: {', '.join(p.name for p in written)}")
+    if note:
+        print(f"{args.input}: {note}")
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    """Convert a trace to native JSONL or hmdrt CSV, or export it as BIDS eye-tracking physio (replay/convert.py)."""
+    options = {name: getattr(args, name) for name in READER_OPTIONS if getattr(args, name) is not None}
+    done = convert_trace(args.input, args.out, force=args.force, **options)
+    left_out = f"; {done.left_out} head-pose samples left out (gaze only)" if done.left_out else ""
+    print(
+        f"{', '.join(map(str, done.written))}: {done.samples} samples as {done.output_format} from {args.input} "
+        f"({done.reading.device}, {done.reading.malformed} malformed lines skipped){left_out}"
+    )
     return 0
 
 
@@ -383,7 +465,9 @@ def build_parser() -> argparse.ArgumentParser:
     _key_options(driver)
     driver.set_defaults(run=cmd_driver)
     emulate = sub.add_parser("emulate", help="serve an emulated eye or head tracker for drivers to connect to")
-    emulate.add_argument("device", choices=EMULATORS, help="tracker protocol (razor, hatire: serial head trackers)")
+    emulate.add_argument(
+        "device", choices=EMULATORS, help="tracker protocol (razor, hatire: serial head trackers; lsl: no port)"
+    )
     emulate.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
     emulate.add_argument("--port", type=int, help="port (default: the device's usual one; 0 = any free port)")
     source = emulate.add_mutually_exclusive_group()
@@ -407,9 +491,13 @@ def build_parser() -> argparse.ArgumentParser:
     limit.add_argument("--duration", type=float, help=UNTIL)
     run.add_argument("--virtual-time", action="store_true", help="a simulated clock, one period per frame")
     run.add_argument("--report", help="write the run report JSON here (overrides the config's)")
+    run.add_argument("--frames-log", help="write every frame record here as JSON Lines (overrides the config's)")
     run.set_defaults(run=cmd_run)
     status = sub.add_parser("status", help="ask a running compositor daemon")
-    status.add_argument("--control", default=CONTROL, help=f"its control endpoint (default {CONTROL})")
+    status.add_argument(
+        "--control",
+        help="its control endpoint (default: this user's one running compositor, ipc:// in $XDG_RUNTIME_DIR/hmdrt)",
+    )
     status.add_argument("--json", action="store_true", help="print the status as JSON")
     status.add_argument("--report", action="store_true", help="print the run report so far (JSON)")
     status.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for an answer (default 2)")
@@ -417,10 +505,17 @@ def build_parser() -> argparse.ArgumentParser:
     status.set_defaults(run=cmd_status)
     evaluation = sub.add_parser("eval", help="measure error against run time of methods over scenes and traces")
     evaluation.add_argument("config", help="eval config (.toml), e.g. configs/eval/quick.toml")
-    evaluation.add_argument("--out", required=True, help="output folder: results.csv, results.json, plots")
+    where = evaluation.add_mutually_exclusive_group(required=True)
+    where.add_argument("--out", help="output folder: results.csv, results.json, plots")
+    where.add_argument("--resume", metavar="DIR", help="go on with an earlier run in DIR, keeping its finished cells")
     evaluation.add_argument("--frames", type=int, help="frames per cell (overrides the config's)")
     evaluation.add_argument("--warmup-frames", type=int, help="frames rendered before timing (overrides the config's)")
     evaluation.add_argument("--no-plots", action="store_true", help="write the results only")
+    evaluation.add_argument(
+        "--cluster",
+        type=_cluster_spec,
+        help="run on Dask: local:N (N worker processes here) or tcp://HOST:8786 (a scheduler); docs/cluster.md",
+    )
     evaluation.set_defaults(run=cmd_eval)
     record = sub.add_parser("record", help="record a device's gaze and pose from the bus into a native trace")
     record.add_argument("--out", required=True, help="output trace (.jsonl)")
@@ -435,6 +530,46 @@ def build_parser() -> argparse.ArgumentParser:
     keys.add_argument("--dir", default=".", help="folder to write the two files to (default: here)")
     keys.add_argument("--force", action="store_true", help="replace an existing keypair of that name")
     keys.set_defaults(run=cmd_keys)
+    watch = sub.add_parser("watch", help="serve a live view of a running compositor in the browser")
+    watch.add_argument("--telemetry", help="its telemetry endpoint (default: the one its control socket names)")
+    watch.add_argument(
+        "--control", help="its control endpoint (default: this user's one running compositor, as for status)"
+    )
+    watch.add_argument("--port", type=int, default=8765, help="port to serve the page on (default 8765; 0: any free)")
+    watch.add_argument(
+        "--bind", default="127.0.0.1", help="address to serve on (default 127.0.0.1; others need the CURVE keys)"
+    )
+    watch.add_argument(
+        "--allow-host", action="append", default=[], metavar="NAME", help="another Host name the page is opened by"
+    )
+    _key_options(watch)
+    watch.set_defaults(run=cmd_watch)
+    export = sub.add_parser("export", help="convert a run's frames log for other tools")
+    formats = export.add_subparsers(dest="export_format", required=True, parser_class=_Parser)
+    perfetto = formats.add_parser("perfetto", help="a timeline in Chrome trace-event JSON (Perfetto, chrome://tracing)")
+    perfetto.add_argument("frames_log", metavar="FRAMES.jsonl", help="a frames log ([output] frames_log)")
+    perfetto.add_argument("--out", required=True, help="output trace JSON, e.g. run.json")
+    perfetto.set_defaults(run=cmd_export_perfetto)
+    report = sub.add_parser("report", help="look at a finished run")
+    reports = report.add_subparsers(dest="report_action", required=True, parser_class=_Parser)
+    plot = reports.add_parser("plot", help="plot frame times, misses, latency and controller level as PNGs")
+    plot.add_argument(
+        "input", metavar="FRAMES.jsonl|REPORT.json", help="a frames log (.jsonl) or a run report (only percentiles)"
+    )
+    plot.add_argument("--out", required=True, help="output folder for the PNGs")
+    plot.set_defaults(run=cmd_report_plot)
+    convert = sub.add_parser("convert", help="convert a gaze trace to native JSONL or hmdrt CSV, or export it to BIDS")
+    convert.add_argument(
+        "input", metavar="IN", help="a trace: .jsonl[.gz], EyeLink .asc, GazeBaseVR, Pupil Player or hmdrt .csv"
+    )
+    convert.add_argument(
+        "out", metavar="OUT", help="output: .jsonl[.gz] (native), .csv[.gz] (hmdrt CSV), NAME_physio.tsv.gz (BIDS)"
+    )
+    convert.add_argument("--force", action="store_true", help="replace outputs that exist")
+    for name, text in READER_OPTIONS.items():
+        unit = "MM" if name.endswith("_mm") else "C"
+        convert.add_argument(f"--{name.replace('_', '-')}", dest=name, type=float, metavar=unit, help=text)
+    convert.set_defaults(run=cmd_convert)
     return parser
 
 

@@ -177,6 +177,12 @@ def gaze_direction(yaw_deg: float, pitch_deg: float) -> Vec3:
     return (math.sin(yaw) * math.cos(pitch), math.sin(pitch), -math.cos(yaw) * math.cos(pitch))
 
 
+def gaze_angles(direction: Sequence[float]) -> tuple[float, float]:
+    """(yaw, pitch) in degrees of a head-frame gaze direction: the inverse of gaze_direction for yaw within +-180."""
+    x, y, z = direction
+    return math.degrees(math.atan2(x, -z)), math.degrees(math.atan2(y, math.hypot(x, z)))
+
+
 def mean_direction(a: ArrayLike, b: ArrayLike) -> Vec | None:
     """Unit mean of two unit directions, e.g. a binocular gaze's centre; None if they cancel out."""
     mean = tuple(float(p) + float(q) for p, q in zip(a, b, strict=True))

@@ -22,6 +22,7 @@ from typing import IO, AnyStr
 
 import msgspec
 
+from hmdrt.atomic import write_atomic
 from hmdrt.bus.messages import Gaze, Pose, numpy_scalar, usable
 from hmdrt.errors import ConfigError
 
@@ -150,11 +151,12 @@ class TraceWriter:
 
 
 def write_trace(path: str | Path, samples: Iterable[Sample], device: str = "") -> None:
-    """Write samples as a native trace (gzip when the name ends in .gz)."""
+    """Write samples as a native trace (gzip when the name ends in .gz), whole or not at all (write_atomic)."""
     path = Path(path)
-    opener = gzip.open if path.suffix == ".gz" else open
-    with opener(path, "wb") as f:
-        writer = TraceWriter(f)
-        writer.header(device)
-        for sample in samples:
-            writer.sample(sample)
+    buffer = io.BytesIO()
+    writer = TraceWriter(buffer)
+    writer.header(device)
+    for sample in samples:
+        writer.sample(sample)
+    data = buffer.getvalue()
+    write_atomic(path, gzip.compress(data, mtime=0) if path.suffix == ".gz" else data)

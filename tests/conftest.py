@@ -1,11 +1,12 @@
 """Shared fixtures, after pyzmq's test base: a fresh ZeroMQ context per test whose sockets are tracked and closed
-with linger 0 (free loopback ports: tests/helpers.free_port), and a per-test time limit so that a hung socket
-fails its test rather than hanging the run."""
+with linger 0, and a per-test time limit so that a hung socket fails its test rather than hanging the run. The
+context, the runtime folder and the compositors come from hmdrt's pytest plugin (hmdrt.testing.pytest_plugin)."""
 
 from __future__ import annotations
 
 import signal
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 import zmq
@@ -21,11 +22,24 @@ def whitted_scene() -> Scene:
 
 
 @pytest.fixture
-def context() -> Iterator[zmq.Context]:
+def context(hmdrt_context: zmq.Context) -> zmq.Context:
     """A ZeroMQ context of this test's own (each has room for its own ZAP handler), destroyed with linger 0."""
-    ctx = zmq.Context()
-    yield ctx
-    ctx.destroy(linger=0)
+    return hmdrt_context
+
+
+@pytest.fixture(autouse=True)
+def runtime_dir(hmdrt_runtime_dir: Path) -> Path:
+    """Every test gets an XDG_RUNTIME_DIR of its own (the plugin's hmdrt_runtime_dir), also for its subprocesses."""
+    return hmdrt_runtime_dir
+
+
+@pytest.fixture
+def own_signals() -> Iterator[None]:
+    """`hmdrt run` in this process installs its SIGINT, SIGTERM and SIGHUP handlers: put pytest's back after."""
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    yield
+    for sig, handler in saved.items():
+        signal.signal(sig, handler)
 
 
 @pytest.fixture

@@ -17,15 +17,14 @@ from numpy.typing import ArrayLike
 from drivers.base import DeviceLost, Driver, Sample
 from drivers.emulators.base import Emulator
 from drivers.protocols import fove
+from hmdrt.api import render_frame
 from hmdrt.bus.messages import Gaze
 from hmdrt.clock import VirtualClock
-from hmdrt.foveation import FrameRequest, make_method
-from hmdrt.optics import EyeCamera, get_profile
-from hmdrt.scene import Scene, load_scene
+from hmdrt.foveation import MethodChoice
+from hmdrt.optics import get_profile
+from hmdrt.scene import Scene
 from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
-from hmdrt.trace.gbuffer import GBuffer
-from hmdrt.trace.integrator import Whitted
 from replay.trace import write_trace
 
 DATA = Path(__file__).parent / "data"
@@ -42,25 +41,15 @@ def render(
     ipd_mm: float | None = None,
     **options,
 ) -> tuple[np.ndarray, FrameStats]:
-    """One frame of a scene through sim-cpu optics at a small resolution."""
-    scene = load_scene(scene) if isinstance(scene, str) else scene
-    profile = get_profile("sim-cpu").with_resolution(width, height)
+    """One frame of a scene through sim-cpu optics at a small resolution, gaze ahead (hmdrt.api.render_frame)."""
+    profile = get_profile("sim-cpu")
     if ipd_mm is not None:
         profile = msgspec.structs.replace(profile, ipd_mm=ipd_mm)
-    with Whitted(scene) as tracer:
-        stats = FrameStats()
-        cam = EyeCamera.for_eye(profile, pose or scene.start)
-        image = make_method(method, tracer, **options).render(FrameRequest(cam, FORWARD, 0, seed), stats)
-    return image, stats
-
-
-def trace_gbuffer(scene: Scene, camera: EyeCamera, xy: np.ndarray) -> tuple[np.ndarray, GBuffer, FrameStats]:
-    """Radiance and G-buffer of camera samples xy (n, 2)."""
-    with Whitted(scene) as tracer:
-        stats = FrameStats()
-        gbuf = GBuffer.empty(len(xy))
-        rgb = tracer.trace_samples(camera, xy, np.arange(len(xy)), stats, gbuf)
-    return rgb, gbuf, stats
+    choice = MethodChoice.parse(method, **options)
+    frame = render_frame(
+        scene, profile, choice, FORWARD, resolution=(width, height), pose=pose, seed=seed, gbuffer=False
+    )
+    return frame.image, frame.stats
 
 
 class SteppingClock(VirtualClock):
@@ -68,13 +57,6 @@ class SteppingClock(VirtualClock):
 
     def sleep_until(self, t_ns: int) -> None:
         self.advance_to(max(self.now_ns(), t_ns))
-
-
-def free_port() -> int:
-    """A loopback TCP port nobody listens on now (for URLs handed to other processes)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:

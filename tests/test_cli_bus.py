@@ -12,10 +12,11 @@ import pytest
 from drivers.emulators.smi_server import SmiEmulator
 from drivers.host import DriverHost
 from hmdrt.bus.messages import Gaze, Pose
+from hmdrt.testing import free_port
 from replay import load_trace
 from replay.recorder import Recorder
 
-from .helpers import free_port, wait_for
+from .helpers import wait_for
 
 
 def start(*args: str) -> subprocess.Popen:

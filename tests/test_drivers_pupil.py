@@ -15,8 +15,9 @@ from drivers.emulators.feed import GazeFeed
 from drivers.emulators.pupil_server import EYE_CAMERA_TO_WORLD, PupilEmulator, pupil_datum
 from drivers.pupil import TIME_PROBES, MalformedDatum, PupilDriver, decode_gaze
 from hmdrt.spatial import gaze_direction
+from hmdrt.testing import free_port
 
-from .helpers import SECTION7_GAZE, assert_lost_when_stopped, at_least, collect, free_port, gaze_trace
+from .helpers import SECTION7_GAZE, assert_lost_when_stopped, at_least, collect, gaze_trace
 
 STILL_YAW, STILL_PITCH, STILL_DEPTH = 8.0, -4.0, 0.8
 # The keys of a Capture 3.5 3D pupil datum: PupilDetectorPlugin.create_pupil_datum's (pupil-labs/pupil,

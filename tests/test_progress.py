@@ -14,8 +14,7 @@ import pytest
 
 from hmdrt.cli import main
 from hmdrt.progress import CLEAR_LINE, StatusLine
-
-from .test_runtime import own_signals, write_config  # noqa: F401 (a fixture)
+from hmdrt.testing import write_config
 
 
 @pytest.fixture

@@ -22,10 +22,11 @@ from hmdrt.compositor.config import Fallback
 from hmdrt.compositor.fallback import GazeFallback, Outages
 from hmdrt.compositor.samples import MAX_DEVICES
 from hmdrt.errors import ConfigError
+from hmdrt.testing import TRACE, Background, compositor, free_port, write_config
 from replay import load_trace
 
-from .helpers import free_port, wait_for
-from .test_runtime import TRACE, Background, compositor, readline, start_run, write_config
+from .helpers import wait_for
+from .test_runtime import readline, start_run
 
 MS = 1_000_000
 

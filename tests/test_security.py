@@ -23,12 +23,11 @@ from hmdrt.compositor.config import load_config
 from hmdrt.compositor.daemon import Compositor
 from hmdrt.compositor.endpoints import request
 from hmdrt.errors import ConfigError
+from hmdrt.testing import ANY_PORT, Background, compositor, write_config
 
 from . import test_runtime as runtime
 from .helpers import wait_for
 
-own_signals = runtime.own_signals
-ANY_PORT = runtime.ANY_PORT
 NO_ANSWER_S = 0.5  # how long a refused client waits for the answer that never comes
 
 
@@ -44,9 +43,11 @@ def client(keys: dict, name: str, server: str = "server") -> ClientKeys:
 
 
 def secured_config(tmp_path: Path, keys: dict, **sections) -> Path:
-    """A run config (tests.test_runtime.write_config) whose bus is guarded by CURVE, with alice allowed."""
+    """A run config (hmdrt.testing.write_config) whose bus, control on tcp:// too, is guarded by CURVE, with
+    alice allowed."""
     security = {"server_key": str(keys["server"][1]), "allowed_clients": [str(keys["alice"][0])]}
-    return runtime.write_config(tmp_path / "secured.toml", security=security, **sections)
+    sections["bus"] = {"control": ANY_PORT, **sections.get("bus", {})}
+    return write_config(tmp_path / "secured.toml", security=security, **sections)
 
 
 def refused(comp: Compositor) -> int:
@@ -91,7 +92,7 @@ def test_loopback_is_127_0_0_0_8_ipv6_loopback_localhost_and_local_transports():
 
 
 def test_a_non_loopback_bind_without_security_is_a_one_line_error(tmp_path):
-    config = runtime.write_config(tmp_path / "open.toml", bus={"telemetry": "tcp://0.0.0.0:*"})
+    config = write_config(tmp_path / "open.toml", bus={"telemetry": "tcp://0.0.0.0:*"})
     r = runtime.hmdrt("run", str(config), "--frames", "1")
     assert r.returncode == 1
     runtime.assert_one_line_error(r.stderr, "bus.telemetry = tcp://0.0.0.0:* is not loopback: binding it needs CURVE")
@@ -108,7 +109,7 @@ def test_a_non_loopback_bind_without_security_is_a_one_line_error(tmp_path):
 )
 def test_an_incomplete_security_section_is_an_error_at_start(tmp_path, keys, context, security, message):
     folder = keys["server"][0].parent  # the key paths are relative to the config file
-    config = runtime.write_config(folder / f"{tmp_path.name}.toml", bus={"ingest": "tcp://*:*"}, security=security)
+    config = write_config(folder / f"{tmp_path.name}.toml", bus={"ingest": "tcp://*:*"}, security=security)
     with pytest.raises(ConfigError, match=message):
         Compositor(load_config(config), context=context)
 
@@ -117,7 +118,7 @@ def test_an_incomplete_security_section_is_an_error_at_start(tmp_path, keys, con
 
 
 def test_control_answers_only_allowed_keys_and_counts_the_refused(tmp_path, keys, context, capsys):
-    with runtime.compositor(secured_config(tmp_path, keys), context) as comp:
+    with compositor(secured_config(tmp_path, keys), context) as comp:
         control, alice = comp.control.address, client(keys, "alice")
         status = request(control, {"cmd": "status"}, keys=alice)
         assert status["ok"] and status["security"]["curve"] and status["security"]["admitted"] >= 1
@@ -167,7 +168,7 @@ def hears_telemetry(context: zmq.Context, comp: Compositor, keys: ClientKeys | N
 
 
 def test_telemetry_reaches_only_allowed_keys(tmp_path, keys, context):
-    with runtime.compositor(secured_config(tmp_path, keys), context) as comp:
+    with compositor(secured_config(tmp_path, keys), context) as comp:
         assert not hears_telemetry(context, comp, None)
         assert not hears_telemetry(context, comp, client(keys, "mallory"))
         assert hears_telemetry(context, comp, client(keys, "alice"))
@@ -175,7 +176,7 @@ def test_telemetry_reaches_only_allowed_keys(tmp_path, keys, context):
 
 def test_a_mutating_command_without_a_client_identity_is_refused_and_counted(tmp_path, keys, context):
     """Under CURVE no such request can arrive; the control server still checks, in case one ever did."""
-    with runtime.compositor(secured_config(tmp_path, keys), context) as comp:
+    with compositor(secured_config(tmp_path, keys), context) as comp:
         anonymous = [zmq.Frame(msgspec.msgpack.encode({"cmd": "shutdown"}))]
         reply = comp.control._reply(anonymous)
         assert not reply["ok"] and "needs an authenticated (CURVE) client" in reply["error"]
@@ -191,14 +192,14 @@ def test_only_the_keyed_drivers_samples_reach_the_ingest(tmp_path, keys, context
     """Three drivers publish: the config's own (keys of the compositor's making), `hmdrt driver` with alice's
     keys, and one without keys. The third is refused at the handshake, counted, and none of its samples arrive;
     the run report counts it too."""
-    with runtime.compositor(secured_config(tmp_path, keys), context, frames=30) as comp:
+    with compositor(secured_config(tmp_path, keys), context, frames=30) as comp:
         stop = threading.Event()
         plain = DriverHost("synthetic://?seed=2&rate=250&name=plain", comp.ingest.address, subscriber_wait_s=0.2)
         thread = threading.Thread(target=plain.run, args=(stop,))
         thread.start()
         try:
             assert wait_for(lambda: refused(comp) >= 1)
-            running = runtime.Background(comp)
+            running = Background(comp)
             url = "synthetic://?seed=1&rate=250&name=keyed"
             code = main(["driver", url, "--bus", comp.ingest.address, *key_options(keys, "alice"), "--duration", "1"])
             assert code == 0

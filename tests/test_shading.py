@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from hmdrt.api import trace_gbuffer
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
 from hmdrt.scene import Scene, load_scene
@@ -17,7 +18,7 @@ from hmdrt.spatial import Pose
 from hmdrt.trace.bsdf import fresnel_dielectric, reflect, refract, split
 from hmdrt.trace.textures import sample_texture
 
-from .helpers import render, trace_gbuffer
+from .helpers import render
 
 unit = st.floats(-1.0, 1.0)
 

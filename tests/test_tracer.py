@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from hmdrt.api import trace_gbuffer
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
 from hmdrt.scene import Scene
@@ -14,7 +15,7 @@ from hmdrt.spatial import Pose
 from hmdrt.trace.blocks import BLOCK
 from hmdrt.trace.tracer import Tracer
 
-from .helpers import render, trace_gbuffer
+from .helpers import render
 
 
 def _tracer(meshes) -> Tracer:

@@ -10,11 +10,12 @@ from drivers.emulators.feed import GazeFeed
 from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 
-# name -> (class, default port, default rate Hz, default capture-to-send latency ms)
+# name -> (class, default port (None: found by LSL's discovery, no port), default rate Hz, default latency ms)
 EYE_TRACKERS = {
     "smi": ("drivers.emulators.smi_server:SmiEmulator", 4444, 250.0, 0.0),
     "fove": ("drivers.emulators.fove_server:FoveEmulator", 50050, 120.0, 20.0),
     "pupil": ("drivers.emulators.pupil_server:PupilEmulator", 50020, 200.0, 0.0),
+    "lsl": ("drivers.emulators.lsl_source:LslEmulator", None, 120.0, 0.0),
 }
 HEAD_TRACKERS = ("razor", "hatire")  # serial, behind a pseudo-terminal
 EMULATORS = (*EYE_TRACKERS, *HEAD_TRACKERS)
@@ -56,8 +57,10 @@ def make_emulator(
     if device not in EYE_TRACKERS:
         raise ConfigError(f"no emulator {device!r}; emulators: {', '.join(EMULATORS)}")
     target, default_port, default_rate, default_latency = EYE_TRACKERS[device]
+    if default_port is None and port is not None:
+        raise ConfigError(f"the {device} emulator is found by LSL's discovery, not at a port; it takes no --port")
     port = default_port if port is None else port
-    if not 0 <= port <= 65535:
+    if port is not None and not 0 <= port <= 65535:
         raise ConfigError(f"--port must be within 0 and 65535 (0: any free port), got {port}")
     for flag, value, lo, hi in (
         ("--offset", offset_deg, -45.0, 45.0),
@@ -75,5 +78,7 @@ def make_emulator(
         latency_ms=default_latency if latency_ms is None else latency_ms,
         clock=clock,
     )
+    if default_port is None:
+        return _load(target)(feed=feed, clock=clock)
     options = {"rate_hz": feed.rate_hz} if device != "fove" else {"seed": seed}
     return _load(target)(host=host, port=port, feed=feed, clock=clock, **options)

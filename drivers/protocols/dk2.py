@@ -172,7 +172,7 @@ def encode_dk2_report(r: Dk2SensorReport) -> bytes:
 
 @dataclass(frozen=True)
 class Dk1SensorReport:
-    """DK1 report 0x01: up to three samples, a u16 timestamp of unconfirmed unit (section 9)."""
+    """DK1 report 0x01: up to three samples, a u16 timestamp of unconfirmed unit (section 10)."""
 
     num_samples: int
     timestamp: int

@@ -10,7 +10,7 @@ FrameError and the stream goes on with the next frame.
 
 Records. Every map has "type"; unknown keys are refused; numbers must be finite (|v| <= 1e6), and
 unit length is the reader's check. Vectors are [x, y, z] floats in FOVE's head frame: LEFT-handed,
-+X right, +Y up, +Z forward, metres (section 2; section 9 notes the handedness is inferred).
++X right, +Y up, +Z forward, metres (section 2; section 10 notes the handedness is inferred).
 Timestamps are u64 microseconds on the device's clock (unspecified epoch); ids are u64 frame
 counters that increase by one per frame, so a gap is a lost frame (section 2: "use the frame id").
 

@@ -2,4 +2,4 @@
 
 INGEST = "tcp://127.0.0.1:5560"  # the compositor's SUB; drivers connect their PUB here
 TELEMETRY = "tcp://127.0.0.1:5561"
-CONTROL = "tcp://127.0.0.1:5562"
+# the control REP binds ipc:// in a folder of this user's only by default: hmdrt.bus.local

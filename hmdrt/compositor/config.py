@@ -12,7 +12,7 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from hmdrt.bus import CONTROL, INGEST, TELEMETRY
+from hmdrt.bus import INGEST, TELEMETRY
 from hmdrt.configfile import convert, read_toml
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import MethodChoice
@@ -44,7 +44,7 @@ class Driver(_Section):
 class Bus(_Section):
     ingest: str = INGEST
     telemetry: str = TELEMETRY
-    control: str = CONTROL
+    control: str = ""  # "": ipc:// in a folder of this user's only (hmdrt.bus.local); tcp:// reads only without CURVE
 
 
 class Security(_Section):
@@ -97,6 +97,14 @@ class Output(_Section):
     frames_dir: str = ""  # presented frames as PNG ("" : none)
     video: str = ""  # presented frames as an H.264 video at refresh / every fps ("": none; the video extra)
     every: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 1  # every Nth VSync, to frames_dir and video
+    snapshot_dir: str = ""  # where the control `snapshot` writes, by file name ("": the folder hmdrt run started in)
+    frames_log: str = ""  # every frame record as JSON Lines, appended and flushed ("": none)
+
+
+class Lsl(_Section):
+    """Lab Streaming Layer outlets of what was shown (hmdrt.compositor.lsl_outlets); needs the `lsl` extra."""
+
+    outlets: list[Literal["frames", "samples"]] = []  # frames: a marker per VSync; samples: each frame's gaze and pose
 
 
 class Run(_Section):
@@ -122,6 +130,7 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     controller: Controller = Controller()
     fallback: Fallback = Fallback()
     output: Output = Output()
+    lsl: Lsl = Lsl()
     run: Run = Run()
     source: str = ""  # the file it was read from (set on load)
 
@@ -131,7 +140,7 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         return MethodChoice.parse(self.method.name, **self.method.options)
 
 
-RESTART_ONLY = ("scene", "display", "drivers", "bus", "security")  # a running compositor cannot change these
+RESTART_ONLY = ("scene", "display", "drivers", "bus", "security", "lsl")  # a running compositor cannot change these
 
 
 def reload_plan(old: RunConfig, new: RunConfig) -> tuple[RunConfig, list[str]]:
@@ -177,7 +186,9 @@ def load_config(path: str | Path | None = None, **overrides) -> RunConfig:
         output,
         report=str(base / output.report) if output.report else "",
         frames_dir=str(base / output.frames_dir) if output.frames_dir else "",
+        snapshot_dir=str(base / output.snapshot_dir) if output.snapshot_dir else str(Path.cwd()),
         video=str(base / output.video) if output.video else "",
+        frames_log=str(base / output.frames_log) if output.frames_log else "",
     )
     if config.security is not None:
         keys = config.security

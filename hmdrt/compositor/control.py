@@ -3,11 +3,14 @@
 A request is a msgpack map {"cmd": name, ...} (hmdrt.compositor.endpoints.ControlServer decodes and size-caps
 it); the reply is a map with "ok". A mutating command changes the compositor or writes a file, and with
 CURVE security only an authenticated client may send one. Bad arguments get an error reply, never a
-traceback; a method change is queued and applied between frames.
+traceback; a method change is queued and applied between frames. A snapshot is written only into
+[output] snapshot_dir, by plain file name and never over an existing file: a refused one is counted.
 """
 
 from __future__ import annotations
 
+import logging
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +22,11 @@ from hmdrt.present.encode import side_by_side_srgb8, write_png
 
 if TYPE_CHECKING:
     from hmdrt.compositor.daemon import Compositor
+
+log = logging.getLogger(__name__)
+
+# a file name and no more: no folder, no "..", not hidden, so a snapshot lands in snapshot_dir and nowhere else
+SNAPSHOT_NAME = re.compile(r"(?!.*\.\.)[A-Za-z0-9_-][A-Za-z0-9._-]{0,200}\.png")
 
 
 @dataclass(frozen=True)
@@ -50,13 +58,30 @@ def _set(comp: Compositor, request: dict) -> dict:
 
 
 def _snapshot(comp: Compositor, request: dict) -> dict:
-    path, images = request.get("path"), comp.shown_images
-    if not isinstance(path, str) or not path.endswith(".png"):
-        return {"ok": False, "error": 'snapshot takes "path": "out.png"'}
+    """The frame shown last as a PNG in [output] snapshot_dir; the reply gives where. Any client of the control
+    socket may ask, so the name may not lead elsewhere or replace a file."""
+    name, images, folder = request.get("path"), comp.shown_images, Path(comp.config.output.snapshot_dir)
+    if not isinstance(name, str) or not SNAPSHOT_NAME.fullmatch(name):
+        return _refuse_snapshot(
+            comp,
+            f'snapshot takes "path": a file name such as "shown.png" (letters, digits, ".", "_", "-"; no folder '
+            f"or ..), written to {folder}; got {repr(name)[:80]}",
+        )
     if images is None:
         return {"ok": False, "error": "nothing has been shown yet"}
-    write_png(Path(path), side_by_side_srgb8(images))
-    return {"ok": True, "path": path}
+    path = folder / name
+    try:
+        write_png(path, side_by_side_srgb8(images), replace=False)
+    except FileExistsError:
+        return _refuse_snapshot(comp, f"snapshot: {path} exists; a snapshot never replaces a file")
+    log.info("snapshot written to %s", path)
+    return {"ok": True, "path": str(path)}
+
+
+def _refuse_snapshot(comp: Compositor, error: str) -> dict:
+    comp.snapshots_refused += 1
+    log.warning("refused: %s", error)
+    return {"ok": False, "error": error}
 
 
 def _shutdown(comp: Compositor, request: dict) -> dict:

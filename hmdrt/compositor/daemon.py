@@ -4,7 +4,8 @@ Each frame, as a compositor pacer schedules it (Monado's u_pacing; hmdrt.composi
 the predicted time, sample gaze and head pose predicted for the frame's display time from what has
 arrived, render through the method, and hand the frame to the display, which latches it at its VSync
 or, when it is late, shows the last frame again timewarped to the newest head pose. Telemetry goes
-out per VSync (`frame`) and each second (`stats`); the run report is written at the end, also after
+out per VSync (`frame`) and each second (`stats`), and previews of the shown frames (`preview`,
+hmdrt.compositor.preview) while a client subscribes to them; the run report is written at the end, also after
 SIGTERM. In real time the render loop and the display run on their own threads against the host
 clock; with virtual_time the clock moves one period per frame, drivers are polled against it, and
 runs reproduce bit for bit. The control socket's commands are hmdrt.compositor.control's, the frames on disk
@@ -29,6 +30,7 @@ import numpy as np
 import zmq
 
 from hmdrt import __version__
+from hmdrt.bus.local import bind_endpoint
 from hmdrt.bus.security import Guard, ServerKeys, check_binds
 from hmdrt.clock import MONOTONIC, Clock, VirtualClock
 from hmdrt.compositor import control
@@ -40,7 +42,9 @@ from hmdrt.compositor.controller import BudgetController, ControllerConfig
 from hmdrt.compositor.display import Display, Frame
 from hmdrt.compositor.endpoints import ControlServer, Ingest, Telemetry
 from hmdrt.compositor.fallback import Outages
+from hmdrt.compositor.lsl_outlets import LslOutlets
 from hmdrt.compositor.pacer import FrameTiming, Pacer
+from hmdrt.compositor.preview import PREVIEW, PreviewPublisher
 from hmdrt.compositor.samples import GazeEstimate, PoseEstimate, SampleStore
 from hmdrt.compositor.session import Session
 from hmdrt.compositor.sources import Sources
@@ -50,6 +54,7 @@ from hmdrt.logs import TelemetryHandler
 from hmdrt.optics import EyeCamera
 from hmdrt.present.output import FrameWriter, check_folder
 from hmdrt.sequence import compose_pose, eye_cameras
+from hmdrt.telemetry.frames_log import FramesHeader, FramesLog
 from hmdrt.telemetry.report import FrameRecord, RunReport, SampleUse
 from hmdrt.telemetry.stats import FrameStats
 
@@ -73,6 +78,7 @@ class Compositor:
         security = config.security
         check_binds({f"bus.{k}": v for k, v in msgspec.structs.asdict(config.bus).items()}, security is not None)
         self._server_keys = ServerKeys.load(security.server_key, security.allowed_clients) if security else None
+        self._control_endpoint = bind_endpoint(config.bus.control)  # by default in a folder of this user's only
         self._kernel_threads = self._kernel_thread_count(config)
         self.session = Session(config)
         self.store = SampleStore(horizon_ns=int(config.prediction.horizon_ms * 1e6))
@@ -84,12 +90,20 @@ class Compositor:
         # (frame id, frame ms, missed) for the controller: appended by the display thread, taken by the render thread
         self._presents: deque[tuple[int, float, bool]] = deque()
         self.writer: FrameWriter | None = None
+        self.frames_log: FramesLog | None = None
+        self.lsl: LslOutlets | None = None
         self.shown_images: list[np.ndarray] | None = None
+        self.snapshots_refused = 0  # snapshot names that led out of the snapshot folder or to an existing file
         self.stop = threading.Event()
         self._context = context or zmq.Context.instance()
         try:
+            if config.output.frames_log:  # opened before the start-up's work: a path it cannot write fails at once
+                self.frames_log = FramesLog(config.output.frames_log, self._frames_header(), block=virtual)
+            if config.lsl.outlets:  # likewise: without pylsl it fails at once
+                self.lsl = LslOutlets(config.lsl.outlets, self.clock, block=virtual)
             self.guard = Guard(self._context, self._server_keys) if self._server_keys else None  # before any bind
-            self.telemetry = Telemetry(self._context, config.bus.telemetry, self.guard)
+            self.telemetry = Telemetry(self._context, config.bus.telemetry, self.guard, on_demand=(PREVIEW,))
+            self.preview = PreviewPublisher(self.telemetry)
             self._log = TelemetryHandler(self.telemetry.publish)
             self._log.attach()
             self.ingest = Ingest(self._context, config.bus.ingest, self.store.add, self.clock, self.guard)
@@ -111,17 +125,36 @@ class Compositor:
             self.vsync = VsyncClock(self.session.profile.period_ns, self.clock.now_ns() + FIRST_PRESENT_NS)
             self.pacer = Pacer(self.vsync, **self._pacing(config))
             out = config.output
-            self.writer = FrameWriter(out.frames_dir, out.video, out.every, self.session.profile.refresh_hz)
+            self.writer = FrameWriter(
+                out.frames_dir, out.video, out.every, self.session.profile.refresh_hz, block=virtual
+            )
             self.display = Display(
                 self.vsync, self.clock, self._warp_target, self._shown, self._dropped, warp_deadline=not virtual
             )
             self.control = ControlServer(
-                self._context, config.bus.control, partial(control.handle, self), MUTATING, self.guard
+                self._context, self._control_endpoint, partial(control.handle, self), MUTATING, self.guard
             )
         except (HmdrtError, ValueError):
             self.close()
             raise
         self._started_ns = self.clock.now_ns()
+
+    def _frames_header(self) -> FramesHeader:
+        """The frames log's first line: the run, and the period and margin its frames are measured against."""
+        config, profile = self.config, self.session.profile
+        return FramesHeader(
+            vsync_hz=profile.refresh_hz,
+            period_ns=profile.period_ns,
+            margin_ns=int(config.pacing.margin_ms * 1e6),
+            virtual_time=config.run.virtual_time,
+            method=self.session.spec,
+            profile=profile.name,
+            scene=self.session.scene.name,
+            controller=config.controller.kind,
+            seed=config.run.seed,
+            config=config.source,
+            hmdrt=__version__,
+        )
 
     @staticmethod
     def _kernel_thread_count(config: RunConfig) -> int:
@@ -220,6 +253,8 @@ class Compositor:
             render_start_ns=start,
             render_end_ns=end,
             gaze=self._use(gaze),
+            gaze_dirs=None if gaze is None else {"left": gaze.left, "right": gaze.right},
+            head_pose=None if pose is None else (pose.position, pose.orientation),
             pose=self._use(pose),
             method=self.session.method.name,
             params=self.session.params(),
@@ -227,6 +262,7 @@ class Compositor:
             rays=sum(stats.rays.values()),
             frame_ms=0.0,
             render_ms=render_ns / 1e6,
+            level=None if self.controller is None else self.controller.level,
         )
         frame.frame_ms = (loop_ns + time.perf_counter_ns() - t0) / 1e6
         return frame
@@ -239,8 +275,14 @@ class Compositor:
                 self._presents.append((record.frame_id, record.frame_ms, record.missed))
             self.report.add(record)
         self.shown_images = images
-        self.telemetry.publish("frame", record.to_dict())
+        frame = record.to_dict()
+        self.telemetry.publish("frame", frame)
+        if self.frames_log is not None:
+            self.frames_log.offer(frame)
+        if self.lsl is not None:
+            self.lsl.offer(record, self.display.last)
         self.writer.offer(record.vsync, images)
+        self.preview.offer(record, images, self.display.last.cameras, self.display.last.gaze_dirs)
 
     def _dropped(self, frame: Frame, t_vsync: int) -> None:
         with self._lock:
@@ -347,6 +389,10 @@ class Compositor:
     def run(self) -> dict:
         """Run until stopped, the frame count or the duration; returns the run report."""
         self.writer.start()
+        if self.frames_log is not None:
+            self.frames_log.start()
+        if self.lsl is not None:
+            self.lsl.start()
         stats = threading.Thread(target=self._stats_loop, name="stats", daemon=True)
         stats.start()
         switch = sys.getswitchinterval()
@@ -367,7 +413,9 @@ class Compositor:
             sys.setswitchinterval(switch)
             self.stop.set()
             self.writer.close()
-        return self.summary()
+            if self.frames_log is not None:
+                self.frames_log.close()
+        return self.summary()  # the LSL outlets stay until close(): inlets may still be reading what they sent
 
     def _stats_loop(self) -> None:
         while not self.stop.wait(1.0):
@@ -390,6 +438,10 @@ class Compositor:
         display, drivers, bus or security needs a restart and is reported as such."""
         try:
             config, restart = reload_plan(self.config, load_config(source))
+            if config.output.frames_log != self.config.output.frames_log:  # the open log stays as it runs
+                restart.append("output.frames_log")
+                output = msgspec.structs.replace(config.output, frames_log=self.config.output.frames_log)
+                config = msgspec.structs.replace(config, output=output)
             pacing = self._pacing(config)
             check_folder(config.output.frames_dir)
             self.session.set_method(config.method_choice)
@@ -421,6 +473,7 @@ class Compositor:
             "shown": shown,
             "pacing": pacing,
             "devices": self.store.devices,
+            "drivers": {device: msgspec.to_builtins(status) for device, status in list(self.ingest.status.items())},
             "endpoints": {
                 "ingest": self.ingest.address,
                 "telemetry": self.telemetry.address,
@@ -431,10 +484,12 @@ class Compositor:
 
     def security(self) -> dict:
         """Whether CURVE guards the bus and, if so, the handshakes it admitted and refused (clients without the
-        keys are refused at the handshake, so their requests and samples never arrive)."""
+        keys are refused at the handshake, so their requests and samples never arrive); and the control commands
+        and snapshot names refused."""
+        refused = {"commands_refused": self.control.unauthorised, "snapshots_refused": self.snapshots_refused}
         if self.guard is None:
-            return {"curve": False}
-        return {"curve": True, **self.guard.counts(), "commands_refused": self.control.unauthorised}
+            return {"curve": False, **refused}
+        return {"curve": True, **self.guard.counts(), **refused}
 
     def drivers(self) -> dict[str, dict]:
         out = {}
@@ -485,6 +540,8 @@ class Compositor:
             outages=self.outages.to_dict(),
             devices_refused=self.store.devices_refused,
             frames_not_written=self.writer.skipped + self.writer.failed,
+            **self._frames_log_counts(),
+            **({} if self.lsl is None else {"lsl_not_pushed": self.lsl.skipped + self.lsl.failed}),
             config=self.config.source,
             hmdrt=__version__,
             security=self.security(),
@@ -500,14 +557,24 @@ class Compositor:
             }
         return report
 
+    def _frames_log_counts(self) -> dict:
+        """frames_log_not_written: records the frames log dropped (real time) or could not write; {} without one."""
+        frames_log = self.frames_log
+        return {} if frames_log is None else {"frames_log_not_written": frames_log.skipped + frames_log.failed}
+
     def close(self) -> None:
         self.stop.set()
         gc.unfreeze()  # a process that goes on (tests, a caller) collects them again
         if self.writer is not None:
             self.writer.close()
+        if self.frames_log is not None:
+            self.frames_log.close()
+        if self.lsl is not None:
+            self.lsl.close()
         if getattr(self, "_log", None) is not None:
             self._log.detach()  # before the telemetry socket closes
-        for part in ("sources", "control", "ingest", "telemetry", "guard"):  # the guard last: it answers the others
+        # the preview before the telemetry it publishes on; the guard last: it answers the others
+        for part in ("sources", "control", "ingest", "preview", "telemetry", "guard"):
             if getattr(self, part, None) is not None:
                 getattr(self, part).close()
         self.session.close()

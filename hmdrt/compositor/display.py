@@ -50,6 +50,9 @@ class Frame:
     rays: int
     frame_ms: float  # the render thread's wall-clock work for it: from wake-up to built, its planning and hand-over
     render_ms: float  # the method's part of it
+    level: float | None = None  # the controller's quality level it was rendered at (None: no controller)
+    gaze_dirs: dict[str, np.ndarray] | None = None  # each eye's unit gaze (head frame) it was rendered for; None: ahead
+    head_pose: tuple[np.ndarray, np.ndarray] | None = None  # head position (m), orientation (w, x, y, z); None: start
 
 
 # (vsync time) -> the eye cameras at the newest head pose for that VSync, and the pose sample used
@@ -182,4 +185,5 @@ class Display:
             rays=frame.rays if shown != "repeat" else 0,
             frame_ms=frame.frame_ms if shown != "repeat" else 0.0,
             render_ms=frame.render_ms if shown != "repeat" else 0.0,
+            level=frame.level,
         )

@@ -9,19 +9,23 @@ reply rather than a crash. Endpoints ending in ":*" bind a free port; `address` 
 
 With a Guard (hmdrt.bus.security) every socket is a CURVE server that admits only allowed client keys,
 and the control socket answers the commands that change the compositor (hmdrt.compositor.control says which)
-only for a client that authenticated; without one the sockets bind loopback only and a local client is trusted.
+only for a client that authenticated; without one the sockets bind loopback only, and those commands are
+answered on an ipc:// control socket (a private folder's: hmdrt.bus.local) but refused on a tcp:// one, which
+every user of the machine can reach.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable
 
 import msgspec
 import zmq
 
-from hmdrt.bus.messages import MAX_PAYLOAD_BYTES, MalformedMessage, Status, decode, pack
-from hmdrt.bus.security import ClientKeys, Guard
+from hmdrt.bus.local import ipc_path
+from hmdrt.bus.messages import MAX_PAYLOAD_BYTES, MAX_TOPIC_BYTES, MalformedMessage, Status, decode, pack
+from hmdrt.bus.security import LOCAL_TRANSPORTS, ClientKeys, Guard
 from hmdrt.errors import ConfigError
 
 POLL_MS = 50
@@ -90,15 +94,31 @@ class Ingest:
 
 
 class Telemetry:
-    """Publishes frame records and stats; a subscriber that cannot keep up loses messages, not the compositor."""
+    """Publishes frame records and stats; a subscriber that cannot keep up loses messages, not the compositor.
 
-    def __init__(self, context: zmq.Context, endpoint: str, guard: Guard | None = None):
-        self._sock, self.address = _bind(context, zmq.PUB, endpoint, guard)
+    An XPUB socket, so that the topics in `on_demand` (the `preview`) are made only while a client subscribes to one
+    by its name: `subscribed(topic)` follows the subscription messages (the first subscriber of a topic, the last to
+    leave), read whenever something is published; a subscription to every topic ("") does not ask for them."""
+
+    def __init__(
+        self, context: zmq.Context, endpoint: str, guard: Guard | None = None, on_demand: tuple[str, ...] = ()
+    ):
+        self._sock, self.address = _bind(context, zmq.XPUB, endpoint, guard)
         self._sock.setsockopt(zmq.SNDHWM, 1000)
+        self._sock.setsockopt(zmq.MAXMSGSIZE, 1 + MAX_TOPIC_BYTES)  # a subscription message: a flag byte and a topic
+        self._on_demand = {topic.encode(): False for topic in on_demand}
         self._lock = threading.Lock()
+
+    def subscribed(self, topic: str) -> bool:
+        """Whether a client subscribes to an on-demand topic by name."""
+        return self._on_demand.get(topic.encode(), False)
 
     def publish(self, topic: str, fields: dict) -> None:
         with self._lock:
+            while self._sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # subscription messages: flag 1 or 0, topic
+                message = self._sock.recv(zmq.NOBLOCK)
+                if message[1:] in self._on_demand:
+                    self._on_demand[message[1:]] = message[:1] == b"\x01"
             try:
                 self._sock.send_multipart(pack(topic.encode(), fields), flags=zmq.NOBLOCK)
             except zmq.Again:
@@ -109,8 +129,9 @@ class Telemetry:
 
 
 class ControlServer:
-    """Answers control requests ({"cmd": ...} msgpack maps) with handler(request) -> reply map; with a guard,
-    a command in `mutating` from a client without a CURVE identity is refused and counted."""
+    """Answers control requests ({"cmd": ...} msgpack maps) with handler(request) -> reply map. A command in
+    `mutating` is refused and counted from a client without a CURVE identity (with a guard) or on a tcp:// socket
+    without a guard; an ipc:// socket file is made 0600 and removed on close."""
 
     def __init__(
         self,
@@ -121,11 +142,16 @@ class ControlServer:
         guard: Guard | None = None,
     ):
         self._sock, self.address = _bind(context, zmq.REP, endpoint, guard)
+        self._file = ipc_path(self.address)
+        if self._file is not None:
+            os.chmod(self._file, 0o600)
         self._handler = handler
         self._mutating = mutating
         self._require_identity = guard is not None
+        # loopback tcp without CURVE: any user of the machine can connect, so it may only read
+        self._read_only = guard is None and endpoint.partition("://")[0] not in LOCAL_TRANSPORTS
         self.bad_requests = 0
-        self.unauthorised = 0  # mutating commands refused for want of an identity
+        self.unauthorised = 0  # mutating commands refused: no CURVE identity, or tcp:// without CURVE
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="control", daemon=True)
         self._thread.start()
@@ -149,10 +175,22 @@ class ControlServer:
         if not isinstance(request, dict) or not isinstance(request.get("cmd"), str):
             self.bad_requests += 1
             return {"ok": False, "error": 'a request is a msgpack map with a "cmd" string'}
-        if self._require_identity and request["cmd"] in self._mutating and not self.identity(frames[0]):
+        refusal = self._refusal(frames[0]) if request["cmd"] in self._mutating else ""
+        if refusal:
             self.unauthorised += 1
-            return {"ok": False, "error": f"{request['cmd']} needs an authenticated (CURVE) client"}
+            return {"ok": False, "error": f"{request['cmd']} {refusal}"}
         return self._handler(request)
+
+    def _refusal(self, frame: zmq.Frame) -> str:
+        """Why a command that changes the compositor may not run for this request ("": it may)."""
+        if self._read_only:
+            return (
+                "is refused on a tcp:// control socket without [security], which every local user can reach; "
+                "use the default ipc:// one (yours alone) or CURVE keys"
+            )
+        if self._require_identity and not self.identity(frame):
+            return "needs an authenticated (CURVE) client"
+        return ""
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -164,6 +202,8 @@ class ControlServer:
         self._stop.set()
         self._thread.join()
         self._sock.close()
+        if self._file is not None:
+            self._file.unlink(missing_ok=True)
 
 
 def request(endpoint: str, command: dict, timeout_s: float = 2.0, keys: ClientKeys | None = None) -> dict:

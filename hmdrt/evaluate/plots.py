@@ -5,17 +5,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib import ticker  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-
-from hmdrt.evaluate.runner import Crops  # noqa: E402
-from hmdrt.present.encode import linear_to_srgb8  # noqa: E402
-from hmdrt.quality import BANDS, SPACE_NAMES  # noqa: E402
+from hmdrt.evaluate.runner import Crops
+from hmdrt.figures import PlainLogFormatter, plt, save
+from hmdrt.present.encode import linear_to_srgb8
+from hmdrt.quality import BANDS, SPACE_NAMES
 
 DIFF_GAIN = 4.0  # differences are shown this many times brighter
 MARKERS = "osD^vPXph<>"  # after each round of the colour cycle the next marker: cells look apart up to 110 of them
@@ -39,7 +35,7 @@ def error_vs_time(rows: list[dict], folder: Path) -> list[Path]:
     paths = []
     for (scene, profile, trace), group in _groups(rows).items():
         fig = error_vs_time_figure(group, f"{scene} at {profile}, {trace}")
-        paths.append(_save(fig, folder / f"error_vs_time_{_slug(scene, profile, trace)}.png"))
+        paths.append(save(fig, folder / f"error_vs_time_{_slug(scene, profile, trace)}.png"))
     return paths
 
 
@@ -68,13 +64,6 @@ def error_vs_time_figure(group: list[dict], title: str) -> Figure:
     return fig
 
 
-class PlainLogFormatter(ticker.LogFormatter):
-    """Log-axis tick labels as plain numbers (3, 30, 300, not 3x10^0) on the ticks LogFormatter labels."""
-
-    def __call__(self, x: float, pos: int | None = None) -> str:
-        return f"{x:g}" if super().__call__(x, pos) else ""
-
-
 def _legend_columns(group: list[dict]) -> int:
     return -(-(len(group) + 1) // LEGEND_ROWS)  # a cell per entry, and the Pareto front
 
@@ -93,7 +82,7 @@ def band_psnr(rows: list[dict], folder: Path) -> list[Path]:
         ax.set_ylabel(f"PSNR (dB) of {SPACE_NAMES[group[0]['score_space']]} images")
         ax.set_title(f"PSNR per band: {scene} at {profile}, {trace}", fontsize=9)
         ax.legend(fontsize=6, ncol=2)
-        paths.append(_save(fig, folder / f"band_psnr_{_slug(scene, profile, trace)}.png"))
+        paths.append(save(fig, folder / f"band_psnr_{_slug(scene, profile, trace)}.png"))
     return paths
 
 
@@ -120,12 +109,5 @@ def crops(items: list[Crops], size: int, folder: Path) -> list[Path]:
                 ax.set_title(title, fontsize=6)
                 ax.axis("off")
         fig.suptitle(f"{item.scene} at {item.profile}, {item.trace}: crop at the gaze point", fontsize=8)
-        paths.append(_save(fig, folder / f"crops_{_slug(item.scene, item.profile, item.trace)}.png"))
+        paths.append(save(fig, folder / f"crops_{_slug(item.scene, item.profile, item.trace)}.png"))
     return paths
-
-
-def _save(fig, path: Path) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path

@@ -37,6 +37,15 @@ def write_results(evaluation: Evaluation, config: EvalConfig, out: Path, with_pl
     return written
 
 
+IMAGE_COLUMNS = ("psnr_", "ssim_", "flicker_", "jod", "rays_", "sample_fraction")
+
+
+def image_columns(row: dict) -> dict:
+    """The columns of a row derived from its images (PSNR, SSIM, flicker, JOD, rays, sample fractions): in
+    virtual time and with fixed seeds they are the same on every run, in process or on a cluster; times are not."""
+    return {k: v for k, v in row.items() if k.startswith(IMAGE_COLUMNS)}
+
+
 def flat(row: dict) -> dict:
     """A row with its stage times as stage_ms_NAME columns, for the CSV."""
     out = {k: v for k, v in row.items() if k != "stages_ms"}

@@ -14,6 +14,7 @@ speed-up and foveal PSNR delta.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import itertools
 import logging
 import math
@@ -21,24 +22,30 @@ import os
 import platform
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
+from typing import TYPE_CHECKING, NamedTuple
 
 import msgspec
 import numpy as np
 from tqdm import tqdm
 
-from hmdrt.evaluate.config import EvalConfig
+from hmdrt import __version__
+from hmdrt.evaluate.config import EvalConfig, Trace
 from hmdrt.evaluate.perceptual import JodScorer, encode
 from hmdrt.evaluate.truth import TruthCache, scene_digest
-from hmdrt.foveation import Method, MethodChoice
-from hmdrt.optics import get_profile
+from hmdrt.foveation import FrameRequest, Method, MethodChoice
+from hmdrt.optics import EyeCamera, HmdProfile, get_profile
 from hmdrt.optics.camera import eccentricity_map
 from hmdrt.quality import BandScores, ScoreSpace
-from hmdrt.scene import load_scene
+from hmdrt.scene import Scene, load_scene
 from hmdrt.sequence import FrameInput, eye_cameras, frame_requests, sequence_inputs
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
+
+if TYPE_CHECKING:
+    from hmdrt.evaluate.partial import PartialResults
 
 REFERENCES = ("full", "regular")  # not foveated: never the "best foveated" cell of the summary
 log = logging.getLogger(__name__)
@@ -99,51 +106,151 @@ class Evaluation:
         }
 
 
-def _profile(name: str, resolution: str):
+def _profile(name: str, resolution: str) -> HmdProfile:
     profile = get_profile(name)
     return profile.with_resolution_text(resolution, "resolution") if resolution else profile
 
 
-def evaluate(config: EvalConfig, progress: bool = True) -> Evaluation:
-    """Render and score every cell of `config`; a progress bar on stderr when `progress` and it is a terminal."""
+class GroupKey(NamedTuple):
+    """A scene, profile and trace of the config that some method cell runs on: the unit of the eval's work."""
+
+    scene: str
+    profile: str  # as the config names it
+    trace: Trace
+
+
+@dataclass
+class Group:
+    """A group ready to render: its cells' methods built, its warm-up and its frames (warm-up first)."""
+
+    key: GroupKey
+    profile: HmdProfile
+    ids: dict[str, str]  # scene, profile, trace: the columns that name the group in every row
+    cells: list[_Cell]
+    warmup: int
+    inputs: list[FrameInput]
+
+
+@dataclass
+class GroupResult:
+    """What a group yields: one row per cell (with the worker that rendered it and the group's wall time) and the
+    crops of its last scored frame."""
+
+    rows: list[dict]
+    crops: Crops
+
+
+def groups(config: EvalConfig) -> list[GroupKey]:
+    """Every scene, profile and trace that some cell runs on, in the order of the results."""
+    return [
+        GroupKey(scene, profile, trace)
+        for scene in config.scenes
+        for profile, trace in itertools.product(config.profiles, config.traces)
+        if config.cells(scene, trace)
+    ]
+
+
+def group_id(config: EvalConfig, key: GroupKey) -> str:
+    """A digest of everything that decides a group's rows: its names, its cells and the config's settings that
+    reach its images, so that a finished group of an edited config is reused only where it is the same."""
+    settings = ("resolution", "eye", "frames", "warmup_frames", "truth_spp", "seed", "score_space", "jod")
+    what = {
+        "version": __version__,
+        "group": [key.scene, key.profile, msgspec.to_builtins(key.trace)],
+        "cells": [[str(c.choice), c.label, c.compare_to] for c in config.cells(key.scene, key.trace)],
+        "settings": {name: getattr(config, name) for name in settings},
+    }
+    return hashlib.sha256(msgspec.json.encode(what)).hexdigest()[:24]
+
+
+class GroupShape(NamedTuple):
+    """What a group's result holds: the columns that name it in every row, its cells' labels in the order of its
+    rows, and its images' (height, width)."""
+
+    ids: dict[str, str]
+    labels: list[str]
+    shape: tuple[int, int]
+
+
+def group_shape(config: EvalConfig, key: GroupKey) -> GroupShape:
+    profile = _profile(key.profile, config.resolution)
+    ids = {"scene": key.scene, "profile": profile.name, "trace": key.trace.label}
+    return GroupShape(ids, [c.label for c in config.cells(key.scene, key.trace)], (profile.height, profile.width))
+
+
+def evaluate(config: EvalConfig, progress: bool = True, saved: PartialResults | None = None) -> Evaluation:
+    """Render and score every cell of `config` in this process; a progress bar on stderr when `progress` and it is
+    a terminal. With `saved`, each finished group is added to it and the groups it holds are not rendered again."""
     started = time.perf_counter()
     cache = TruthCache(config.cache_dir, config.truth_spp, config.seed)
-    cells = sum(len(config.cells(scene, trace)) for scene in config.scenes for trace in config.traces)
-    total = len(config.profiles) * config.frames * cells
-    rows: list[dict] = []
-    crops: list[Crops] = []
+    results = dict(saved.done) if saved else {}
+    todo = [key for key in groups(config) if group_id(config, key) not in results]
+    total = config.frames * sum(len(config.cells(key.scene, key.trace)) for key in todo)
     with tqdm(total=total, unit="frame", disable=None if progress else True, leave=False) as bar:
-        for scene_name in config.scenes:
-            if not config.cells(scene_name):
-                continue
+        for scene_name, keys in itertools.groupby(todo, key=lambda k: k.scene):
             scene = load_scene(scene_name)
             with Whitted(scene, threads=config.threads or None) as tracer:
                 truth = partial(cache.get, tracer, scene_digest(scene))
-                for profile_name, trace in itertools.product(config.profiles, config.traces):
-                    if not config.cells(scene_name, trace):
-                        continue
-                    profile = _profile(profile_name, config.resolution)
-                    bar.set_description(f"{scene_name} {profile_name} {trace.label}")
-                    group = {"scene": scene_name, "profile": profile.name, "trace": trace.label}
-                    cells = [
-                        _Cell(*cell, cell.choice.make(tracer), BandScores(config.score_space))
-                        for cell in config.cells(scene_name, trace)
-                    ]
-                    warmup = group_warmup(config.warmup_frames, cells, group)
-                    bar.total += (warmup - config.warmup_frames) * len(cells)
-                    inputs, _ = sequence_inputs(
-                        scene.start, profile.period_ns, config.frames, trace.source, trace.gaze or "0,0", config.seed
-                    )
-                    inputs = held_start(inputs, warmup - config.warmup_frames, profile.period_ns)
-                    last, scored = _render(inputs, cells, profile, truth, config, warmup, bar.update)
-                    jod = _jod(cells, scored, JodScorer(profile, config.eye)) if config.jod else {}
-                    rows += [
-                        {**row, "trace_group": trace.group_label, **jod.get(row["label"], {})}
-                        for row in _rows(group, cells, profile, warmup, config.score_space)
-                    ]
-                    crops.append(Crops(**group, **last, images={c.label: c.last for c in cells}))
+                for key in keys:
+                    group = plan_group(config, tracer, key, trace_frames(config, scene, key))
+                    bar.total += (group.warmup - config.warmup_frames) * len(group.cells)
+                    bar.set_description(" ".join(group.ids.values()))
+                    result = run_group(group, config, truth, bar.update)
+                    results[group_id(config, key)] = result
+                    if saved:
+                        saved.add(group_id(config, key), result)
+    return collect(config, results, cache.rendered, cache.read, started)
+
+
+def collect(
+    config: EvalConfig, results: dict[str, GroupResult], rendered: int, read: int, started: float
+) -> Evaluation:
+    """The evaluation of every group's result (by group_id), in the config's order."""
+    ordered = [results[group_id(config, key)] for key in groups(config)]
+    rows = [row for result in ordered for row in result.rows]
     seconds = time.perf_counter() - started
-    return Evaluation(rows, summarise(rows), crops, cache.rendered, cache.read, seconds, config.score_space)
+    return Evaluation(rows, summarise(rows), [r.crops for r in ordered], rendered, read, seconds, config.score_space)
+
+
+def trace_frames(config: EvalConfig, scene: Scene, key: GroupKey) -> list[FrameInput]:
+    """A group's frames of its trace, read here (where the group renders elsewhere, it is sent them)."""
+    profile = _profile(key.profile, config.resolution)
+    source, gaze = key.trace.source, key.trace.gaze or "0,0"
+    return sequence_inputs(scene.start, profile.period_ns, config.frames, source, gaze, config.seed)[0]
+
+
+def plan_group(config: EvalConfig, tracer: Whitted, key: GroupKey, frames: list[FrameInput]) -> Group:
+    """A group's methods built on `tracer` (of its scene), its warm-up, and its trace's `frames` after it."""
+    profile = _profile(key.profile, config.resolution)
+    ids = group_shape(config, key).ids
+    cells = [
+        _Cell(*cell, cell.choice.make(tracer), BandScores(config.score_space))
+        for cell in config.cells(key.scene, key.trace)
+    ]
+    warmup = group_warmup(config.warmup_frames, cells, ids)
+    return Group(key, profile, ids, cells, warmup, held_start(frames, warmup - config.warmup_frames, profile.period_ns))
+
+
+def truth_cameras(group: Group, config: EvalConfig) -> list[EyeCamera]:
+    """The eye cameras of a group's scored frames: the views whose ground truths it is scored against."""
+    return [_request(inp, group.profile, config).camera for inp in group.inputs if inp.frame >= group.warmup]
+
+
+def run_group(
+    group: Group, config: EvalConfig, truth_of: Callable[[EyeCamera], np.ndarray], tick=None, worker: str | None = None
+) -> GroupResult:
+    """Render a planned group, its cells frame by frame in turn, and score it against truth_of's images; tick()
+    after each cell's frame. `worker` (the Dask worker's address; None: in-process) goes into every row."""
+    started = time.perf_counter()
+    last, scored = _render(group, config, truth_of, tick or (lambda: None))
+    jod = _jod(group.cells, scored, JodScorer(group.profile, config.eye)) if config.jod else {}
+    seconds = round(time.perf_counter() - started, 3)
+    rows = [
+        {**row, "trace_group": group.key.trace.group_label, **jod.get(row["label"], {})}
+        for row in _rows(group.ids, group.cells, group.profile, group.warmup, config.score_space)
+    ]
+    rows = [{**row, "worker": worker, "group_seconds": seconds} for row in rows]
+    return GroupResult(rows, Crops(**group.ids, **last, images={c.label: c.last for c in group.cells}))
 
 
 def held_start(inputs: list[FrameInput], extra: int, period_ns: int) -> list[FrameInput]:
@@ -169,14 +276,19 @@ def _jod(cells: list[_Cell], scored: dict, scorer: JodScorer) -> dict[str, dict]
     return {c.label: {"jod": round(scorer.score(c.frames, truths, gazes), 4)} for c in cells}
 
 
-def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, warmup: int, tick) -> tuple[dict, dict]:
+def _request(inp: FrameInput, profile: HmdProfile, config: EvalConfig) -> FrameRequest:
+    [request] = frame_requests(inp, eye_cameras(profile, inp.pose, (config.eye,)), config.seed)
+    return request
+
+
+def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dict]:
     """Each input frame through every cell's method in turn; the frames after the warm-up timed and scored.
     Returns the last scored frame's truth and gaze pixel, and (with jod) every scored truth, encoded, and gaze."""
     last: dict = {}
     truths, gazes = [], []
-    for inp in inputs:
-        [request] = frame_requests(inp, eye_cameras(profile, inp.pose, (config.eye,)), config.seed)
-        scored = inp.frame >= warmup
+    for inp in group.inputs:
+        request = _request(inp, group.profile, config)
+        scored = inp.frame >= group.warmup
         if scored:
             truth = truth_of(request.camera)
             eccentricity = eccentricity_map(request.camera, request.gaze)
@@ -184,7 +296,7 @@ def _render(inputs, cells: list[_Cell], profile, truth_of, config: EvalConfig, w
             if config.jod:
                 truths.append(encode(truth))
                 gazes.append(last["gaze_xy"])
-        for cell in cells:
+        for cell in group.cells:
             if not scored and not cell.method.warmup_frames:
                 tick()  # no history: nothing to warm up
                 continue

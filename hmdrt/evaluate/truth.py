@@ -68,22 +68,32 @@ class TruthCache:
 
     def get(self, tracer: Whitted, scene_id: str, camera: EyeCamera) -> np.ndarray:
         """The truth of `camera`'s view of the tracer's scene (scene_id: scene_digest of it)."""
-        path = self.folder / f"{self.key(scene_id, camera)}.npy"
-        try:
-            image = np.load(path, allow_pickle=False)
-            if image.shape == (camera.height, camera.width, 3) and np.isfinite(image).all():
-                self.read += 1
-                return image
-        except (OSError, ValueError):
-            pass  # absent or unreadable: render it again
-        method = make_method(f"regular?spp={self.spp}", tracer)
-        gaze = np.array([0.0, 0.0, -1.0])  # regular does not depend on the gaze
-        image = method.render(FrameRequest(camera, gaze, 0, self.seed), FrameStats()).astype(np.float32)
-        self._store(path, image)
+        key = self.key(scene_id, camera)
+        image = self.load(key, camera)
+        if image is not None:
+            self.read += 1
+            return image
+        image = truth_rows(tracer, camera, self.spp, self.seed, 0, camera.height)
+        self.store(key, image)
         self.rendered += 1
         return image
 
-    def _store(self, path: Path, image: np.ndarray) -> None:
+    def load(self, key: str, camera: EyeCamera) -> np.ndarray | None:
+        """The cached truth of `key` (camera's view), or None where it is absent or unreadable."""
+        try:
+            image = np.load(self.folder / f"{key}.npy", allow_pickle=False)
+        except (OSError, ValueError):
+            return None
+        return image if image.shape == (camera.height, camera.width, 3) and np.isfinite(image).all() else None
+
+    def store(self, key: str, image: np.ndarray) -> None:
         buffer = io.BytesIO()
         np.save(buffer, image, allow_pickle=False)
-        write_atomic(path, buffer.getvalue())
+        write_atomic(self.folder / f"{key}.npy", buffer.getvalue())
+
+
+def truth_rows(tracer: Whitted, camera: EyeCamera, spp: int, seed: int, row0: int, rows: int) -> np.ndarray:
+    """Rows row0 to row0 + rows of the truth of `camera`'s view, bit for bit those of the whole image."""
+    method = make_method(f"regular?spp={spp}", tracer)
+    gaze = np.array([0.0, 0.0, -1.0])  # regular does not depend on the gaze
+    return method.render_rows(FrameRequest(camera, gaze, 0, seed), FrameStats(), row0, rows).astype(np.float32)

@@ -72,13 +72,23 @@ class Regular(Configurable):
     def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         cam = request.camera
         image = np.empty((cam.height, cam.width, 3), dtype=np.float32) if out is None else out
+        return self.render_rows(request, stats, 0, cam.height, image)
+
+    def render_rows(
+        self, request: FrameRequest, stats: FrameStats, row0: int, rows: int, out: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Rows row0 to row0 + rows of the image, (rows, width, 3) float32: exactly those rows of render's image,
+        as every sample is placed and seeded by its pixel's position in the whole image (a truth renders in
+        row blocks across machines, hmdrt.evaluate.cluster)."""
+        cam = request.camera
+        image = np.empty((rows, cam.width, 3), dtype=np.float32) if out is None else out
         band = max(1, self.tracer.chunk // (cam.width * self.spp))
-        for row0 in range(0, cam.height, band):
-            rows = min(band, cam.height - row0)
+        for r in range(0, rows, band):
+            n = min(band, rows - r)
             with stats.stage("raygen"):
-                xy = jittered_pixels(cam.width, row0, rows, self.spp, request.seed)
-            first = row0 * cam.width * self.spp
+                xy = jittered_pixels(cam.width, row0 + r, n, self.spp, request.seed)
+            first = (row0 + r) * cam.width * self.spp
             rgb = self.tracer.trace_samples(cam, xy, sample_keys(first, len(xy), request.seed), stats)
             with stats.stage("resolve"):
-                image[row0 : row0 + rows] = rgb.reshape(rows, cam.width, self.spp, 3).mean(axis=2)
+                image[r : r + n] = rgb.reshape(n, cam.width, self.spp, 3).mean(axis=2)
         return image

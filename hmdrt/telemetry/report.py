@@ -62,6 +62,7 @@ class FrameRecord:
     present_ms: float = 0.0
     warp_pose: SampleUse | None = None  # the pose a repeat was warped to
     warp_skipped: bool = False  # a repeat shown unwarped: the warp would not have ended before the next VSync
+    level: float | None = None  # the controller's quality level the frame was rendered at (None: no controller)
 
     @property
     def margin_ns(self) -> int:

@@ -14,18 +14,27 @@ The header row (the first line that is not blank) names the columns (any order; 
     0,0.0,0.0,1
     4,1.5,-2.0,1
 
-An empty or NaN gaze cell leaves that gaze out and makes the sample invalid; a row whose cells are
-not numbers is counted as malformed.
+A gaze whose cells are all empty is absent from that row (a binocular file's row may carry one eye, as a
+native sample may); a partly empty or NaN gaze is left out and makes the sample invalid. A row whose cells
+are not numbers is counted as malformed.
+
+write_generic_csv writes this schema (t_ns, direction columns, valid, depth_m), so a trace converts to it
+and reads back with the same times, validity and directions (hmdrt convert).
 """
 
 from __future__ import annotations
 
+import csv
+import gzip
+import io
+from collections.abc import Iterable
 from pathlib import Path
 
+from hmdrt.atomic import write_atomic
 from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
 from replay.formats import MS, NS, S, csv_header, direction, gaze_sample, number, read_csv, time_ns, unit
-from replay.trace import TraceReading
+from replay.trace import Sample, TraceReading
 
 TIME_COLUMNS = {"t_ns": NS, "t_ms": MS, "t_s": S}
 ANGLES = ("yaw_deg", "pitch_deg")
@@ -65,8 +74,10 @@ def read_generic_csv(path: str | Path) -> TraceReading:
     def sample(row: dict[str, str], seq: int) -> Gaze:
         gaze = {}
         for eye, cols in groups.items():
-            values = [number(row[c]) for c in cols]
-            gaze[eye] = direction(*values) if cols == ANGLES else unit(*values)
+            cells = [row[c] for c in cols]
+            if any(cell.strip() for cell in cells):  # all empty: the row leaves this eye out
+                values = [number(cell) for cell in cells]
+                gaze[eye] = direction(*values) if cols == ANGLES else unit(*values)
         flag = row.get("valid", "1").strip().lower()
         if flag not in FLAGS:
             raise ValueError(f"valid must be 1/0/true/false, got {flag!r}")
@@ -75,3 +86,32 @@ def read_generic_csv(path: str | Path) -> TraceReading:
         return gaze_sample(seq, time_ns(row[time_column], TIME_COLUMNS[time_column]), valid, depth_m=depth, **gaze)
 
     return read_csv(path, "csv", sample)
+
+
+def write_generic_csv(path: str | Path, samples: Iterable[Sample]) -> int:
+    """Write the gaze samples as hmdrt CSV (gzip when the name ends in .gz) and return how many rows were written.
+
+    Columns: t_ns (t_host), the direction columns of each eye some sample has, valid (1/0), and depth_m when
+    some sample has one. Numbers are written in full (repr), so reading back gives the same directions up to
+    the reader's normalisation (a few 1e-16). Poses are not part of the format and are skipped."""
+    path = Path(path)
+    gazes = [s for s in samples if isinstance(s, Gaze)]
+    eyes = [eye for eye in VECTORS if any(getattr(s, eye) is not None for s in gazes)]
+    if not eyes:
+        raise ConfigError(f"{path.name}: no gaze direction to write; hmdrt CSV needs at least one")
+    depth = any(s.depth_m is not None for s in gazes)
+    text = io.StringIO()
+    out = csv.writer(text, lineterminator="\n")
+    out.writerow(["t_ns", *(c for eye in eyes for c in VECTORS[eye]), "valid", *(["depth_m"] if depth else [])])
+    for s in gazes:
+        cells = [str(s.t_host)]
+        for eye in eyes:
+            v = getattr(s, eye)
+            cells += ["", "", ""] if v is None else [repr(float(c)) for c in v]
+        cells.append("1" if s.valid else "0")
+        if depth:
+            cells.append("" if s.depth_m is None else repr(float(s.depth_m)))
+        out.writerow(cells)
+    data = text.getvalue().encode()
+    write_atomic(path, gzip.compress(data, mtime=0) if path.suffix == ".gz" else data)
+    return len(gazes)

@@ -8,6 +8,7 @@ import msgspec
 import numpy as np
 import pytest
 
+from hmdrt.api import trace_gbuffer
 from hmdrt.errors import SceneError
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
@@ -18,7 +19,6 @@ from hmdrt.scene.shapes import box, quad, sphere
 from hmdrt.spatial import Pose as HeadPose
 from hmdrt.trace.bsdf import fresnel_dielectric, refract, split
 from hmdrt.trace.tracer import Tracer
-from tests.helpers import trace_gbuffer
 from tests.stability.common import (
     SKY,
     camera,
