@@ -4,6 +4,7 @@ until something holds."""
 from __future__ import annotations
 
 import socket
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -29,6 +30,13 @@ from replay.trace import write_trace
 
 DATA = Path(__file__).parent / "data"
 FORWARD = np.array([0.0, 0.0, -1.0])
+
+
+def reap(process: subprocess.Popen) -> None:
+    """At a test's end: kill a child process that still runs (the test failed before it ended) and wait for it."""
+    if process.poll() is None:
+        process.kill()
+        process.communicate()
 
 
 def render(

@@ -22,6 +22,7 @@ from hmdrt.errors import ConfigError
 from hmdrt.testing import ANY_PORT, compositor, run_bounded, write_config
 
 from . import test_runtime as runtime
+from .helpers import reap
 
 NOBODY = 65534
 
@@ -63,9 +64,7 @@ def test_default_control_is_a_private_ipc_socket_that_status_finds_and_exit_remo
         process.send_signal(signal.SIGTERM)
         _, stderr = process.communicate(timeout=60)
     finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
+        reap(process)
     assert process.returncode == 0, stderr
     assert list(folder.iterdir()) == []  # the socket went with the compositor
     code, _, err = status_line(capsys)

@@ -25,7 +25,7 @@ from hmdrt.errors import ConfigError
 from hmdrt.testing import TRACE, Background, compositor, free_port, write_config
 from replay import load_trace
 
-from .helpers import wait_for
+from .helpers import reap, wait_for
 from .test_runtime import readline, start_run
 
 MS = 1_000_000
@@ -206,9 +206,7 @@ def test_under_cpu_contention_frames_stay_in_order_and_sigterm_still_writes_a_co
         for hog in hogs:
             hog.kill()
             hog.wait()
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
+        reap(process)
     assert process.returncode == 0 and "Traceback" not in stderr, stderr
     report = json.loads(out.read_text())
     assert report["vsyncs"] > 0 and report["presented"] + report["re_presented"] == report["vsyncs"]

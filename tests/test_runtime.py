@@ -36,7 +36,7 @@ from hmdrt.testing import Background, assert_every_vsync_shown, compositor, run_
 from replay.synthetic import SyntheticConfig, SyntheticSource
 from replay.trace import write_trace
 
-from .helpers import wait_for
+from .helpers import reap, wait_for
 
 # report fields measured on the wall clock, which differ between runs also in virtual time
 WALL_CLOCK = ("frame_ms", "compositor_overhead_ms", "timewarp_ms", "stages_ms")
@@ -421,9 +421,7 @@ def test_sigterm_mid_run_writes_a_complete_report_and_exits_0(tmp_path):
         process.send_signal(signal.SIGTERM)
         stdout, stderr = process.communicate(timeout=30)
     finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
+        reap(process)
     assert process.returncode == 0, stderr
     assert "Traceback" not in stderr
     report = json.loads(out.read_text())

@@ -30,6 +30,7 @@ import numpy as np
 import zmq
 
 from hmdrt import __version__
+from hmdrt.background import BackgroundWriter
 from hmdrt.bus.local import bind_endpoint
 from hmdrt.bus.security import Guard, ServerKeys, check_binds
 from hmdrt.clock import MONOTONIC, Clock, VirtualClock
@@ -539,9 +540,9 @@ class Compositor:
             ingest_malformed=self.ingest.malformed,
             outages=self.outages.to_dict(),
             devices_refused=self.store.devices_refused,
-            frames_not_written=self.writer.skipped + self.writer.failed,
-            **self._frames_log_counts(),
-            **({} if self.lsl is None else {"lsl_not_pushed": self.lsl.skipped + self.lsl.failed}),
+            **_not_written("frames_not_written", self.writer),
+            **_not_written("frames_log_not_written", self.frames_log),
+            **_not_written("lsl_not_pushed", self.lsl),
             config=self.config.source,
             hmdrt=__version__,
             security=self.security(),
@@ -556,11 +557,6 @@ class Compositor:
                 "trajectory": list(self.controller.trajectory),
             }
         return report
-
-    def _frames_log_counts(self) -> dict:
-        """frames_log_not_written: records the frames log dropped (real time) or could not write; {} without one."""
-        frames_log = self.frames_log
-        return {} if frames_log is None else {"frames_log_not_written": frames_log.skipped + frames_log.failed}
 
     def close(self) -> None:
         self.stop.set()
@@ -578,3 +574,8 @@ class Compositor:
             if getattr(self, part, None) is not None:
                 getattr(self, part).close()
         self.session.close()
+
+
+def _not_written(key: str, writer: BackgroundWriter | None) -> dict:
+    """{key: what a background writer dropped (real time) or could not write}; {} where there is no such writer."""
+    return {} if writer is None else {key: writer.skipped + writer.failed}
