@@ -175,15 +175,17 @@ def _update(rgb: np.ndarray, samples: Samples, buffer: np.ndarray, out: np.ndarr
     """The traced pixels into the persistent buffer, and the buffer into `out`, a band of rows at a time."""
     xy, row_start = samples.xy, samples.row_start
     h, w = buffer.shape[0], buffer.shape[1]
-    flat_buffer, flat_out = buffer.reshape(-1), out.reshape(-1)  # element loops: numba's row slices copy slowly
+    # flat views and unsigned indices: no negative-index checks, and the band's copy is one contiguous slice
+    flat_buffer, flat_out = buffer.reshape(-1), out.reshape(-1)
+    one, two = np.uint64(1), np.uint64(2)
     bands = (h + UPDATE_ROWS - 1) // UPDATE_ROWS
     for b in nb.prange(bands):
         y0, y1 = b * UPDATE_ROWS, min(h, (b + 1) * UPDATE_ROWS)
         for i in range(row_start[y0], row_start[y1]):
-            k = (int(xy[i, 1]) * w + int(xy[i, 0])) * 3
-            flat_buffer[k], flat_buffer[k + 1], flat_buffer[k + 2] = rgb[i, 0], rgb[i, 1], rgb[i, 2]
-        for k in range(y0 * w * 3, y1 * w * 3):
-            flat_out[k] = flat_buffer[k]
+            k = np.uint64((int(xy[i, 1]) * w + int(xy[i, 0])) * 3)
+            flat_buffer[k], flat_buffer[k + one], flat_buffer[k + two] = rgb[i, 0], rgb[i, 1], rgb[i, 2]
+        lo, hi = np.uint64(y0 * w * 3), np.uint64(y1 * w * 3)
+        flat_out[lo:hi] = flat_buffer[lo:hi]
 
 
 def _refilter(previous: FixationFilter, params: RrmParams) -> FixationFilter:
