@@ -18,6 +18,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.jit import inline, kernel, serial
+from hmdrt.memory import touched
 from hmdrt.optics.profiles import HmdProfile
 from hmdrt.spatial import Pose
 
@@ -214,7 +215,7 @@ class _EccentricityMaps:
                 self._spare.setdefault(old.shape, []).append(old)
             spare = self._spare.get(shape)
             if not spare:
-                spare = self._spare[shape] = list(np.empty((self._size, *shape), np.float32))
+                spare = self._spare[shape] = list(touched((self._size, *shape)))  # first filled one by one
             out = spare.pop()
             out.flags.writeable = True
             _eccentricity(

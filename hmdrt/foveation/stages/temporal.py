@@ -15,6 +15,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.jit import inline, kernel, serial
+from hmdrt.memory import touched
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.optics.projection import FAR, bilinear3, camera_arrays
 
@@ -69,8 +70,8 @@ class History:
     def begin(self, shape: tuple[int, int]) -> int:
         """The ring slot the next frame goes in; its depth and colour are the caller's to fill before commit."""
         if self.depth is None or self.depth.shape[1:] != shape:
-            self.depth = np.empty((self.size + 1, *shape), np.float32)
-            self.color = np.empty((self.size + 1, *shape, 3), np.float32)
+            self.depth = touched((self.size + 1, *shape))  # each slot is first written a frame later
+            self.color = touched((self.size + 1, *shape, 3))
             self.scratch = np.empty((nb.get_num_threads(), ROW, shape[1]))
             self._newest, self._count = -1, 0
         return (self._newest + 1) % (self.size + 1)
