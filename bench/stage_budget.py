@@ -13,9 +13,9 @@ median ms per frame, rays per frame, the bare-Embree time of those rays and its 
 over that time; issue 14's target is <= 1.5). Beside it, the mix floor: the same rays at bare embreex's rate on
 rays of their own kind from this view (references.bare_kind_rates: the mirror and glass spheres' secondary rays
 trace several times slower than primary rays, bare or not), and the frame's time over that floor, which is
-what is left to our own work. Then every stage's median ms and, where the stage says how many
-bytes it must touch (FrameStats.stage(..., touches=)), those bytes and what a copy of them costs: a stage
-far above its copy time is where the next speed-up is.
+what is left to our own work. Then each method's rays by kind, and every stage's median ms and, where the
+stage says how many bytes it must touch (FrameStats.stage(..., touches=)), those bytes and what a copy of them
+costs: a stage far above its copy time is where the next speed-up is.
 """
 
 from __future__ import annotations
@@ -63,6 +63,7 @@ def main() -> None:
 
     ms: dict[str, list[float]] = defaultdict(list)
     rays: dict[str, list[int]] = defaultdict(list)
+    kinds: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
     floors: dict[str, list[float]] = defaultdict(list)
     stages: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
     touched: dict[str, dict[str, int]] = defaultdict(dict)
@@ -79,6 +80,8 @@ def main() -> None:
                     continue
                 ms[spec].append(took * 1e3)
                 rays[spec].append(sum(stats.rays.values()))
+                for kind, count in stats.rays.items():
+                    kinds[spec][kind].append(count)
                 floors[spec].append(floor_ms(stats.rays, kind_rates))
                 for name, v in stats.stages_ms.items():
                     stages[spec][name].append(v)
@@ -112,7 +115,9 @@ def main() -> None:
             f" {mix_ms:12.1f} {frame_ms / mix_ms:7.2f}x"
         )
     for spec in methods:
-        print(f"\n  {spec}: stage, median ms (nested stages indented), MB touched, copy ms of those bytes, ratio")
+        counts = ", ".join(f"{kind} {int(statistics.median(v)):,d}" for kind, v in kinds[spec].items() if any(v))
+        print(f"\n  {spec}: rays per frame by kind, median: {counts}")
+        print(f"  {spec}: stage, median ms (nested stages indented), MB touched, copy ms of those bytes, ratio")
         for name, values in stages[spec].items():
             depth = name.count("/")
             label = "  " * depth + name.rsplit("/", 1)[-1]
