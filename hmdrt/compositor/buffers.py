@@ -14,6 +14,8 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from hmdrt.memory import touched
+
 MOST_POOLED = 16  # per pool: more than the display, its pending frames and the writer's queue hold at once
 
 
@@ -24,12 +26,15 @@ def _refs(buffers: list[np.ndarray], i: int) -> int:
 class BufferPool:
     """float32 images of one shape; take() returns one that no one else holds, allocating only when all are held."""
 
-    def __init__(self, shape: tuple[int, ...], most: int = MOST_POOLED):
+    def __init__(self, shape: tuple[int, ...], most: int = MOST_POOLED, ready: int = 0):
+        """ready: buffers allocated, and their pages written, now (memory.touched): a buffer first taken in a
+        frame would otherwise make that frame pay the first touch of its pages (about 60 ms for a 640x720
+        image here, two periods at 30 Hz)."""
         self.shape = shape
         self.most = most
-        self._buffers: list[np.ndarray] = []
+        self._buffers: list[np.ndarray] = [touched(shape) for _ in range(min(ready, most))]
         self._idle = _refs([np.empty(0, np.float32)], 0)  # the count of a buffer only the pool refers to
-        self.allocated = 0  # buffers allocated so far: steady once every holder's share is in the pool
+        self.allocated = len(self._buffers)  # buffers allocated so far: steady once every holder's share is in the pool
 
     def take(self) -> np.ndarray:
         """A buffer nothing else refers to; its contents are what it last held. Beyond `most` buffers in use,

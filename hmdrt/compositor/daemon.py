@@ -130,7 +130,13 @@ class Compositor:
                 out.frames_dir, out.video, out.every, self.session.profile.refresh_hz, block=virtual
             )
             self.display = Display(
-                self.vsync, self.clock, self._warp_target, self._shown, self._dropped, warp_deadline=not virtual
+                self.vsync,
+                self.clock,
+                self._warp_target,
+                self._shown,
+                self._dropped,
+                warp_deadline=not virtual,
+                warp_pools=self.session.warp_pools,
             )
             self.control = ControlServer(
                 self._context, self._control_endpoint, partial(control.handle, self), MUTATING, self.guard

@@ -72,10 +72,12 @@ class Display:
         on_shown: Shown,
         on_dropped: Dropped,
         warp_deadline: bool = False,
+        warp_pools: dict[str, BufferPool] | None = None,
     ):
         """With warp_deadline, a repeat is warped only when the warp (its filtered wall time) would end before
         the next VSync; otherwise what was shown last is shown again and counted (warps_skipped), so that at
-        a resolution where one warp takes longer than a period the display does not starve the renderer."""
+        a resolution where one warp takes longer than a period the display does not starve the renderer.
+        warp_pools: per eye, the pools the warped images come from (made on the first warp where not given)."""
         self.vsync = vsync
         self.clock = clock
         self._warp_target = warp_target
@@ -87,7 +89,7 @@ class Display:
         self.last: Frame | None = None  # the newest frame shown
         self._shown: tuple[list[np.ndarray], SampleUse | None] = ([], None)  # the images shown last, and their pose
         self._warp_ns = 0.0  # filtered wall time of one warp of all eyes
-        self.warp_pools: dict[str, BufferPool] = {}  # per eye: the warped images' buffers
+        self.warp_pools: dict[str, BufferPool] = warp_pools or {}  # per eye: the warped images' buffers
         self.dropped = 0
         self.warps_skipped = 0
 

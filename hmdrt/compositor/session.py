@@ -27,6 +27,7 @@ from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
 
 AHEAD = np.array([0.0, 0.0, -1.0])
+READY_RENDERED, READY_WARPED = 3, 2  # image buffers per eye made before the first VSync (BufferPool ready)
 
 
 def display_profile(config: RunConfig) -> HmdProfile:
@@ -44,7 +45,11 @@ class Session:
     def __init__(self, config: RunConfig):
         self.profile = display_profile(config)
         self.eyes = EYES if config.display.eyes == "both" else (config.display.eyes,)
-        self.pools = {eye: BufferPool((self.profile.height, self.profile.width, 3)) for eye in self.eyes}
+        shape = (self.profile.height, self.profile.width, 3)
+        # what a run holds at once, ready before the first VSync: the display's frame, the pending one and the one
+        # being rendered; a warp in progress and the warp shown
+        self.pools = {eye: BufferPool(shape, ready=READY_RENDERED) for eye in self.eyes}
+        self.warp_pools = {eye: BufferPool(shape, ready=READY_WARPED) for eye in self.eyes}
         self.scene = load_scene(config.scene)
         self.tracer = Whitted(self.scene, threads=config.run.threads or None)
         self.choice = config.method_choice
