@@ -62,7 +62,7 @@ def test_identity_returns_the_image(name: str, eye: str) -> None:
     moved = EyeCamera(**{**rendered.__dict__, "position": rendered.position + [0.3, -0.1, 0.5]})
     for target in (rendered, moved):  # positions are ignored: only the rotation matters
         warped, outside = timewarp(image, rendered, target)
-        # lookups land on pixel centres up to float64 rounding: a neighbour weighs in at ~1e-13
+        # the homography's float64 rounding vanishes in float32 lookups: they land on pixel centres
         np.testing.assert_allclose(warped, image, rtol=1e-6, atol=1e-9)
         assert outside == 0.0
 
@@ -161,7 +161,8 @@ def test_every_pixel_matches_a_numpy_reference(name: str, eye: str, yaw: float, 
     image = texture(profile)
     rendered, target = camera(profile, eye, 3.0, 1.0), camera(profile, eye, 3.0 + yaw, 1.0 + pitch, roll)
     warped = timewarp(image, rendered, target).image
-    np.testing.assert_allclose(warped, reference_warp(image, rendered, target), atol=2e-5)
+    # float32 lookups land within ~2e-4 px of float64 ones, and a [0, 1] texture changes by at most 1 per pixel
+    np.testing.assert_allclose(warped, reference_warp(image, rendered, target), atol=5e-4)
 
 
 def test_a_warp_into_a_buffer_allocates_nothing_image_sized() -> None:
