@@ -71,13 +71,13 @@ def homography(rendered: EyeCamera, target: EyeCamera) -> np.ndarray:
 
 
 class Lookups(NamedTuple):
-    """One target row's bilinear footprints in the rendered image, one entry per pixel: the top-left texel's
-    column and row, the four texels' weights, and where the pixel's direction fell."""
+    """One target row's bilinear footprints in the rendered image, one entry per pixel: the flat element index
+    of the top-left texel's red channel, the four texels' weights (all 0 behind the rendered eye, so black
+    there), and whether the pixel's direction fell on the image."""
 
-    col: np.ndarray  # (w,) int32
-    row: np.ndarray  # (w,) int32
+    index: np.ndarray  # (w,) int32
     weights: np.ndarray  # (4, w) float32: top-left, top-right, bottom-left, bottom-right
-    seen: np.ndarray  # (w,) int32: 0 behind the rendered eye, 1 in front but off the image, 2 on the image
+    inside: np.ndarray  # (w,) int32: 1 on the image, 0 off it or behind the rendered eye
 
 
 @serial
@@ -86,7 +86,7 @@ def _lookups(m: np.ndarray, y: int, h: int, row: Lookups) -> None:
     stores only, no branches or reductions: the loop vectorises eight pixels wide. Coordinates carry ~1e-4 px
     of float32 rounding at 1280 px; on an unchanged rotation they land on pixel centres exactly."""
     f32, i32 = np.float32, np.int32
-    w = len(row.col)
+    w = len(row.index)
     cy = y + 0.5  # the row's constant terms in float64, then float32 per pixel
     bx = f32(m[0, 0] * 0.5 + m[0, 1] * cy + m[0, 2])
     by = f32(m[1, 0] * 0.5 + m[1, 1] * cy + m[1, 2])
@@ -100,43 +100,39 @@ def _lookups(m: np.ndarray, y: int, h: int, row: Lookups) -> None:
         inv = np.divide(one, z)  # a ufunc: no ZeroDivisionError check, which would keep the loop scalar
         qx, qy = (m00 * xf + bx) * inv, (m10 * xf + by) * inv
         front = z > zero
-        row.seen[x] = i32(front) + i32(front & (qx >= zero) & (qy >= zero) & (qx < wf) & (qy < hf))
+        row.inside[x] = i32(front & (qx >= zero) & (qy >= zero) & (qx < wf) & (qy < hf))
         fx = min(max(qx - half, zero), last_x)  # NaN (z = 0) goes to 0
         fy = min(max(qy - half, zero), last_y)
         ix = max(min(i32(fx), i32(w - 2)), i32(0))  # the footprint's right and lower taps stay inside
         iy = max(min(i32(fy), i32(h - 2)), i32(0))
         ax, ay = fx - f32(ix), fy - f32(iy)
-        row.weights[0, x], row.weights[1, x] = (one - ax) * (one - ay), ax * (one - ay)
-        row.weights[2, x], row.weights[3, x] = (one - ax) * ay, ax * ay
-        row.col[x], row.row[x] = ix, iy
+        seen = one if front else zero
+        row.weights[0, x], row.weights[1, x] = seen * (one - ax) * (one - ay), seen * ax * (one - ay)
+        row.weights[2, x], row.weights[3, x] = seen * (one - ax) * ay, seen * ax * ay
+        row.index[x] = (iy * i32(w) + ix) * i32(3)
 
 
 @serial
 def _gather(image: np.ndarray, out: np.ndarray, o: int, row: Lookups) -> int:
-    """One target row from its footprints: flat RGB image (h * w * 3,) into flat out from element o; returns how
-    many of the row's pixels fell off the image. Unsigned indices: numba adds no negative-index wraparound."""
-    w = len(row.col)
+    """One target row from its footprints: flat RGB image (h * w * 3,) into flat out from element o, without a
+    branch; returns how many of the row's pixels fell on the image. Unsigned indices: numba adds no
+    negative-index wraparound to their loads."""
+    w = len(row.index)
     h = len(image) // (3 * w)
     step_x = np.uint64(3 if w > 1 else 0)
     step_y = np.uint64(3 * w if h > 1 else 0)
-    width, three = np.uint64(w), np.uint64(3)
-    off = 0
+    inside = 0
     for x in range(w):
         j = np.uint64(o + 3 * x)
-        seen = row.seen[x]
-        off += seen < 2
-        if seen == 0:
-            for c in range(3):
-                out[j + np.uint64(c)] = 0.0
-            continue
-        k = (np.uint64(row.row[x]) * width + np.uint64(row.col[x])) * three
+        inside += row.inside[x]
+        k = np.uint64(row.index[x])
         w0, w1, w2, w3 = row.weights[0, x], row.weights[1, x], row.weights[2, x], row.weights[3, x]
         for c in range(3):
             kc = k + np.uint64(c)
             out[j + np.uint64(c)] = (
                 w0 * image[kc] + w1 * image[kc + step_x] + w2 * image[kc + step_y] + (w3 * image[kc + step_y + step_x])
             )
-    return off
+    return inside
 
 
 @serial
@@ -144,12 +140,12 @@ def _warp_rows(warp: Warp, y0: int, y1: int) -> int:
     """Warp rows [y0, y1) of warp.out; returns how many of their pixels fell outside the rendered image."""
     h, w = warp.image.shape[0], warp.image.shape[1]
     image, out = warp.image.reshape(-1), warp.out.reshape(-1)
-    row = Lookups(np.empty(w, np.int32), np.empty(w, np.int32), np.empty((4, w), np.float32), np.empty(w, np.int32))
-    outside = 0
+    row = Lookups(np.empty(w, np.int32), np.empty((4, w), np.float32), np.empty(w, np.int32))
+    inside = 0
     for y in range(y0, y1):  # a row's footprints stay in cache between the two passes
         _lookups(warp.homography, y, h, row)
-        outside += _gather(image, out, y * w * 3, row)
-    return outside
+        inside += _gather(image, out, y * w * 3, row)
+    return (y1 - y0) * w - inside
 
 
 @kernel
@@ -184,6 +180,8 @@ def timewarp(image: np.ndarray, rendered: EyeCamera, target: EyeCamera, out: np.
     _check_same_optics(rendered, target)
     if image.shape != (rendered.height, rendered.width, 3):
         raise ValueError(f"image must be ({rendered.height}, {rendered.width}, 3) for the camera, got {image.shape}")
+    if image.size > np.iinfo(np.int32).max:
+        raise ValueError(f"image of {image.size} values: the warp indexes at most 2**31 - 1 (int32 lookups)")
     image = np.ascontiguousarray(image, dtype=np.float32)
     if out is None:
         out = np.empty_like(image)
