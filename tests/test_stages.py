@@ -10,7 +10,7 @@ from hmdrt.foveation.kim21 import Kim21Params, alpha_of_eccentricity, bezier_con
 from hmdrt.foveation.rrm import RrmParams, refresh_phase, visit_order
 from hmdrt.foveation.stages.dof import DOF_PRESETS, REFERENCE_PPD, circle_of_confusion, coc_map, focal_lengths
 from hmdrt.foveation.stages.gaze import FixationFilter, vergence_depth
-from hmdrt.foveation.stages.pyramid import Pyramid, pull_push
+from hmdrt.foveation.stages.pyramid import Pyramid, _axis, pixel_axes, pull_push
 from hmdrt.foveation.stages.reproject import CoarseMesh, backproject
 from hmdrt.foveation.stages.sampling import (
     FRC_PRESETS,
@@ -369,6 +369,23 @@ def test_pull_push_keeps_samples_and_fills_holes():
     assert np.all(dense[..., 3] == 1.0)
     assert np.abs(dense[..., 0] - truth).max() < 0.15  # a smooth ramp is reconstructed closely
     np.testing.assert_allclose(dense[..., 4], 2.0, atol=1e-6)
+
+
+def test_pixel_axes_hold_each_pixel_centres_taps_on_every_level():
+    """The tables sample_pixel reads agree with the per-pixel computation (_axis) they replace, on a size whose
+    levels halve unevenly."""
+    w, h = 37, 23
+    pyr = Pyramid.empty(w, h)
+    axes = pixel_axes(pyr)
+    for k in range(len(pyr.offsets)):
+        first, width = int(pyr.offsets[k]), int(pyr.widths[k])
+        for x in range(w):
+            i0, i1, a = _axis((x + 0.5) * pyr.scale_x[k], pyr.widths[k])
+            assert (axes.col0[k, x], axes.col1[k, x], axes.col_weight[k, x]) == (i0, i1, a)
+        for y in range(h):
+            j0, j1, b = _axis((y + 0.5) * pyr.scale_y[k], pyr.heights[k])
+            assert (axes.row0[k, y], axes.row1[k, y]) == (first + j0 * width, first + j1 * width)
+            assert axes.row_weight[k, y] == b
 
 
 # -- the light buffer behind weier2016's post-process --

@@ -37,7 +37,7 @@ from hmdrt.foveation.stages.dof import (
     lens,
 )
 from hmdrt.foveation.stages.filters import Contrast, contrast_levels, prefilter
-from hmdrt.foveation.stages.pyramid import Pyramid, pull_push, quincunx_rgbd
+from hmdrt.foveation.stages.pyramid import PixelAxes, Pyramid, pixel_axes, pull_push, quincunx_rgbd
 from hmdrt.foveation.stages.sampling import (
     FOVEAL_REGION_KNOBS,
     Density,
@@ -161,6 +161,7 @@ def _taa(traced, frustum, view, blend, previous, history, pyramid):
 class _EyeState:
     camera: EyeCamera
     pyramids: list[Pyramid]  # [current, previous]; swapped every frame
+    axes: PixelAxes  # the pyramids' pixel_axes (theirs is the image's size)
     tables: SamplingTables | None = None
     tables_for: tuple | None = None  # the (foveal region, table_seed, density) the tables were drawn for
     samples: SampleSet = field(default_factory=SampleSet)
@@ -216,7 +217,7 @@ class Weier18(Configurable):
         history = state is not None and (state.camera.width, state.camera.height) == (cam.width, cam.height)
         if not history:
             pyramids = [Pyramid.empty(cam.width, cam.height), Pyramid.empty(cam.width, cam.height)]
-            state = self._eyes[request.eye] = _EyeState(cam, pyramids)
+            state = self._eyes[request.eye] = _EyeState(cam, pyramids, pixel_axes(pyramids[0]))
         if state.tables_for != self._tables_for:
             state.tables = sampling_tables(cam, self.foveal, self.params.table_seed, self.params.density)
             state.tables_for = self._tables_for
@@ -261,7 +262,8 @@ class Weier18(Configurable):
                 if state.blurred is None or state.blurred.data.shape != current.data.shape:
                     state.blurred = Pyramid.empty(cam.width, cam.height)
                 blurred = prefilter(current, state.blurred)
-            combine(color, ecc, layers, blur, current, Contrast(p.contrast, p.r0, p.r1, state.levels), blurred, out)
+            contrast = Contrast(p.contrast, p.r0, p.r1, state.levels)
+            combine(color, ecc, layers, blur, current, contrast, blurred, state.axes, out)
         state.camera = request.camera
         stats.metrics["sample_fraction"] = state.samples.count / (cam.width * cam.height)
         return out

@@ -22,8 +22,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.stages.filters import Contrast, enhance
-from hmdrt.foveation.stages.pyramid import Pyramid, sample_pixel
+from hmdrt.foveation.stages.filters import Contrast, enhance_row
+from hmdrt.foveation.stages.pyramid import PixelAxes, Pyramid, pixel_axes, sample_pixel
 from hmdrt.jit import inline, kernel, serial
 
 IMAGE_DISTANCE_MM = 22.4  # d_i, the eye's lens-to-retina distance (Gross 2005)
@@ -263,11 +263,13 @@ def _near_vertical(near, rows, y, x, radius):
 
 
 @serial
-def _dof_row(color, ecc, layers, blur, pyramid, y, out):
+def _dof_row(color, ecc, layers, blur, pyramid, axes, y, out):
     """Row y of the second pass. Far field: the central Gaussian, the pyramid blur in the periphery, blended
     across [r0, r1); the sharp image is interpolated towards it by |CoC|; the near field is alpha-blended over."""
     coc, far, near, rows = layers
     r0, r1, ramp, radius = blur
+    data, top = pyramid.data, len(pyramid.offsets) - 1
+    col0, col1, col_weight, row0, row1, row_weight = axes
     for x in range(out.shape[1]):
         c = coc[y, x]
         r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
@@ -280,7 +282,7 @@ def _dof_row(color, ecc, layers, blur, pyramid, y, out):
                 fr, fg, fb = r, g, b
             if blend > 0.0:
                 level = 0.0 if -c <= 1.0 else math.log2(-c)
-                pr, pg, pb, _ = sample_pixel(pyramid, level, x, y)
+                pr, pg, pb, _ = sample_pixel(data, top, col0, col1, col_weight, row0, row1, row_weight, level, x, y)
                 fr, fg, fb = fr + blend * (pr - fr), fg + blend * (pg - fg), fb + blend * (pb - fb)
             t = min(1.0, -c / ramp)
             r, g, b = r + t * (fr - r), g + t * (fg - g), b + t * (fb - b)
@@ -290,26 +292,17 @@ def _dof_row(color, ecc, layers, blur, pyramid, y, out):
         out[y, x, 0], out[y, x, 1], out[y, x, 2] = r, g, b
 
 
-@serial
-def _contrast_row(ecc, contrast, blurred, y, out):
-    """Row y of out enhanced in place (filters.enhance)."""
-    for x in range(out.shape[1]):
-        out[y, x, 0], out[y, x, 1], out[y, x, 2] = enhance(
-            out[y, x, 0], out[y, x, 1], out[y, x, 2], ecc[y, x], x, y, contrast, blurred
-        )
-
-
 @kernel
-def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, dof, out):
+def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, dof, out):
     """Row by row, the depth of field then the contrast over the row while it is in cache: two simple loops
     compile to faster code than one that does both."""
     for y in nb.prange(out.shape[0]):
         if dof:
-            _dof_row(color, ecc, layers, blur, pyramid, y, out)
+            _dof_row(color, ecc, layers, blur, pyramid, axes, y, out)
         else:
             out[y] = color[y]
         if contrast.strength != 0.0:
-            _contrast_row(ecc, contrast, blurred, y, out)
+            enhance_row(ecc, contrast, blurred, axes, y, out)
 
 
 def horizontal_pass(color: np.ndarray, ecc: np.ndarray, layers: Layers, blur: Blur) -> None:
@@ -325,14 +318,16 @@ def combine(
     pyramid: Pyramid,
     contrast: Contrast,
     blurred: Pyramid,
+    axes: PixelAxes,
     out: np.ndarray,
 ) -> np.ndarray:
     """weier2018's DoF Combine in one pass over the image, into out: the second pass of the layered blur
     and its combination with the sharp image when layers are given (after horizontal_pass), then the
-    contrast enhancement (filters.enhance, from `blurred`, the pyramid prefiltered by filters.prefilter;
-    strength 0: none)."""
+    contrast enhancement (filters.enhance_row, from `blurred`, the pyramid prefiltered by filters.prefilter;
+    strength 0: none). `axes`: the pixel_axes of both pyramids' size."""
     no_layers = layers is None
-    _combine(color, ecc, _NO_LAYERS if no_layers else layers, blur, pyramid, contrast, blurred, not no_layers, out)
+    layers = _NO_LAYERS if no_layers else layers
+    _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, not no_layers, out)
     return out
 
 
@@ -350,7 +345,7 @@ def layered_blur(
     blur = Blur(r0, r1, ramp, layers.near_radius())
     horizontal_pass(color, ecc, layers, blur)
     no_contrast = Contrast(0.0, r0, r1, np.zeros((0, 0), np.float32))
-    return combine(color, ecc, layers, blur, pyramid, no_contrast, pyramid, np.empty_like(color))
+    return combine(color, ecc, layers, blur, pyramid, no_contrast, pyramid, pixel_axes(pyramid), np.empty_like(color))
 
 
 def gaze_depth(

@@ -20,7 +20,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.stages.pyramid import Pyramid, sample_pixel
-from hmdrt.jit import inline, kernel
+from hmdrt.jit import kernel, serial
 
 DEGREES_PER_LEVEL = 5.0  # the blur's pyramid level grows by one every 5 degrees beyond r0
 
@@ -80,15 +80,23 @@ def prefilter(pyramid: Pyramid, out: Pyramid) -> Pyramid:
     return out
 
 
-@inline
-def enhance(r, g, b, e, x, y, contrast, blurred):
-    """color + strength x fade(e) x (color - blur_e(color)) at pixel (x, y) of eccentricity e, the blur read
-    trilinearly from the prefiltered pyramid `blurred` (prefilter) at the pixel's centre. Negative results are
-    cut at zero (light cannot be negative)."""
+@serial
+def enhance_row(ecc, contrast, blurred, axes, y, out):
+    """Row y of out enhanced in place: color + strength x fade(e) x (color - blur_e(color)) at each pixel of
+    eccentricity e, the blur read trilinearly from the prefiltered pyramid `blurred` (prefilter; `axes` its
+    pixel_axes) at the pixel's centre. Negative results are cut at zero (light cannot be negative). The tuples
+    are taken apart once per row: one taken apart per pixel costs a reference count per array."""
     strength, r0, r1, levels = contrast
-    fade = 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
-    if fade <= 0.0:
-        return r, g, b
-    br, bg, bb, _ = sample_pixel(blurred, levels[y, x], x, y)
-    gain = strength * fade
-    return max(r + gain * (r - br), 0.0), max(g + gain * (g - bg), 0.0), max(b + gain * (b - bb), 0.0)
+    data, top = blurred.data, len(blurred.offsets) - 1
+    col0, col1, col_weight, row0, row1, row_weight = axes
+    for x in range(out.shape[1]):
+        e = ecc[y, x]
+        fade = 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+        if fade <= 0.0:
+            continue
+        br, bg, bb, _ = sample_pixel(data, top, col0, col1, col_weight, row0, row1, row_weight, levels[y, x], x, y)
+        gain = strength * fade
+        r, g, b = out[y, x, 0], out[y, x, 1], out[y, x, 2]
+        out[y, x, 0] = max(r + gain * (r - br), 0.0)
+        out[y, x, 1] = max(g + gain * (g - bg), 0.0)
+        out[y, x, 2] = max(b + gain * (b - bb), 0.0)

@@ -20,6 +20,28 @@ from hmdrt.jit import inline, kernel, serial
 CHANNELS = 5  # r, g, b, weight, depth
 
 
+class PixelAxes(NamedTuple):
+    """Per level, the two texels either side of every full-resolution pixel centre along x and along y and the
+    second one's weight (_axis): what sample_pixel would otherwise compute per pixel, four times. They depend
+    on the pyramid's size only (pixel_axes). Along y each texel row is given as the flat index of its first texel."""
+
+    col0: np.ndarray  # (levels, width) uint32
+    col1: np.ndarray  # (levels, width) uint32
+    col_weight: np.ndarray  # (levels, width) float32
+    row0: np.ndarray  # (levels, height) uint64
+    row1: np.ndarray  # (levels, height) uint64
+    row_weight: np.ndarray  # (levels, height) float32
+
+
+def _axis_table(n_pixels: int, scales: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """_axis of every pixel centre (k + 0.5) x scale on every level, in the same float64 steps."""
+    g = (np.arange(n_pixels) + 0.5)[None, :] * scales[:, None] - 0.5
+    k = np.floor(g)
+    last = (sizes - 1)[:, None]
+    i = k.astype(np.int64)
+    return np.clip(i, 0, last), np.clip(i + 1, 0, last), (g - k).astype(np.float32)
+
+
 class Pyramid(NamedTuple):
     data: np.ndarray  # (texels, 5) float32: r, g, b, weight, depth
     offsets: np.ndarray  # (levels,) int64 first texel of each level
@@ -43,6 +65,23 @@ class Pyramid(NamedTuple):
         """Level k as a (height, width, 5) view."""
         o = self.offsets[k]
         return self.data[o : o + self.widths[k] * self.heights[k]].reshape(self.heights[k], self.widths[k], CHANNELS)
+
+
+def pixel_axes(pyramid: Pyramid) -> PixelAxes:
+    """The PixelAxes of every pyramid of this one's size (a kernel argument of its own: numba's parallel kernels
+    take no tuple of arrays nested in another)."""
+    width, height = int(pyramid.widths[0]), int(pyramid.heights[0])
+    col0, col1, col_weight = _axis_table(width, pyramid.scale_x, pyramid.widths)
+    row0, row1, row_weight = _axis_table(height, pyramid.scale_y, pyramid.heights)
+    first, texels = pyramid.offsets[:, None], pyramid.widths[:, None]
+    return PixelAxes(
+        col0.astype(np.uint32),
+        col1.astype(np.uint32),
+        col_weight,
+        (first + row0 * texels).astype(np.uint64),
+        (first + row1 * texels).astype(np.uint64),
+        row_weight,
+    )
 
 
 @serial
@@ -70,9 +109,14 @@ def _bilinear(data, o, w, ax, ay):
     pyramid's float32."""
     i0, i1, a = ax
     j0, j1, b = ay
-    p, q = np.float32(1.0) - a, np.float32(1.0) - b
     top, bottom = np.uint64(o) + j0 * np.uint64(w), np.uint64(o) + j1 * np.uint64(w)
-    k00, k01, k10, k11 = top + i0, top + i1, bottom + i0, bottom + i1
+    return _blend4(data, top + i0, top + i1, bottom + i0, bottom + i1, a, b)
+
+
+@inline
+def _blend4(data, k00, k01, k10, k11, a, b):
+    """Colour and depth between texels k00 (top left), k01, k10 and k11 with weights a across and b down."""
+    p, q = np.float32(1.0) - a, np.float32(1.0) - b
     return (
         q * (p * data[k00, 0] + a * data[k01, 0]) + b * (p * data[k10, 0] + a * data[k11, 0]),
         q * (p * data[k00, 1] + a * data[k01, 1]) + b * (p * data[k10, 1] + a * data[k11, 1]),
@@ -137,26 +181,31 @@ def pull_push(pyramid: Pyramid, mask: np.ndarray | None = None) -> None:
 
 
 @inline
-def sample_pixel(pyramid, level, x, y):
-    """Colour and depth at the centre of full-resolution pixel (x, y) on a (fractional) level, trilinearly. Level 0
-    there is the texel itself, read as such: most of the depth of field's lookups and the contrast blur's nearest
-    the fovea stay within a level of it."""
-    data, offsets, widths, heights, sx, sy = pyramid
-    top = len(offsets) - 1
+def _pixel_tap(data, col0, col1, col_weight, row0, row1, row_weight, level, x, y):
+    """Colour and depth at the centre of full-resolution pixel (x, y) on an integer level, from PixelAxes."""
+    i0, i1, a = np.uint64(col0[level, x]), np.uint64(col1[level, x]), col_weight[level, x]
+    top, bottom = row0[level, y], row1[level, y]
+    return _blend4(data, top + i0, top + i1, bottom + i0, bottom + i1, a, row_weight[level, y])
+
+
+@inline
+def sample_pixel(data, top, col0, col1, col_weight, row0, row1, row_weight, level, x, y):
+    """Colour and depth at the centre of full-resolution pixel (x, y) on a (fractional) level, trilinearly, of the
+    pyramid with `data` and levels 0..top; the other arguments are its PixelAxes (pixel_axes), taken apart once
+    by per-pixel callers (a namedtuple taken apart per pixel costs a reference count per array). Level 0 there
+    is the texel itself, read as such: most of the depth of field's lookups and the contrast blur's nearest the
+    fovea stay within a level of it."""
     level = min(max(level, 0.0), float(top))
     l0 = int(level)
     if l0 == 0:
-        i = np.uint64(y * widths[0] + x)
+        i = np.uint64(y * col0.shape[1] + x)
         r, g, b, d = data[i, 0], data[i, 1], data[i, 2], data[i, 4]
     else:
-        ax, ay = _axis((x + 0.5) * sx[l0], widths[l0]), _axis((y + 0.5) * sy[l0], heights[l0])
-        r, g, b, d = _bilinear(data, offsets[l0], widths[l0], ax, ay)
+        r, g, b, d = _pixel_tap(data, col0, col1, col_weight, row0, row1, row_weight, l0, x, y)
     t = level - l0
     if t == 0.0 or l0 == top:
         return r, g, b, d
-    l1 = l0 + 1
-    ax, ay = _axis((x + 0.5) * sx[l1], widths[l1]), _axis((y + 0.5) * sy[l1], heights[l1])
-    r1, g1, b1, d1 = _bilinear(data, offsets[l1], widths[l1], ax, ay)
+    r1, g1, b1, d1 = _pixel_tap(data, col0, col1, col_weight, row0, row1, row_weight, l0 + 1, x, y)
     return r + t * (r1 - r), g + t * (g1 - g), b + t * (b1 - b), d + t * (d1 - d)
 
 
