@@ -281,6 +281,23 @@ def test_skipped_stages_cost_nothing_and_rays_are_counted():
     assert tunnel.rays["primary"] > 0 and tunnel.rays["shadow"] > 0
 
 
+def test_image_space_stages_say_how_much_memory_they_must_touch():
+    """bench/stage_budget.py sets each image-space stage against a copy of the bytes it declares: every method's
+    full-resolution passes declare them, the tracer's stages (bounded by rays, not bytes) do not."""
+    declared = {
+        "rrm": {"update"},
+        "weier16": {"reproject", "cache_update"},
+        "weier18": {"taa", "ppi", "coc", "dof_filter", "combine"},
+        "kim21": {"smooth"},
+    }
+    image = PROFILE.width * PROFILE.height * 3 * np.dtype(np.float32).itemsize
+    for spec, stages in declared.items():
+        stats = run(spec, "whitted", lambda s: builtin_path(2, PROFILE.period_ns, s.start))[-1][1]
+        assert set(stats.touched) == stages, spec
+        assert all(stats.touched[name] >= image for name in stages), (spec, stats.touched)
+        assert stats.touched.get("combine", 2 * image) >= 2 * image  # weier18's reads its input and writes out
+
+
 @pytest.mark.parametrize("spec", FOVEATED)
 def test_sequences_reproduce_bit_for_bit(spec):
     scene = load_scene("interior")

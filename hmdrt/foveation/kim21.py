@@ -46,7 +46,7 @@ from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map, pixel_grid
 from hmdrt.optics.projection import FAR, bilinear3, camera_arrays, nearest_index
 from hmdrt.ranges import Deg
-from hmdrt.telemetry.stats import FrameStats
+from hmdrt.telemetry.stats import FrameStats, nbytes
 from hmdrt.trace.gbuffer import GBuffer
 from hmdrt.trace.integrator import Whitted
 from hmdrt.trace.sampling import DIM_PIXEL, grid_dims, stratified
@@ -801,8 +801,9 @@ class Kim21(Configurable):
         if not (p.smooth and p.smooth_frames and "smooth" in f.steps):
             image[:] = history.color[f.slot]
             return image
-        with stats.stage("smooth"):
-            alpha = f.fov.alpha.reshape(h, w)
-            depth, color = history.depth[f.slot], history.color[f.slot]
+        alpha = f.fov.alpha.reshape(h, w)
+        depth, color = history.depth[f.slot], history.color[f.slot]
+        earlier = min(p.smooth_frames, len(history.order((h, w))))  # each read once, as the frame itself
+        with stats.stage("smooth", touches=nbytes(alpha, image) + (1 + earlier) * nbytes(depth, color)):
             exponential_smoothing(f.camera, depth, color, alpha, history, p.smooth_frames, p.depth_tolerance, image)
         return image

@@ -285,7 +285,7 @@ class Rrm(Configurable):
             n = _row_starts(refresh, samples.row_start)
             _fill(refresh, samples, request.seed)
         rgb = self.tracer.trace_samples(cam, samples.xy[:n], samples.keys[:n], stats, out=samples.color[:n])
-        with stats.stage("update"):
+        with stats.stage("update", touches=2 * rgb.nbytes + 2 * out.nbytes):  # samples into the buffer, it into out
             buffer = self._buffers.get(request.eye)
             if buffer is None or buffer.shape != shape:
                 buffer = self._buffers[request.eye] = np.zeros(shape, dtype=np.float32)

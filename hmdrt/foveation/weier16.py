@@ -61,7 +61,7 @@ from hmdrt.optics.camera import EyeCamera, eccentricity_map
 from hmdrt.optics.projection import FAR, bilinear3, camera_arrays, view_distance, view_point, world_point
 from hmdrt.ranges import Deg, Fraction
 from hmdrt.rng import uniform
-from hmdrt.telemetry.stats import FrameStats
+from hmdrt.telemetry.stats import FrameStats, nbytes
 from hmdrt.trace.gbuffer import GBufferPool, LightBuffer
 from hmdrt.trace.integrator import Whitted
 
@@ -731,7 +731,8 @@ class Weier16(Configurable):
         if "reproject" not in f.steps:
             return f.buf.mesh.image
         w, h = f.size[:2]
-        with stats.stage("reproject"):
+        written = w * h * 3 * np.dtype(np.float32).itemsize  # the mesh image: x, y in the previous frame and 1/z
+        with stats.stage("reproject", touches=f.eye.support.depth.nbytes + written):
             return f.buf.mesh.reproject(f.eye.camera, f.buf.grid_x, f.buf.grid_y, f.eye.support.depth, f.camera, w, h)
 
     def _resample_info(self, f: _Frame, stats: FrameStats) -> np.ndarray:
@@ -787,11 +788,13 @@ class Weier16(Configurable):
         p, t, support = self.params, f.request.frame, f.eye.support
         sw, sh = f.size[2:]
         previous, final = f.eye.finals[f.eye.newest], f.eye.finals[1 - f.eye.newest]
-        with stats.stage("cache_update"):
+        stochastic = STOCHASTIC in self.features
+        lights = (previous.light, final.light, samples.light) if stochastic else ()
+        touched = (f.buf.selection.flags, *mesh, previous.color, previous.info, final.color, final.info, f.image)
+        with stats.stage("cache_update", touches=nbytes(*touched, samples.rgb, samples.depth, *lights)):
             np.copyto(support.depth, samples.depth[n:].reshape(sh, sw))
             np.copyto(support.normal, normals[n:].reshape(sh, sw, 3))
             support_image = samples.rgb[n:].reshape(sh, sw, 3)
-            stochastic = STOCHASTIC in self.features
             rule = CacheRule(
                 float(t), p.k_min, p.k_max, p.t_max, p.eps_cache, p.footprint_samples, f.request.seed + t, stochastic
             )

@@ -52,7 +52,7 @@ from hmdrt.jit import kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
 from hmdrt.optics.projection import FAR, camera_arrays
 from hmdrt.ranges import Deg, Fraction
-from hmdrt.telemetry.stats import FrameStats
+from hmdrt.telemetry.stats import FrameStats, nbytes
 from hmdrt.trace.gbuffer import GBufferPool
 from hmdrt.trace.integrator import Whitted
 
@@ -252,11 +252,17 @@ class Weier18(Configurable):
         traced = self._trace(state, request, keys, stats)
         current = self._reconstruct(state, request.camera, traced, steps, stats)
         layers, blur = self._depth_of_field(state, request, current, ecc, por, steps, stats)
-        with stats.stage("combine"):
-            cam, p = request.camera, self.params
-            if out is None:
-                out = np.empty((cam.height, cam.width, 3), np.float32)
-            color = current.level(0)[..., :3]
+        cam, p = request.camera, self.params
+        if out is None:
+            out = np.empty((cam.height, cam.width, 3), np.float32)
+        base = current.level(0)  # the colour is read from it with the other channels around it
+        touches = nbytes(base, ecc, out)
+        if p.contrast:
+            touches += 2 * current.data.nbytes + state.levels.nbytes  # the prefilter, the contrast's levels
+        if layers is not None:
+            touches += nbytes(layers.coc, layers.far, layers.near)
+        with stats.stage("combine", touches=touches):
+            color = base[..., :3]
             blurred = current  # read only with contrast on
             if p.contrast:
                 if state.blurred is None or state.blurred.data.shape != current.data.shape:
@@ -285,10 +291,11 @@ class Weier18(Configurable):
         current, previous = state.pyramids
         frustum, view = camera_arrays(cam).frustum, relative_view(state.camera, cam)
         blend = Blend(cam.width, p.alpha_min, p.taa_depth)
-        if "taa" in steps:
-            with stats.stage("taa"):
+        texel = current.data.itemsize * current.data.shape[1]
+        if "taa" in steps:  # each sample read, its texel written and at least one of the previous frame's read
+            with stats.stage("taa", touches=nbytes(*traced) + 2 * len(traced.pixels) * texel):
                 _taa(traced, frustum, view, blend, previous, True, current)
-        with stats.stage("ppi"):
+        with stats.stage("ppi", touches=2 * current.data.nbytes + state.samples.mask.nbytes):
             if "taa" not in steps:
                 _taa(traced, frustum, view, blend, previous, False, current)
             pull_push(current, state.samples.mask.reshape(-1))
@@ -314,12 +321,12 @@ class Weier18(Configurable):
         ppd = sum(pixels_per_degree(cam)) / 2
         with stats.stage("gaze_depth"):
             focus = gaze_depth(base[..., 4], por, ppd, request.gaze_depth_m, miss=0.5 * FAR)
-        with stats.stage("coc"):
-            if state.layers is None or state.layers.coc.shape != (cam.height, cam.width):
-                state.layers = Layers.empty(cam.width, cam.height)
-            layers = state.layers
+        if state.layers is None or state.layers.coc.shape != (cam.height, cam.width):
+            state.layers = Layers.empty(cam.width, cam.height)
+        layers = state.layers
+        with stats.stage("coc", touches=nbytes(base, layers.coc)):
             layers.compute_coc(base[..., 4], lens(focus, preset, ppd, p.depth_inaccuracy_m), miss=0.5 * FAR)
-        with stats.stage("dof_filter"):
+        with stats.stage("dof_filter", touches=nbytes(base, ecc, layers.coc, layers.far, layers.near)):
             blur = blur._replace(radius=layers.near_radius())
             horizontal_pass(base[..., :3], ecc, layers, blur)
         stats.metrics["focus_m"] = focus

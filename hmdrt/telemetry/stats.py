@@ -14,6 +14,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
+import numpy as np
+
 RAY_KINDS = ("primary", "shadow", "secondary", "ao", "area")
 
 
@@ -50,3 +52,8 @@ class FrameStats:
             "stages_run": list(self.stages_ms),
             "metrics": dict(self.metrics),
         }
+
+
+def nbytes(*arrays: np.ndarray) -> int:
+    """The bytes of these arrays together: what a pass that reads or writes each of them once must touch."""
+    return sum(a.nbytes for a in arrays)
