@@ -44,10 +44,10 @@ def backproject(current: EyeCamera, depth: np.ndarray, previous: EyeCamera) -> t
 
 # -- weier2016 section 3.2: reprojection through a coarse mesh built from the support G-buffer --
 
-VERTEX_ATTRS = 3  # previous pixel x z, y z and z (z: previous view depth): linear in the world on a planar
-# facet, so perspective-correct interpolation recovers x and y exactly
+VERTEX_ATTRS = 4  # previous pixel x z, y z and z (z: previous view depth), each over the current view depth, and
+# 1 over it: linear in the screen on a planar facet, so perspective-correct interpolation recovers x and y exactly
 ROWS = 4  # rows of a block, the unit of work of the row-parallel kernels (see hmdrt/trace/blocks.py)
-BANDS = 64  # bands of image rows the rasteriser sorts triangles into, one parallel task each
+BANDS = 64  # bands of image rows the rasteriser splits the image into, one parallel task each
 
 
 def dynamic(kernel, *args) -> None:
@@ -69,12 +69,12 @@ class MeshVertices(NamedTuple):
     attr: np.ndarray  # (hs, ws, VERTEX_ATTRS) float64
 
 
-class TriangleBins(NamedTuple):
-    """The mesh's triangles sorted into bands of band_rows image rows (a counting sort)."""
+class TriangleRows(NamedTuple):
+    """The image rows each of the mesh's triangles can cover, and each row of grid cells: what a band of image
+    rows needs to find its triangles, in the mesh's order, without sorting them."""
 
     rows: np.ndarray  # (triangles, 2) int64: the rows [r0, r1) a triangle can cover, empty when culled
-    starts: np.ndarray  # (bands + 1,) int64: each band's first entry in members
-    members: np.ndarray  # (>= starts[-1],) int64: triangle indices, band by band
+    spans: np.ndarray  # (hs - 1, 2) int64: the rows [r0, r1) the triangles of a row of cells cover together
     band_rows: int
 
 
@@ -94,9 +94,12 @@ def _mesh_vertices(prev, grid_x, grid_y, depth, cur, vertices):
     for j in nb.prange(hs):
         for i in range(ws):
             px, py, pz = world_point(prev, grid_x[i], grid_y[j], depth[j, i])
-            screen[j, i, 0], screen[j, i, 1], screen[j, i, 2] = project_view(cur, px, py, pz)
+            sx, sy, sz = project_view(cur, px, py, pz)
+            screen[j, i, 0], screen[j, i, 1], screen[j, i, 2] = sx, sy, sz
             zp = project_view(prev, px, py, pz)[2]
-            attr[j, i, 0], attr[j, i, 1], attr[j, i, 2] = grid_x[i] * zp, grid_y[j] * zp, zp
+            iz = 1.0 / sz if sz > NEAR else 0.0  # a vertex at or behind the near plane culls its triangles
+            attr[j, i, 0], attr[j, i, 1], attr[j, i, 2] = grid_x[i] * zp * iz, grid_y[j] * zp * iz, zp * iz
+            attr[j, i, 3] = iz
 
 
 @serial
@@ -119,107 +122,86 @@ def _row_range(screen, a, b, c, height):
 
 
 @serial
-def _grid_rows_triangles(j0, j1, screen, height, rows):
+def _grid_rows_triangles(j0, j1, screen, height, rows, spans):
     ws = screen.shape[1]
     for j in range(j0, j1):
+        lo, hi = height, 0
         for i in range(ws - 1):
             for t in range(2):
                 a, b, c = _triangle(j, i, t)
                 r0, r1 = _row_range(screen, a, b, c, height)
                 rows[(j * (ws - 1) + i) * 2 + t, 0] = r0
                 rows[(j * (ws - 1) + i) * 2 + t, 1] = r1
+                if r1 > r0:
+                    lo, hi = min(lo, r0), max(hi, r1)
+        spans[j, 0], spans[j, 1] = lo, hi
 
 
 @kernel
-def _triangle_rows(screen, height, rows):
+def _triangle_rows(screen, height, rows, spans):
     cells = screen.shape[0] - 1
     for b in nb.prange((cells + ROWS - 1) // ROWS):
-        _grid_rows_triangles(b * ROWS, min(cells, (b + 1) * ROWS), screen, height, rows)
+        _grid_rows_triangles(b * ROWS, min(cells, (b + 1) * ROWS), screen, height, rows, spans)
 
 
 @serial
-def _count_bins(rows, band_rows, starts):
-    """Entries per band, summed into starts[band + 1]; returns the total."""
-    starts[:] = 0
-    for t in range(rows.shape[0]):
-        r0, r1 = rows[t, 0], rows[t, 1]
-        if r1 > r0:
-            for band in range(r0 // band_rows, (r1 - 1) // band_rows + 1):
-                starts[band + 1] += 1
-    for band in range(1, starts.shape[0]):
-        starts[band] += starts[band - 1]
-    return starts[-1]
-
-
-@serial
-def _fill_bins(rows, band_rows, starts, members):
-    """The triangles of each band into members, using starts[band] as the band's cursor and shifting the
-    cursors back to the starts afterwards."""
-    for t in range(rows.shape[0]):
-        r0, r1 = rows[t, 0], rows[t, 1]
-        if r1 > r0:
-            for band in range(r0 // band_rows, (r1 - 1) // band_rows + 1):
-                members[starts[band]] = t
-                starts[band] += 1
-    for band in range(starts.shape[0] - 1, 0, -1):
-        starts[band] = starts[band - 1]
-    starts[0] = 0
-
-
-@serial
-def _raster_band(y0, vertices, bins, image):
-    """Rasterise the band's triangles into rows [y0, y0 + band_rows) with a 1/z depth test. (One flat loop:
-    per-triangle helpers taking the arrays would cost numba reference counting per call.)"""
-    screen, attr, members = vertices.screen, vertices.attr, bins.members
+def _raster_band(y0, vertices, triangles, image):
+    """Rasterise into rows [y0, y0 + band_rows) the triangles that can cover them, in the mesh's order, with a
+    1/z depth test (the first of equal depths stays). (One flat loop: per-triangle helpers taking the arrays
+    would cost numba reference counting per call.)"""
+    screen, attr, rows, spans = vertices.screen, vertices.attr, triangles.rows, triangles.spans
     out_prev, out_zinv = image.prev, image.zinv
-    band = y0 // bins.band_rows
     ws = screen.shape[1]
-    y1, width = min(out_zinv.shape[0], y0 + bins.band_rows), out_zinv.shape[1]
+    y1, width = min(out_zinv.shape[0], y0 + triangles.band_rows), out_zinv.shape[1]
     out_zinv[y0:y1] = 0.0
-    for k in range(bins.starts[band], bins.starts[band + 1]):
-        t = members[k]
-        cell = t // 2
-        a, b, c = _triangle(cell // (ws - 1), cell % (ws - 1), t % 2)
-        ax, ay, az = screen[a[0], a[1], 0], screen[a[0], a[1], 1], screen[a[0], a[1], 2]
-        bx, by, bz = screen[b[0], b[1], 0], screen[b[0], b[1], 1], screen[b[0], b[1], 2]
-        cx, cy, cz = screen[c[0], c[1], 0], screen[c[0], c[1], 1], screen[c[0], c[1], 2]
-        ymin, ymax = min(ay, min(by, cy)), max(ay, max(by, cy))
-        ry0, ry1 = max(y0, int(math.ceil(ymin - 0.5))), min(y1, int(math.floor(ymax - 0.5)) + 1)
-        xmin, xmax = min(ax, min(bx, cx)), max(ax, max(bx, cx))
-        rx0, rx1 = max(0, int(math.ceil(xmin - 0.5))), min(width, int(math.floor(xmax - 0.5)) + 1)
-        area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-        if ry0 >= ry1 or rx0 >= rx1 or abs(area) < 1e-12:
+    for j in range(spans.shape[0]):
+        if spans[j, 0] >= y1 or spans[j, 1] <= y0:
             continue
-        inv_area = 1.0 / area
-        iza, izb, izc = 1.0 / az, 1.0 / bz, 1.0 / cz
-        # per-vertex attributes times 1/z, so each pixel only blends them
-        a0, a1, a2 = attr[a[0], a[1], 0] * iza, attr[a[0], a[1], 1] * iza, attr[a[0], a[1], 2] * iza
-        b0, b1, b2 = attr[b[0], b[1], 0] * izb, attr[b[0], b[1], 1] * izb, attr[b[0], b[1], 2] * izb
-        c0, c1, c2 = attr[c[0], c[1], 0] * izc, attr[c[0], c[1], 1] * izc, attr[c[0], c[1], 2] * izc
-        # barycentric weights are affine in the pixel position: stepped along x. On a still view the grid's
-        # vertices sit on support pixel centres, and these sums decide which triangle takes them
-        dwa_dx, dwb_dx = (by - cy) * inv_area, (cy - ay) * inv_area
-        for y in range(ry0, ry1):
-            sy, sx = y + 0.5, rx0 + 0.5
-            wa = ((bx - sx) * (cy - sy) - (by - sy) * (cx - sx)) * inv_area
-            wb = ((cx - sx) * (ay - sy) - (cy - sy) * (ax - sx)) * inv_area
-            for x in range(rx0, rx1):
-                wc = 1.0 - wa - wb
-                if wa >= 0.0 and wb >= 0.0 and wc >= 0.0:
-                    iz = wa * iza + wb * izb + wc * izc
-                    if iz > out_zinv[y, x]:
-                        out_zinv[y, x] = iz
-                        zp = wa * a2 + wb * b2 + wc * c2
-                        out_prev[0, y, x] = (wa * a0 + wb * b0 + wc * c0) / zp
-                        out_prev[1, y, x] = (wa * a1 + wb * b1 + wc * c1) / zp
-                wa += dwa_dx
-                wb += dwb_dx
+        for t in range(j * (ws - 1) * 2, (j + 1) * (ws - 1) * 2):
+            if rows[t, 0] >= y1 or rows[t, 1] <= y0:
+                continue
+            cell = t // 2
+            a, b, c = _triangle(j, cell % (ws - 1), t % 2)
+            ax, ay = screen[a[0], a[1], 0], screen[a[0], a[1], 1]
+            bx, by = screen[b[0], b[1], 0], screen[b[0], b[1], 1]
+            cx, cy = screen[c[0], c[1], 0], screen[c[0], c[1], 1]
+            ymin, ymax = min(ay, min(by, cy)), max(ay, max(by, cy))
+            ry0, ry1 = max(y0, int(math.ceil(ymin - 0.5))), min(y1, int(math.floor(ymax - 0.5)) + 1)
+            xmin, xmax = min(ax, min(bx, cx)), max(ax, max(bx, cx))
+            rx0, rx1 = max(0, int(math.ceil(xmin - 0.5))), min(width, int(math.floor(xmax - 0.5)) + 1)
+            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            if ry0 >= ry1 or rx0 >= rx1 or abs(area) < 1e-12:
+                continue
+            inv_area = 1.0 / area
+            # per-vertex attributes, already over z (_mesh_vertices), so each pixel only blends them
+            a0, a1, a2, iza = attr[a[0], a[1], 0], attr[a[0], a[1], 1], attr[a[0], a[1], 2], attr[a[0], a[1], 3]
+            b0, b1, b2, izb = attr[b[0], b[1], 0], attr[b[0], b[1], 1], attr[b[0], b[1], 2], attr[b[0], b[1], 3]
+            c0, c1, c2, izc = attr[c[0], c[1], 0], attr[c[0], c[1], 1], attr[c[0], c[1], 2], attr[c[0], c[1], 3]
+            # barycentric weights are affine in the pixel position: stepped along x. On a still view the grid's
+            # vertices sit on support pixel centres, and these sums decide which triangle takes them
+            dwa_dx, dwb_dx = (by - cy) * inv_area, (cy - ay) * inv_area
+            for y in range(ry0, ry1):
+                sy, sx = y + 0.5, rx0 + 0.5
+                wa = ((bx - sx) * (cy - sy) - (by - sy) * (cx - sx)) * inv_area
+                wb = ((cx - sx) * (ay - sy) - (cy - sy) * (ax - sx)) * inv_area
+                for x in range(rx0, rx1):
+                    wc = 1.0 - wa - wb
+                    if wa >= 0.0 and wb >= 0.0 and wc >= 0.0:
+                        iz = wa * iza + wb * izb + wc * izc
+                        if iz > out_zinv[y, x]:
+                            out_zinv[y, x] = iz
+                            zp = wa * a2 + wb * b2 + wc * c2
+                            out_prev[0, y, x] = (wa * a0 + wb * b0 + wc * c0) / zp
+                            out_prev[1, y, x] = (wa * a1 + wb * b1 + wc * c1) / zp
+                    wa += dwa_dx
+                    wb += dwb_dx
 
 
 @kernel
-def _raster_mesh(vertices, bins, image):
-    for band in nb.prange(bins.starts.shape[0] - 1):
-        _raster_band(band * bins.band_rows, vertices, bins, image)
+def _raster_mesh(vertices, triangles, image):
+    bands = (image.zinv.shape[0] + triangles.band_rows - 1) // triangles.band_rows
+    for band in nb.prange(bands):
+        _raster_band(band * triangles.band_rows, vertices, triangles, image)
 
 
 class CoarseMesh:
@@ -233,9 +215,7 @@ class CoarseMesh:
     def __init__(self):
         self.image = MeshImage(np.empty((2, 0, 0), np.float32), np.empty((0, 0), np.float32))
         self._vertices = MeshVertices(np.empty((0, 0, 3)), np.empty((0, 0, VERTEX_ATTRS)))
-        self._rows = np.empty((0, 2), np.int64)
-        self._starts = np.empty(0, np.int64)
-        self._members = np.empty(0, np.int64)
+        self._rows, self._spans = np.empty((0, 2), np.int64), np.empty((0, 2), np.int64)
 
     def reproject(
         self,
@@ -251,22 +231,16 @@ class CoarseMesh:
         hs, ws = depth.shape
         if self._vertices.screen.shape[:2] != (hs, ws):
             self._vertices = MeshVertices(np.empty((hs, ws, 3)), np.empty((hs, ws, VERTEX_ATTRS)))
-            self._rows = np.empty((2 * max(hs - 1, 0) * max(ws - 1, 0), 2), np.int64)
-        band_rows = max(1, height // BANDS)
-        bands = (height + band_rows - 1) // band_rows
+            cells = max(hs - 1, 0)
+            self._rows = np.empty((2 * cells * max(ws - 1, 0), 2), np.int64)
+            self._spans = np.empty((cells, 2), np.int64)
         if self.image.zinv.shape != (height, width):
             self.image = MeshImage(np.empty((2, height, width), np.float32), np.empty((height, width), np.float32))
-            self._starts = np.empty(bands + 1, np.int64)
         cur = camera_arrays(current, width, height)
         _mesh_vertices(camera_arrays(previous), grid_x, grid_y, depth, cur, self._vertices)
-        _triangle_rows(self._vertices.screen, height, self._rows)
-        entries = _count_bins(self._rows, band_rows, self._starts)
-        if len(self._members) < entries:
-            self._members = np.empty(int(1.25 * entries), np.int64)
-        _fill_bins(self._rows, band_rows, self._starts, self._members)
-        dynamic(
-            _raster_mesh, self._vertices, TriangleBins(self._rows, self._starts, self._members, band_rows), self.image
-        )
+        _triangle_rows(self._vertices.screen, height, self._rows, self._spans)
+        triangles = TriangleRows(self._rows, self._spans, max(1, height // BANDS))
+        dynamic(_raster_mesh, self._vertices, triangles, self.image)
         return self.image
 
 
