@@ -10,7 +10,7 @@ from hmdrt.foveation.kim21 import Kim21Params, alpha_of_eccentricity, bezier_con
 from hmdrt.foveation.rrm import RrmParams, refresh_phase, visit_order
 from hmdrt.foveation.stages.dof import DOF_PRESETS, REFERENCE_PPD, circle_of_confusion, coc_map, focal_lengths
 from hmdrt.foveation.stages.gaze import FixationFilter, vergence_depth
-from hmdrt.foveation.stages.pyramid import Pyramid, _axis, pixel_axes, pull_push
+from hmdrt.foveation.stages.pyramid import Pyramid, _axis, pixel_axes, pull_push, push_columns
 from hmdrt.foveation.stages.reproject import CoarseMesh, backproject
 from hmdrt.foveation.stages.sampling import (
     FRC_PRESETS,
@@ -369,6 +369,20 @@ def test_pull_push_keeps_samples_and_fills_holes():
     assert np.all(dense[..., 3] == 1.0)
     assert np.abs(dense[..., 0] - truth).max() < 0.15  # a smooth ramp is reconstructed closely
     np.testing.assert_allclose(dense[..., 4], 2.0, atol=1e-6)
+
+
+def test_pull_push_with_kept_columns_matches_and_refuses_short_ones():
+    rng = np.random.default_rng(2)
+    a, b = Pyramid.empty(50, 37), Pyramid.empty(50, 37)
+    chosen = np.flatnonzero(rng.random(50 * 37) < 0.2)
+    colours = rng.random((len(chosen), 3), dtype=np.float32)
+    for pyr in (a, b):
+        pyr.data[chosen, :3], pyr.data[chosen, 3] = colours, 1.0
+    pull_push(a)
+    pull_push(b, columns=push_columns(64))  # wider scratch than level 0: only its first 50 entries are used
+    np.testing.assert_array_equal(a.data, b.data)
+    with pytest.raises(ValueError, match="columns hold 49 texels, level 0 has 50"):
+        pull_push(b, columns=push_columns(49))
 
 
 def test_pixel_axes_hold_each_pixel_centres_taps_on_every_level():

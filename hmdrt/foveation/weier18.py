@@ -37,7 +37,15 @@ from hmdrt.foveation.stages.dof import (
     lens,
 )
 from hmdrt.foveation.stages.filters import Contrast, contrast_levels, prefilter
-from hmdrt.foveation.stages.pyramid import PixelAxes, Pyramid, pixel_axes, pull_push, quincunx_rgbd
+from hmdrt.foveation.stages.pyramid import (
+    Columns,
+    PixelAxes,
+    Pyramid,
+    pixel_axes,
+    pull_push,
+    push_columns,
+    quincunx_rgbd,
+)
 from hmdrt.foveation.stages.sampling import (
     FOVEAL_REGION_KNOBS,
     Density,
@@ -162,6 +170,7 @@ class _EyeState:
     camera: EyeCamera
     pyramids: list[Pyramid]  # [current, previous]; swapped every frame
     axes: PixelAxes  # the pyramids' pixel_axes (theirs is the image's size)
+    columns: Columns  # pull-push's scratch (push_columns)
     tables: SamplingTables | None = None
     tables_for: tuple | None = None  # the (foveal region, table_seed, density) the tables were drawn for
     samples: SampleSet = field(default_factory=SampleSet)
@@ -217,7 +226,7 @@ class Weier18(Configurable):
         history = state is not None and (state.camera.width, state.camera.height) == (cam.width, cam.height)
         if not history:
             pyramids = [Pyramid.empty(cam.width, cam.height), Pyramid.empty(cam.width, cam.height)]
-            state = self._eyes[request.eye] = _EyeState(cam, pyramids, pixel_axes(pyramids[0]))
+            state = self._eyes[request.eye] = _EyeState(cam, pyramids, pixel_axes(pyramids[0]), push_columns(cam.width))
         if state.tables_for != self._tables_for:
             state.tables = sampling_tables(cam, self.foveal, self.params.table_seed, self.params.density)
             state.tables_for = self._tables_for
@@ -298,7 +307,7 @@ class Weier18(Configurable):
         with stats.stage("ppi", touches=2 * current.data.nbytes + state.samples.mask.nbytes):
             if "taa" not in steps:
                 _taa(traced, frustum, view, blend, previous, False, current)
-            pull_push(current, state.samples.mask.reshape(-1))
+            pull_push(current, state.samples.mask.reshape(-1), state.columns)
         return current
 
     def _depth_of_field(

@@ -147,13 +147,31 @@ def _pull_level(pyramid, k, mask):
             data[j, 3] = min(1.0, wsum)
 
 
+class Columns(NamedTuple):
+    """Scratch for a push: the coarser level's two texel columns either side of each finer texel's centre and the
+    second one's weight (_axis), one entry per column of the finer level; sized for level 0 (push_columns)."""
+
+    col0: np.ndarray  # (width,) uint64
+    col1: np.ndarray  # (width,) uint64
+    weight: np.ndarray  # (width,) float32
+
+
+def push_columns(width: int) -> Columns:
+    """Scratch for pull_push on pyramids whose level 0 is `width` texels wide, to keep across frames."""
+    return Columns(np.empty(width, np.uint64), np.empty(width, np.uint64), np.empty(width, np.float32))
+
+
 @kernel
-def _push_level(pyramid, k, mask):
-    """Fill the missing weight of level k's texels from level k + 1, bilinearly."""
+def _push_level(pyramid, k, mask, columns):
+    """Fill the missing weight of level k's texels from level k + 1, bilinearly; the columns' taps are taken once
+    per level (into `columns`), the rows' once per row."""
     data = pyramid.data
     o_fine, wf, hf = pyramid.offsets[k], pyramid.widths[k], pyramid.heights[k]
     o_coarse, wc, hc = pyramid.offsets[k + 1], pyramid.widths[k + 1], pyramid.heights[k + 1]
     sx, sy = wc / wf, hc / hf
+    col0, col1, col_weight = columns
+    for x in range(wf):
+        col0[x], col1[x], col_weight[x] = _axis((x + 0.5) * sx, wc)
     for y in nb.prange(hf):
         ay = _axis((y + 0.5) * sy, hc)
         for x in range(wf):
@@ -161,7 +179,7 @@ def _push_level(pyramid, k, mask):
             w = _weight(data, i, mask)
             if w >= 1.0:
                 continue
-            r, g, b, d = _bilinear(data, o_coarse, wc, _axis((x + 0.5) * sx, wc), ay)
+            r, g, b, d = _bilinear(data, o_coarse, wc, (col0[x], col1[x], col_weight[x]), ay)
             if w > 0.0:
                 v = 1.0 - w
                 r, g = w * data[i, 0] + v * r, w * data[i, 1] + v * g
@@ -169,15 +187,19 @@ def _push_level(pyramid, k, mask):
             data[i, 0], data[i, 1], data[i, 2], data[i, 3], data[i, 4] = r, g, b, 1.0, d
 
 
-def pull_push(pyramid: Pyramid, mask: np.ndarray | None = None) -> None:
+def pull_push(pyramid: Pyramid, mask: np.ndarray | None = None, columns: Columns | None = None) -> None:
     """Fill every texel of level 0 from its valid samples (weight > 0), in place, coarse levels too.
 
     mask (level 0's texels, bool), when given, says which texels of level 0 are samples (weight 1, the rest
-    0) in place of level 0's weight channel, so that a frame's samples need not clear the others' weights."""
+    0) in place of level 0's weight channel, so that a frame's samples need not clear the others' weights.
+    columns: push_columns(level 0's width), kept by callers that run every frame (else made here)."""
+    columns = push_columns(int(pyramid.widths[0])) if columns is None else columns
+    if len(columns.col0) < pyramid.widths[0]:
+        raise ValueError(f"columns hold {len(columns.col0)} texels, level 0 has {pyramid.widths[0]}")
     for k in range(1, len(pyramid.offsets)):
         _pull_level(pyramid, k, mask if k == 1 else None)
     for k in range(len(pyramid.offsets) - 2, -1, -1):
-        _push_level(pyramid, k, mask if k == 0 else None)
+        _push_level(pyramid, k, mask if k == 0 else None, columns)
 
 
 @inline
