@@ -10,7 +10,7 @@ from hmdrt.foveation.kim21 import Kim21Params, alpha_of_eccentricity, bezier_con
 from hmdrt.foveation.rrm import RrmParams, refresh_phase, visit_order
 from hmdrt.foveation.stages.dof import DOF_PRESETS, REFERENCE_PPD, circle_of_confusion, coc_map, focal_lengths
 from hmdrt.foveation.stages.gaze import FixationFilter, vergence_depth
-from hmdrt.foveation.stages.pyramid import Pyramid, _axis, pixel_axes, pull_push, push_columns
+from hmdrt.foveation.stages.pyramid import Pyramid, RowSamples, _axis, pixel_axes, pull_push, push_columns, sample_row
 from hmdrt.foveation.stages.reproject import CoarseMesh, backproject
 from hmdrt.foveation.stages.sampling import (
     FRC_PRESETS,
@@ -400,6 +400,42 @@ def test_pixel_axes_hold_each_pixel_centres_taps_on_every_level():
             j0, j1, b = _axis((y + 0.5) * pyr.scale_y[k], pyr.heights[k])
             assert (axes.row0[k, y], axes.row1[k, y]) == (first + j0 * width, first + j1 * width)
             assert axes.row_weight[k, y] == b
+
+
+def _trilinear(pyr, level, x, y):
+    """Colour and depth at pixel (x, y)'s centre on a fractional level, from the per-pixel _axis."""
+
+    def tap(k):
+        i0, i1, a = _axis((x + 0.5) * pyr.scale_x[k], pyr.widths[k])
+        j0, j1, b = _axis((y + 0.5) * pyr.scale_y[k], pyr.heights[k])
+        texel = pyr.level(k)[:, :, [0, 1, 2, 4]].astype(np.float64)
+        a, b = float(a), float(b)
+        top = (1 - a) * texel[int(j0), int(i0)] + a * texel[int(j0), int(i1)]
+        bottom = (1 - a) * texel[int(j1), int(i0)] + a * texel[int(j1), int(i1)]
+        return (1 - b) * top + b * bottom
+
+    top = len(pyr.offsets) - 1
+    level = min(level, top)
+    k = int(level)
+    return tap(k) if k == top else tap(k) + (level - k) * (tap(k + 1) - tap(k))
+
+
+def test_sample_row_reads_every_pixels_own_level_and_leaves_the_unselected():
+    """One pass per level over a row holding levels 0, fractional, integer, the top and beyond it; pixels
+    with a negative level keep what their values held."""
+    w, h = 37, 23
+    pyr = Pyramid.empty(w, h)
+    pyr.data[:] = np.random.default_rng(5).random(pyr.data.shape, np.float32)
+    top = len(pyr.offsets) - 1
+    levels = np.array([0.0, 0.25, 1.0, 1.5, 2.75, -1.0, top, top + 3.0, 0.9] * 5)[:w]
+    scratch = RowSamples.empty(w)
+    values = scratch.values[0]
+    values[:] = 7.0
+    y = 9
+    sample_row(pyr.data, top, pixel_axes(pyr), y, levels, values)
+    for x, level in enumerate(levels):
+        expected = np.full(4, 7.0) if level < 0 else _trilinear(pyr, level, x, y)
+        np.testing.assert_allclose(values[x], expected, rtol=1e-5, atol=1e-6, err_msg=f"x={x} level={level}")
 
 
 # -- the light buffer behind weier2016's post-process --

@@ -41,6 +41,7 @@ from hmdrt.foveation.stages.pyramid import (
     Columns,
     PixelAxes,
     Pyramid,
+    RowSamples,
     pixel_axes,
     pull_push,
     push_columns,
@@ -171,6 +172,7 @@ class _EyeState:
     pyramids: list[Pyramid]  # [current, previous]; swapped every frame
     axes: PixelAxes  # the pyramids' pixel_axes (theirs is the image's size)
     columns: Columns  # pull-push's scratch (push_columns)
+    rows: RowSamples  # the combine's scratch
     tables: SamplingTables | None = None
     tables_for: tuple | None = None  # the (foveal region, table_seed, density) the tables were drawn for
     samples: SampleSet = field(default_factory=SampleSet)
@@ -226,7 +228,8 @@ class Weier18(Configurable):
         history = state is not None and (state.camera.width, state.camera.height) == (cam.width, cam.height)
         if not history:
             pyramids = [Pyramid.empty(cam.width, cam.height), Pyramid.empty(cam.width, cam.height)]
-            state = self._eyes[request.eye] = _EyeState(cam, pyramids, pixel_axes(pyramids[0]), push_columns(cam.width))
+            axes, columns, rows = pixel_axes(pyramids[0]), push_columns(cam.width), RowSamples.empty(cam.width)
+            state = self._eyes[request.eye] = _EyeState(cam, pyramids, axes, columns, rows)
         if state.tables_for != self._tables_for:
             state.tables = sampling_tables(cam, self.foveal, self.params.table_seed, self.params.density)
             state.tables_for = self._tables_for
@@ -278,7 +281,7 @@ class Weier18(Configurable):
                     state.blurred = Pyramid.empty(cam.width, cam.height)
                 blurred = prefilter(current, state.blurred)
             contrast = Contrast(p.contrast, p.r0, p.r1, state.levels)
-            combine(color, ecc, layers, blur, current, contrast, blurred, state.axes, out)
+            combine(color, ecc, layers, blur, current, contrast, blurred, state.axes, state.rows, out)
         state.camera = request.camera
         stats.metrics["sample_fraction"] = state.samples.count / (cam.width * cam.height)
         return out

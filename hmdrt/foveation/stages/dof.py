@@ -23,7 +23,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.stages.filters import Contrast, enhance_row
-from hmdrt.foveation.stages.pyramid import PixelAxes, Pyramid, pixel_axes, sample_pixel
+from hmdrt.foveation.stages.pyramid import PixelAxes, Pyramid, RowSamples, pixel_axes, sample_row
 from hmdrt.jit import inline, kernel, serial
 
 IMAGE_DISTANCE_MM = 22.4  # d_i, the eye's lens-to-retina distance (Gross 2005)
@@ -263,26 +263,35 @@ def _near_vertical(near, rows, y, x, radius):
 
 
 @serial
-def _dof_row(color, ecc, layers, blur, pyramid, axes, y, out):
-    """Row y of the second pass. Far field: the central Gaussian, the pyramid blur in the periphery, blended
-    across [r0, r1); the sharp image is interpolated towards it by |CoC|; the near field is alpha-blended over."""
+def _periphery(e, r0, r1):
+    """How far into the periphery's pyramid blur the far field is at eccentricity e: 0 inside r0, 1 from r1."""
+    return 0.0 if e < r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+
+
+@serial
+def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, y, out):
+    """Row y of the second pass. Far field: the central Gaussian, the pyramid blur in the periphery (read at
+    level log2 |CoC| for the row at once, sample_row, into values), blended across [r0, r1); the sharp image
+    is interpolated towards it by |CoC|; the near field is alpha-blended over."""
     coc, far, near, rows = layers
     r0, r1, ramp, radius = blur
-    data, top = pyramid.data, len(pyramid.offsets) - 1
-    col0, col1, col_weight, row0, row1, row_weight = axes
+    for x in range(out.shape[1]):
+        c = coc[y, x]
+        read = c < 0.0 and _periphery(ecc[y, x], r0, r1) > 0.0
+        levels[x] = (0.0 if -c <= 1.0 else math.log2(-c)) if read else -1.0
+    sample_row(pyramid.data, len(pyramid.offsets) - 1, axes, y, levels, values)
     for x in range(out.shape[1]):
         c = coc[y, x]
         r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
         if c < 0.0:
             e = ecc[y, x]
-            blend = 0.0 if e < r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+            blend = _periphery(e, r0, r1)
             if e < r1:
                 fr, fg, fb = _far_gauss(far, color, ecc, coc, y, x, 1, 0, r1, c)  # beyond r1 no first pass ran
             else:
                 fr, fg, fb = r, g, b
             if blend > 0.0:
-                level = 0.0 if -c <= 1.0 else math.log2(-c)
-                pr, pg, pb, _ = sample_pixel(data, top, col0, col1, col_weight, row0, row1, row_weight, level, x, y)
+                pr, pg, pb = values[x, 0], values[x, 1], values[x, 2]
                 fr, fg, fb = fr + blend * (pr - fr), fg + blend * (pg - fg), fb + blend * (pb - fb)
             t = min(1.0, -c / ramp)
             r, g, b = r + t * (fr - r), g + t * (fg - g), b + t * (fb - b)
@@ -293,16 +302,18 @@ def _dof_row(color, ecc, layers, blur, pyramid, axes, y, out):
 
 
 @kernel
-def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, dof, out):
+def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, dof, out):
     """Row by row, the depth of field then the contrast over the row while it is in cache: two simple loops
     compile to faster code than one that does both."""
     for y in nb.prange(out.shape[0]):
+        thread = nb.get_thread_id()
+        levels, values = scratch.levels[thread], scratch.values[thread]
         if dof:
-            _dof_row(color, ecc, layers, blur, pyramid, axes, y, out)
+            _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, y, out)
         else:
             out[y] = color[y]
         if contrast.strength != 0.0:
-            enhance_row(ecc, contrast, blurred, axes, y, out)
+            enhance_row(ecc, contrast, blurred, axes, levels, values, y, out)
 
 
 def horizontal_pass(color: np.ndarray, ecc: np.ndarray, layers: Layers, blur: Blur) -> None:
@@ -319,15 +330,16 @@ def combine(
     contrast: Contrast,
     blurred: Pyramid,
     axes: PixelAxes,
+    scratch: RowSamples,
     out: np.ndarray,
 ) -> np.ndarray:
     """weier2018's DoF Combine in one pass over the image, into out: the second pass of the layered blur
     and its combination with the sharp image when layers are given (after horizontal_pass), then the
     contrast enhancement (filters.enhance_row, from `blurred`, the pyramid prefiltered by filters.prefilter;
-    strength 0: none). `axes`: the pixel_axes of both pyramids' size."""
+    strength 0: none). `axes`: the pixel_axes of both pyramids' size; `scratch`: RowSamples of their width."""
     no_layers = layers is None
     layers = _NO_LAYERS if no_layers else layers
-    _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, not no_layers, out)
+    _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, not no_layers, out)
     return out
 
 
@@ -345,7 +357,8 @@ def layered_blur(
     blur = Blur(r0, r1, ramp, layers.near_radius())
     horizontal_pass(color, ecc, layers, blur)
     no_contrast = Contrast(0.0, r0, r1, np.zeros((0, 0), np.float32))
-    return combine(color, ecc, layers, blur, pyramid, no_contrast, pyramid, pixel_axes(pyramid), np.empty_like(color))
+    axes, scratch = pixel_axes(pyramid), RowSamples.empty(w)
+    return combine(color, ecc, layers, blur, pyramid, no_contrast, pyramid, axes, scratch, np.empty_like(color))
 
 
 def gaze_depth(

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.stages.pyramid import Pyramid, sample_pixel
+from hmdrt.foveation.stages.pyramid import Pyramid, sample_row
 from hmdrt.jit import kernel, serial
 
 DEGREES_PER_LEVEL = 5.0  # the blur's pyramid level grows by one every 5 degrees beyond r0
@@ -81,20 +81,26 @@ def prefilter(pyramid: Pyramid, out: Pyramid) -> Pyramid:
 
 
 @serial
-def enhance_row(ecc, contrast, blurred, axes, y, out):
+def _fade(e, r0, r1):
+    """How much of the enhancement applies at eccentricity e: none inside r0, all from r1."""
+    return 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+
+
+@serial
+def enhance_row(ecc, contrast, blurred, axes, levels, values, y, out):
     """Row y of out enhanced in place: color + strength x fade(e) x (color - blur_e(color)) at each pixel of
     eccentricity e, the blur read trilinearly from the prefiltered pyramid `blurred` (prefilter; `axes` its
-    pixel_axes) at the pixel's centre. Negative results are cut at zero (light cannot be negative). The tuples
-    are taken apart once per row: one taken apart per pixel costs a reference count per array."""
-    strength, r0, r1, levels = contrast
-    data, top = blurred.data, len(blurred.offsets) - 1
-    col0, col1, col_weight, row0, row1, row_weight = axes
+    pixel_axes) at the pixel's centre, for the row at once (pyramid.sample_row, with `levels` and `values` its
+    scratch). Negative results are cut at zero (light cannot be negative)."""
+    strength, r0, r1, blur_levels = contrast
     for x in range(out.shape[1]):
-        e = ecc[y, x]
-        fade = 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+        levels[x] = blur_levels[y, x] if _fade(ecc[y, x], r0, r1) > 0.0 else -1.0
+    sample_row(blurred.data, len(blurred.offsets) - 1, axes, y, levels, values)
+    for x in range(out.shape[1]):
+        fade = _fade(ecc[y, x], r0, r1)
         if fade <= 0.0:
             continue
-        br, bg, bb, _ = sample_pixel(data, top, col0, col1, col_weight, row0, row1, row_weight, levels[y, x], x, y)
+        br, bg, bb = values[x, 0], values[x, 1], values[x, 2]
         gain = strength * fade
         r, g, b = out[y, x, 0], out[y, x, 1], out[y, x, 2]
         out[y, x, 0] = max(r + gain * (r - br), 0.0)
