@@ -237,13 +237,16 @@ def _flush_hits(scene, args, packet, lanes, hits):
 
 
 @serial
-def occluded_rays(scene, args, packet, origins, directions, far, occluded, rows, columns):
+def occluded_rays(scene, args, packet, origins, directions, far, occluded, rows, columns, select=None, want=False):
     """occluded[j] = whether anything lies along ray j within (0, far[j]], for the rows x columns rays
-    j = row * columns + column. Rays with far <= 0 are not traced (False); the others go in packets column
-    by column, so that a packet holds the same light sample of neighbouring hits. Returns how many were traced."""
+    j = row * columns + column, of the rows with select[row] == want (select None: all). Rays with far <= 0 are
+    not traced (False); the others go in packets column by column, so that a packet holds the same light sample
+    of neighbouring hits. Returns how many were traced."""
     traced = lanes = 0
     for column in range(columns):
         for row in range(rows):
+            if select is not None and select[row] != want:
+                continue
             j = row * columns + column
             if far[j] <= 0.0:
                 occluded[j] = False

@@ -124,9 +124,18 @@ def lane_empty(capacity: int, block: int, n_point: int, n_area: int, n_ao: int) 
 
 
 @serial
-def _occlude(scene, packet, batch, hits, per_hit):
+def _occlude(scene, packet, batch, rays, hits, per_hit, depth):
+    """The occlusion rays of a level's hits; below the first, those of reflected and refracted rays' hits apart
+    (as _intersect traces them: each kind's hits lie together, a mix of the two does not)."""
     o, d, far, occluded = batch
-    return embree.occluded_rays(scene.handle, scene.args, packet, o, d, far, occluded, hits, per_hit)
+    if depth == 0:
+        return embree.occluded_rays(scene.handle, scene.args, packet, o, d, far, occluded, hits, per_hit)
+    traced = 0
+    for through in (False, True):
+        traced += embree.occluded_rays(
+            scene.handle, scene.args, packet, o, d, far, occluded, hits, per_hit, rays.through, through
+        )
+    return traced
 
 
 @serial
@@ -253,13 +262,13 @@ def _block(scene, frame, lane, start, stop):
             light_rays_block(scene.lights, plan, w.surf, rays.key, w.point, w.area, w.ao, 0, count)
             t = meter.tick(tally, clock, meter.LIGHTGEN, t)
         if n_point:
-            tally[meter.RAYS_SHADOW] += _occlude(scene, packet, w.point, count, n_point)
+            tally[meter.RAYS_SHADOW] += _occlude(scene, packet, w.point, rays, count, n_point, depth)
             t = meter.tick(tally, clock, meter.SHADOW, t)
         if n_area:
-            tally[meter.RAYS_AREA] += _occlude(scene, packet, w.area, count, n_area)
+            tally[meter.RAYS_AREA] += _occlude(scene, packet, w.area, rays, count, n_area, depth)
             t = meter.tick(tally, clock, meter.AREA, t)
         if n_ao:
-            tally[meter.RAYS_AO] += _occlude(scene, packet, w.ao, count, n_ao)
+            tally[meter.RAYS_AO] += _occlude(scene, packet, w.ao, rays, count, n_ao, depth)
             t = meter.tick(tally, clock, meter.AO, t)
         _shade(scene, w, rays, count)
         _accumulate(frame, w, rays, radiance, start, count, depth)
