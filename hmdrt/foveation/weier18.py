@@ -45,7 +45,7 @@ from hmdrt.foveation.stages.pyramid import (
     pixel_axes,
     pull_push,
     push_columns,
-    quincunx_rgbd,
+    quincunx_level,
 )
 from hmdrt.foveation.stages.sampling import (
     FOVEAL_REGION_KNOBS,
@@ -113,57 +113,102 @@ class Blend(NamedTuple):
     tol: float  # relative depth tolerance of a tap
 
 
+class Reprojected(NamedTuple):
+    """TAA's scratch for a block of samples, one row per numba thread (nb.get_thread_id()): each sample's pixel
+    coordinates in the previous frame, the distance a tap must show to see its surface (inf: a miss) and the
+    pyramid level its taps read (-1: none, the sample falls outside the previous frame)."""
+
+    x: np.ndarray  # (threads, BLOCK) float64
+    y: np.ndarray
+    expected: np.ndarray
+    level: np.ndarray
+
+    @classmethod
+    def empty(cls) -> Reprojected:
+        shape = (nb.config.NUMBA_NUM_THREADS, BLOCK)
+        return cls(np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape))
+
+
 @serial
-def _tap(tap, expected, tol, valid, r, g, b):
-    """Adds a quincunx tap that sees the sample's surface (its depth within tol of the expected one, or both
-    misses) to the count and the colour sums."""
-    d = tap[3]
+def _tap(u, v, t, expected, tol, valid, r, g, b):
+    """Adds the quincunx tap t of the way from its level's u to the next level's v to the count and the colour
+    sums if it sees the sample's surface (its depth within tol of the expected one, or both misses)."""
+    d = u[3] + t * (v[3] - u[3])
     if (math.isinf(expected) and d >= 0.5 * FAR) or abs(d - expected) <= tol * expected:
-        return valid + 1, r + tap[0], g + tap[1], b + tap[2]
+        return valid + 1, r + (u[0] + t * (v[0] - u[0])), g + (u[1] + t * (v[1] - u[1])), b + (u[2] + t * (v[2] - u[2]))
     return valid, r, g, b
 
 
 @serial
-def _taa_block(traced, frustum, view, blend, previous, history, data, start, stop):
-    """Samples [start, stop): each one's point in the current eye frame (frustum) seen from the previous frame
-    (its relative_view `view`), and the previous pyramid's quincunx taps there."""
+def _taa_block(traced, frustum, view, blend, previous, history, data, start, stop, where):
+    """Samples [start, stop) into level 0 (weight 1, depth capped at FAR); with history, each one's point in the
+    current eye frame (frustum) seen from the previous frame (its relative_view `view`) into `where`, then the
+    previous pyramid's quincunx taps there blended in, in one pass per level the block reads (as
+    pyramid.sample_row: a pass's level constants stay put, where a loop that picks each sample's level
+    reloads them)."""
     pixels, levels, offsets, depth, rgb = traced
     width, alpha_min, tol = blend
     p_data, p_offsets, p_widths, p_heights, p_sx, p_sy = previous
-    pw, ph = p_widths[0], p_heights[0]
+    at_x, at_y, expected, at_level = where
+    top = len(p_offsets) - 1
+    pw, ph, lo, hi = p_widths[0], p_heights[0], top, -1
     for s in range(start, stop):
-        i = pixels[s]
-        r, g, b = rgb[s, 0], rgb[s, 1], rgb[s, 2]
-        if history:
-            px, py, pz = eye_point(frustum, i % width + 0.5, i // width + 0.5, depth[s])
-            qx, qy, dist = view_project(view, px, py, pz)
-            if qx >= 0.0 and qy >= 0.0 and qx < pw and qy < ph:
-                expected = dist if depth[s] < FAR else math.inf
-                t0, t1, t2, t3, t4 = quincunx_rgbd(
-                    p_data, p_offsets, p_widths, p_heights, p_sx, p_sy, levels[s], offsets[s], qx, qy
-                )
-                valid, tr, tg, tb = _tap(t0, expected, tol, 0, 0.0, 0.0, 0.0)
-                valid, tr, tg, tb = _tap(t1, expected, tol, valid, tr, tg, tb)
-                valid, tr, tg, tb = _tap(t2, expected, tol, valid, tr, tg, tb)
-                valid, tr, tg, tb = _tap(t3, expected, tol, valid, tr, tg, tb)
-                valid, tr, tg, tb = _tap(t4, expected, tol, valid, tr, tg, tb)
-                if valid > 0:
-                    alpha = max(alpha_min, 1.0 - valid / 5.0)
-                    r = alpha * r + (1.0 - alpha) * tr / valid
-                    g = alpha * g + (1.0 - alpha) * tg / valid
-                    b = alpha * b + (1.0 - alpha) * tb / valid
-        data[i, 0], data[i, 1], data[i, 2], data[i, 3], data[i, 4] = r, g, b, 1.0, min(depth[s], FAR)
+        i, j = pixels[s], s - start
+        data[i, 0], data[i, 1], data[i, 2], data[i, 3], data[i, 4] = (
+            rgb[s, 0],
+            rgb[s, 1],
+            rgb[s, 2],
+            1.0,
+            min(depth[s], FAR),
+        )
+        if not history:
+            continue
+        px, py, pz = eye_point(frustum, i % width + 0.5, i // width + 0.5, depth[s])
+        at_x[j], at_y[j], dist = view_project(view, px, py, pz)
+        expected[j] = dist if depth[s] < FAR else math.inf
+        at_level[j] = -1.0
+        if at_x[j] >= 0.0 and at_y[j] >= 0.0 and at_x[j] < pw and at_y[j] < ph:
+            at_level[j] = level = min(max(levels[s], 0.0), float(top))
+            lo, hi = min(lo, int(level)), max(hi, int(level))
+    for k in range(lo, hi + 1):
+        up = min(k + 1, top)
+        o, w, h, sx, sy = p_offsets[k], p_widths[k], p_heights[k], p_sx[k], p_sy[k]
+        o_up, w_up, h_up, sx_up, sy_up = p_offsets[up], p_widths[up], p_heights[up], p_sx[up], p_sy[up]
+        for s in range(start, stop):
+            j = s - start
+            level = at_level[j]
+            if level < 0.0 or int(level) != k:
+                continue
+            qx, qy, off, e = at_x[j], at_y[j], offsets[s], expected[j]
+            u = quincunx_level(p_data, o, w, h, sx, sy, off, qx, qy)
+            v = u if k == top else quincunx_level(p_data, o_up, w_up, h_up, sx_up, sy_up, off, qx, qy)
+            t = level - k  # 0 on the top level
+            valid, tr, tg, tb = _tap(u[0], v[0], t, e, tol, 0, 0.0, 0.0, 0.0)
+            valid, tr, tg, tb = _tap(u[1], v[1], t, e, tol, valid, tr, tg, tb)
+            valid, tr, tg, tb = _tap(u[2], v[2], t, e, tol, valid, tr, tg, tb)
+            valid, tr, tg, tb = _tap(u[3], v[3], t, e, tol, valid, tr, tg, tb)
+            valid, tr, tg, tb = _tap(u[4], v[4], t, e, tol, valid, tr, tg, tb)
+            if valid > 0:
+                i = pixels[s]
+                alpha = max(alpha_min, 1.0 - valid / 5.0)
+                data[i, 0] = alpha * rgb[s, 0] + (1.0 - alpha) * tr / valid
+                data[i, 1] = alpha * rgb[s, 1] + (1.0 - alpha) * tg / valid
+                data[i, 2] = alpha * rgb[s, 2] + (1.0 - alpha) * tb / valid
 
 
 @kernel
-def _taa(traced, frustum, view, blend, previous, history, pyramid):
+def _taa(traced, frustum, view, blend, previous, history, pyramid, where):
     """Each traced sample into level 0 of `pyramid` (weight 1, depth capped at FAR), blended with the previous
     frame's pyramid around its back-projection (temporal.relative_view `view` of the previous camera) when there
-    is history."""
+    is history; `where`: Reprojected scratch."""
     n = traced.pixels.shape[0]
     data = pyramid.data
     for block in nb.prange((n + BLOCK - 1) // BLOCK):
-        _taa_block(traced, frustum, view, blend, previous, history, data, block * BLOCK, min(n, (block + 1) * BLOCK))
+        t = nb.get_thread_id()
+        rows = Reprojected(where.x[t], where.y[t], where.expected[t], where.level[t])
+        _taa_block(
+            traced, frustum, view, blend, previous, history, data, block * BLOCK, min(n, (block + 1) * BLOCK), rows
+        )
 
 
 @dataclass
@@ -173,6 +218,7 @@ class _EyeState:
     axes: PixelAxes  # the pyramids' pixel_axes (theirs is the image's size)
     columns: Columns  # pull-push's scratch (push_columns)
     rows: RowSamples  # the combine's scratch
+    reprojected: Reprojected = field(default_factory=Reprojected.empty)  # TAA's scratch
     tables: SamplingTables | None = None
     tables_for: tuple | None = None  # the (foveal region, table_seed, density) the tables were drawn for
     samples: SampleSet = field(default_factory=SampleSet)
@@ -306,10 +352,10 @@ class Weier18(Configurable):
         texel = current.data.itemsize * current.data.shape[1]
         if "taa" in steps:  # each sample read, its texel written and at least one of the previous frame's read
             with stats.stage("taa", touches=nbytes(*traced) + 2 * len(traced.pixels) * texel):
-                _taa(traced, frustum, view, blend, previous, True, current)
+                _taa(traced, frustum, view, blend, previous, True, current, state.reprojected)
         with stats.stage("ppi", touches=2 * current.data.nbytes + state.samples.mask.nbytes):
             if "taa" not in steps:
-                _taa(traced, frustum, view, blend, previous, False, current)
+                _taa(traced, frustum, view, blend, previous, False, current, state.reprojected)
             pull_push(current, state.samples.mask.reshape(-1), state.columns)
         return current
 

@@ -254,9 +254,12 @@ def sample_row(data, top, axes, y, levels, values):
 
 
 @inline
-def _quincunx_level(data, o, w, h, x, y, off_x, off_y):
-    """weier2018 Figure 3's five taps on one level around texel coordinates (x, y): the centre and the four
-    diagonal offsets (off_x, off_y) texels away; each one's colour and depth. Taps in line share an axis."""
+def quincunx_level(data, o, w, h, sx, sy, off, x, y):
+    """weier2018 Figure 3's five taps (the centre, then the diagonals) on one level of a pyramid (first texel o,
+    w x h texels, sx and sy of its texels per full-resolution pixel) around full-resolution pixel coordinates
+    (x, y), `off` full-resolution pixels apart diagonally: each one's colour and depth. Taps in line share an
+    axis."""
+    x, y, off_x, off_y = x * sx, y * sy, off * sx, off * sy
     xm, xc, xp = _axis(x - off_x, w), _axis(x, w), _axis(x + off_x, w)
     ym, yc, yp = _axis(y - off_y, h), _axis(y, h), _axis(y + off_y, h)
     return (
@@ -265,39 +268,6 @@ def _quincunx_level(data, o, w, h, x, y, off_x, off_y):
         _bilinear(data, o, w, xp, ym),
         _bilinear(data, o, w, xm, yp),
         _bilinear(data, o, w, xp, yp),
-    )
-
-
-@serial
-def _lerp4(u, v, t):
-    return u[0] + t * (v[0] - u[0]), u[1] + t * (v[1] - u[1]), u[2] + t * (v[2] - u[2]), u[3] + t * (v[3] - u[3])
-
-
-@inline
-def quincunx_rgbd(data, offsets, widths, heights, sx, sy, level, off, x, y):
-    """The five quincunx taps (centre, then the diagonals) around full-resolution pixel coordinates (x, y) on
-    a (fractional) level of the pyramid whose fields these are (per-sample callers take it apart once: a
-    namedtuple taken apart per sample costs a reference count per array), `off` = 2^level / 2 full-resolution
-    pixels apart diagonally (half a texel of that level): each one's colour and depth, trilinearly."""
-    top = len(offsets) - 1
-    level = min(max(level, 0.0), float(top))
-    l0 = int(level)
-    t = level - l0
-    first = _quincunx_level(
-        data, offsets[l0], widths[l0], heights[l0], x * sx[l0], y * sy[l0], off * sx[l0], off * sy[l0]
-    )
-    if t == 0.0 or l0 == top:
-        return first
-    l1 = l0 + 1
-    second = _quincunx_level(
-        data, offsets[l1], widths[l1], heights[l1], x * sx[l1], y * sy[l1], off * sx[l1], off * sy[l1]
-    )
-    return (
-        _lerp4(first[0], second[0], t),
-        _lerp4(first[1], second[1], t),
-        _lerp4(first[2], second[2], t),
-        _lerp4(first[3], second[3], t),
-        _lerp4(first[4], second[4], t),
     )
 
 
