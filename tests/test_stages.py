@@ -8,7 +8,16 @@ import pytest
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.kim21 import Kim21Params, alpha_of_eccentricity, bezier_controls, tau_fov_array
 from hmdrt.foveation.rrm import RrmParams, refresh_phase, visit_order
-from hmdrt.foveation.stages.dof import DOF_PRESETS, REFERENCE_PPD, circle_of_confusion, coc_map, focal_lengths
+from hmdrt.foveation.stages.dof import (
+    DOF_PRESETS,
+    REFERENCE_PPD,
+    Blur,
+    circle_of_confusion,
+    coc_map,
+    combine,
+    focal_lengths,
+)
+from hmdrt.foveation.stages.filters import FINE_LEVELS, Contrast, contrast_levels, enhance_windows, prefilter
 from hmdrt.foveation.stages.gaze import FixationFilter, vergence_depth
 from hmdrt.foveation.stages.pyramid import Pyramid, RowSamples, _axis, pixel_axes, pull_push, push_columns, sample_row
 from hmdrt.foveation.stages.reproject import CoarseMesh, backproject
@@ -436,6 +445,44 @@ def test_sample_row_reads_every_pixels_own_level_and_leaves_the_unselected():
     for x, level in enumerate(levels):
         expected = np.full(4, 7.0) if level < 0 else _trilinear(pyr, level, x, y)
         np.testing.assert_allclose(values[x], expected, rtol=1e-5, atol=1e-6, err_msg=f"x={x} level={level}")
+
+
+def test_enhance_windows_cover_every_texel_the_contrast_reads():
+    """The contrast enhancement over a pyramid prefiltered only inside enhance_windows (NaN elsewhere) equals
+    the one over the whole prefiltered pyramid, with the gaze off-centre; the finest level's window is a small
+    part of that level."""
+    cam = camera(width=256, height=288)
+    ecc = np.asarray(cam.eccentricity(gaze_direction(12, -6)), np.float32)
+    pyr = Pyramid.empty(256, 288)
+    pyr.data[:] = np.random.default_rng(2).random(pyr.data.shape, np.float32)
+    levels = contrast_levels(ecc, 10.0, np.empty(ecc.shape, np.float32))
+    contrast = Contrast(0.2, 10.0, 20.0, levels)
+    windows = enhance_windows(ecc, contrast, pyr, np.empty((288, FINE_LEVELS, 2), np.int64))
+    whole, windowed = Pyramid.empty(256, 288), Pyramid.empty(256, 288)
+    windowed.data[:] = np.nan
+    prefilter(pyr, whole)
+    prefilter(pyr, windowed, windows)
+    axes, color = pixel_axes(pyr), pyr.level(0)[..., :3]
+    images = [
+        combine(
+            color,
+            ecc,
+            None,
+            Blur(10.0, 20.0),
+            pyr,
+            contrast,
+            blurred,
+            axes,
+            RowSamples.empty(256),
+            np.empty_like(color),
+        )
+        for blurred in (whole, windowed)
+    ]
+    assert np.isfinite(images[1]).all()
+    np.testing.assert_array_equal(images[0], images[1])
+    x0, x1, y0, y1 = windows[0]
+    assert 0 < (x1 - x0) * (y1 - y0) < 0.25 * 256 * 288
+    assert (windows[2:, 0] == 0).all() and (windows[2:, 1] == pyr.widths[2:]).all()
 
 
 # -- the light buffer behind weier2016's post-process --

@@ -36,7 +36,7 @@ from hmdrt.foveation.stages.dof import (
     horizontal_pass,
     lens,
 )
-from hmdrt.foveation.stages.filters import Contrast, contrast_levels, prefilter
+from hmdrt.foveation.stages.filters import FINE_LEVELS, Contrast, contrast_levels, enhance_windows, prefilter
 from hmdrt.foveation.stages.pyramid import (
     Columns,
     PixelAxes,
@@ -224,8 +224,10 @@ class _EyeState:
     samples: SampleSet = field(default_factory=SampleSet)
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the samples' random-stream keys
     levels: np.ndarray | None = None  # contrast enhancement's blur level per pixel
+    spans: np.ndarray | None = None  # enhance_windows' scratch
+    windows: np.ndarray | None = None  # the texels of each level the enhancement reads (enhance_windows)
     blurred: Pyramid | None = None  # contrast enhancement's prefiltered pyramid
-    levels_for: tuple | None = None  # the (gaze, r0) they were computed for
+    levels_for: tuple | None = None  # the (gaze, r0, r1) the levels and windows were computed for
     layers: Layers | None = None  # the depth of field's buffers
 
 
@@ -289,11 +291,15 @@ class Weier18(Configurable):
         por = cam.gaze_pixel(gaze)
         view = (cam._frustum(), float(gaze[0]), float(gaze[1]), float(gaze[2]))
         state.samples.update((view, state.tables_for), ecc, self.foveal, state.tables, por)
-        if state.levels_for != (view, self.params.r0):
+        p = self.params
+        if state.levels_for != (view, p.r0, p.r1):
             if state.levels is None or state.levels.shape[:2] != ecc.shape:
                 state.levels = np.empty(ecc.shape, np.float32)
-            contrast_levels(ecc, self.params.r0, state.levels)
-            state.levels_for = (view, self.params.r0)
+                state.spans = np.empty((ecc.shape[0], FINE_LEVELS, 2), np.int64)
+            contrast_levels(ecc, p.r0, state.levels)
+            contrast = Contrast(p.contrast, p.r0, p.r1, state.levels)
+            state.windows = enhance_windows(ecc, contrast, state.pyramids[0], state.spans)
+            state.levels_for = (view, p.r0, p.r1)
         n = state.samples.count
         if len(state.keys) < n:
             state.keys = np.empty(max(n, int(1.25 * len(state.keys))), np.int64)
@@ -315,8 +321,10 @@ class Weier18(Configurable):
             out = np.empty((cam.height, cam.width, 3), np.float32)
         base = current.level(0)  # the colour is read from it with the other channels around it
         touches = nbytes(base, ecc, out)
-        if p.contrast:
-            touches += 2 * current.data.nbytes + state.levels.nbytes  # the prefilter, the contrast's levels
+        if p.contrast:  # the prefilter's windows read and written, the contrast's levels
+            windows = state.windows
+            texels = int(((windows[:, 1] - windows[:, 0]) * (windows[:, 3] - windows[:, 2])).sum())
+            touches += 2 * texels * current.data.itemsize * current.data.shape[1] + state.levels.nbytes
         if layers is not None:
             touches += nbytes(layers.coc, layers.far, layers.near)
         with stats.stage("combine", touches=touches):
@@ -325,7 +333,7 @@ class Weier18(Configurable):
             if p.contrast:
                 if state.blurred is None or state.blurred.data.shape != current.data.shape:
                     state.blurred = Pyramid.empty(cam.width, cam.height)
-                blurred = prefilter(current, state.blurred)
+                blurred = prefilter(current, state.blurred, state.windows)
             contrast = Contrast(p.contrast, p.r0, p.r1, state.levels)
             combine(color, ecc, layers, blur, current, contrast, blurred, state.axes, state.rows, out)
         state.camera = request.camera

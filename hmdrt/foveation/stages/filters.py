@@ -8,7 +8,8 @@ so it is computed once per gaze (contrast_levels). The several taps are taken on
 once per pixel: every level of the pyramid is prefiltered with the five quincunx taps of weier2018
 Figure 3, half a texel apart (prefilter, 1.33 texels per pixel), and each pixel then reads that filtered
 pyramid trilinearly at its level, inside the final combine pass (dof.combine); ten bilinear taps per
-pixel cost eight times as much for the same kernel width.
+pixel cost eight times as much for the same kernel width. The finest levels are read only near r0, where the
+blur is narrow, so they are prefiltered only there (enhance_windows, once per gaze with the levels).
 """
 
 from __future__ import annotations
@@ -52,18 +53,29 @@ def contrast_levels(
     return out
 
 
+@serial
+def _fade(e, r0, r1):
+    """How much of the enhancement applies at eccentricity e: none inside r0, all from r1."""
+    return 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+
+
+FINE_LEVELS = 2  # the finest levels: read only by the pixels nearest r0 (enhance_windows)
+
+
 @kernel
-def _prefilter_level(data, o, w, h, out):
-    """Level texels [o, o + w h): the mean of the texel and the four bilinear taps half a texel away on its
-    diagonals, each the mean of a 2x2 block, so together a 3x3 binomial; edges repeat, as pyramid lookups do.
-    Row views and float32 constants: no negative-index checks and no float64 round trips in the loop."""
+def _prefilter_level(data, o, w, h, window, out):
+    """Level texels [o, o + w h) inside `window` (x0, x1, y0, y1: texel columns [x0, x1) of rows [y0, y1)): the
+    mean of the texel and the four bilinear taps half a texel away on its diagonals, each the mean of a 2x2
+    block, so together a 3x3 binomial; edges repeat, as pyramid lookups do. Row views and float32 constants: no
+    negative-index checks and no float64 round trips in the loop."""
     two, centre_weight, ring_weight = np.float32(2.0), np.float32(0.2), np.float32(0.05)
-    for y in nb.prange(h):
+    x0, x1, y0, y1 = window[0], window[1], window[2], window[3]
+    for y in nb.prange(y0, y1):
         up = data[o + max(y - 1, 0) * w : o + max(y - 1, 0) * w + w]
         mid = data[o + y * w : o + y * w + w]
         down = data[o + min(y + 1, h - 1) * w : o + min(y + 1, h - 1) * w + w]
         row = out[o + y * w : o + y * w + w]
-        for x in range(w):
+        for x in range(x0, x1):
             left, right = max(x - 1, 0), min(x + 1, w - 1)
             for c in range(3):
                 top = up[left, c] + two * up[x, c] + up[right, c]
@@ -72,18 +84,69 @@ def _prefilter_level(data, o, w, h, out):
                 row[x, c] = centre_weight * mid[x, c] + ring_weight * (top + two * middle + bottom)
 
 
-def prefilter(pyramid: Pyramid, out: Pyramid) -> Pyramid:
+def prefilter(pyramid: Pyramid, out: Pyramid, windows: np.ndarray | None = None) -> Pyramid:
     """Every level of `pyramid` filtered with weier2018 Figure 3's quincunx (the texel and four diagonal taps
-    half a texel away, averaged) into `out`, a pyramid of the same size: colour channels only."""
+    half a texel away, averaged) into `out`, a pyramid of the same size: colour channels only. windows
+    (levels, 4) int64, as enhance_windows gives: only those texels of each level (None: all)."""
     for k in range(len(pyramid.offsets)):
-        _prefilter_level(pyramid.data, pyramid.offsets[k], pyramid.widths[k], pyramid.heights[k], out.data)
+        w, h = pyramid.widths[k], pyramid.heights[k]
+        window = np.array([0, w, 0, h], np.int64) if windows is None else windows[k]
+        _prefilter_level(pyramid.data, pyramid.offsets[k], w, h, window, out.data)
     return out
 
 
+@kernel
+def _read_spans(ecc, contrast, spans):
+    """Per row, the first and last pixel that enhance_row reads below level m + 1, for m < FINE_LEVELS (first
+    past last when none)."""
+    _, r0, r1, levels = contrast
+    h, w = ecc.shape
+    for y in nb.prange(h):
+        for m in range(FINE_LEVELS):
+            spans[y, m, 0], spans[y, m, 1] = w, -1
+        for x in range(w):
+            if _fade(ecc[y, x], r0, r1) > 0.0:
+                for m in range(FINE_LEVELS):
+                    if levels[y, x] < m + 1:
+                        spans[y, m, 0], spans[y, m, 1] = min(spans[y, m, 0], x), max(spans[y, m, 1], x)
+
+
 @serial
-def _fade(e, r0, r1):
-    """How much of the enhancement applies at eccentricity e: none inside r0, all from r1."""
-    return 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+def _texels(p0, p1, scale, n):
+    """The texels [t0, t1) of a level of n texels (scale per pixel) that bilinear taps at the centres of pixels
+    p0..p1 read (pyramid.pixel_axes: texel floor((p + 0.5) scale - 0.5) and the next, clamped)."""
+    return max(0, int(math.floor((p0 + 0.5) * scale - 0.5))), min(n, int(math.floor((p1 + 0.5) * scale - 0.5)) + 2)
+
+
+@serial
+def _windows(spans, widths, heights, scale_x, scale_y, out):
+    """enhance_windows from the rows' spans (_read_spans)."""
+    for k in range(len(widths)):
+        out[k, 0], out[k, 1], out[k, 2], out[k, 3] = 0, widths[k], 0, heights[k]
+    for m in range(min(FINE_LEVELS, len(widths))):
+        px0, px1, py0, py1 = 1 << 62, -1, -1, -1  # the pixels' bounding box
+        for y in range(spans.shape[0]):
+            if spans[y, m, 1] >= spans[y, m, 0]:
+                px0, px1 = min(px0, spans[y, m, 0]), max(px1, spans[y, m, 1])
+                py0 = y if py0 < 0 else py0
+                py1 = y
+        if px1 < 0:  # no pixel reads the level
+            out[m, 0] = out[m, 1] = out[m, 2] = out[m, 3] = 0
+            continue
+        out[m, 0], out[m, 1] = _texels(px0, px1, scale_x[m], widths[m])
+        out[m, 2], out[m, 3] = _texels(py0, py1, scale_y[m], heights[m])
+
+
+def enhance_windows(ecc: np.ndarray, contrast: Contrast, pyramid: Pyramid, spans: np.ndarray) -> np.ndarray:
+    """(levels, 4) int64: the texels (x0, x1, y0, y1: columns [x0, x1) of rows [y0, y1)) of each level of a
+    pyramid of `pyramid`'s size that enhance_row reads for this eccentricity map and these levels: on the
+    FINE_LEVELS finest, those around the pixels near r0 that read them (the blur is narrow there); every
+    coarser level whole. It depends on the gaze only, as the levels do. spans: (height, FINE_LEVELS, 2) int64
+    scratch."""
+    _read_spans(ecc, contrast, spans)
+    out = np.empty((len(pyramid.offsets), 4), np.int64)
+    _windows(spans, pyramid.widths, pyramid.heights, pyramid.scale_x, pyramid.scale_y, out)
+    return out
 
 
 @serial
