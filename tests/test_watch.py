@@ -86,10 +86,12 @@ async def _fetch(session: aiohttp.ClientSession, method: str, url: str, **kwargs
 
 
 async def _replies(ws: aiohttp.ClientWebSocketResponse, count: int) -> list[dict]:
-    """The next `count` replies to commands (other messages skipped)."""
+    """The next `count` replies to commands (other messages, and the frames sent as binary ones, skipped)."""
     out = []
     while len(out) < count:
         message = await asyncio.wait_for(ws.receive(), 30)
+        if message.type == WSMsgType.BINARY:
+            continue
         if message.type != WSMsgType.TEXT:
             raise AssertionError(f"websocket closed: {message}")
         if json.loads(message.data)["type"] == "reply":
