@@ -19,7 +19,16 @@ from hmdrt.foveation.stages.dof import (
 )
 from hmdrt.foveation.stages.filters import FINE_LEVELS, Contrast, contrast_levels, enhance_windows, prefilter
 from hmdrt.foveation.stages.gaze import FixationFilter, vergence_depth
-from hmdrt.foveation.stages.pyramid import Pyramid, RowSamples, _axis, pixel_axes, pull_push, push_columns, sample_row
+from hmdrt.foveation.stages.pyramid import (
+    Pyramid,
+    RowSamples,
+    _axis,
+    _pull_level,
+    pixel_axes,
+    pull_push,
+    push_columns,
+    sample_row,
+)
 from hmdrt.foveation.stages.reproject import CoarseMesh, backproject
 from hmdrt.foveation.stages.sampling import (
     FRC_PRESETS,
@@ -378,6 +387,38 @@ def test_pull_push_keeps_samples_and_fills_holes():
     assert np.all(dense[..., 3] == 1.0)
     assert np.abs(dense[..., 0] - truth).max() < 0.15  # a smooth ramp is reconstructed closely
     np.testing.assert_allclose(dense[..., 4], 2.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_pull_averages_the_valid_children_and_ignores_what_zero_weights_hold(masked):
+    """Each texel of level 1 is the weighted mean of its valid children (fractional weights, or a mask's 1 and 0;
+    odd sizes, so the last row and column have fewer children), its weight their sum capped at 1; a child of
+    weight 0 counts for nothing, not even the NaN it may hold."""
+    rng = np.random.default_rng(3)
+    w, h = 37, 23
+    pyr = Pyramid.empty(w, h)
+    fine = pyr.level(0)
+    fine[...] = rng.random(fine.shape, np.float32)
+    weights = np.where(rng.random((h, w)) < 0.5, 0.0, rng.random((h, w))).astype(np.float32)
+    mask = weights > 0
+    if masked:
+        weights = mask.astype(np.float32)
+        fine[..., 3] = np.nan  # the weight channel is not read
+    else:
+        fine[..., 3] = weights
+    fine[~mask, :3], fine[~mask, 4] = np.nan, np.nan
+    _pull_level(pyr, 1, mask.reshape(-1) if masked else None)
+    coarse = pyr.level(1)
+    for y in range(coarse.shape[0]):
+        for x in range(coarse.shape[1]):
+            block = fine[2 * y : 2 * y + 2, 2 * x : 2 * x + 2].reshape(-1, 5)
+            wts = weights[2 * y : 2 * y + 2, 2 * x : 2 * x + 2].reshape(-1)
+            valid = wts > 0
+            total = float(wts[valid].sum())
+            assert coarse[y, x, 3] == pytest.approx(min(1.0, total))
+            if total > 0:
+                expected = (wts[valid, None] * block[valid][:, [0, 1, 2, 4]]).sum(0) / total
+                np.testing.assert_allclose(coarse[y, x, [0, 1, 2, 4]], expected, rtol=1e-5)
 
 
 def test_pull_push_with_kept_columns_matches_and_refuses_short_ones():

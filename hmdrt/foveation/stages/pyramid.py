@@ -125,25 +125,47 @@ def _blend4(data, k00, k01, k10, k11, a, b):
     )
 
 
+@inline
+def _child(data, i, mask, present):
+    """A child texel's weight and its weighted colour and depth in the pull, all 0 where its weight is 0 or it is
+    not present (past an odd level's edge; i is then a texel it repeats). Its channels are read whatever the
+    weight, so that the pull's loop runs without branches."""
+    w = _weight(data, i, mask)
+    r, g, b, d = data[i, 0], data[i, 1], data[i, 2], data[i, 4]
+    valid = present and w > 0.0
+    return (
+        (w if valid else 0.0),
+        (w * r if valid else 0.0),
+        (w * g if valid else 0.0),
+        (w * b if valid else 0.0),
+        (w * d if valid else 0.0),
+    )
+
+
 @kernel
 def _pull_level(pyramid, k, mask):
-    """Level k from level k - 1: the weighted mean of each texel's valid children."""
+    """Level k from level k - 1: the weighted mean of each texel's valid children (summed in the order top left,
+    top right, bottom left, bottom right)."""
     data = pyramid.data
     o_fine, wf, hf = pyramid.offsets[k - 1], pyramid.widths[k - 1], pyramid.heights[k - 1]
     o_coarse, wc, hc = pyramid.offsets[k], pyramid.widths[k], pyramid.heights[k]
     for y in nb.prange(hc):
+        down = 2 * y + 1 < hf
+        top, bottom = o_fine + 2 * y * wf, o_fine + min(2 * y + 1, hf - 1) * wf
         for x in range(wc):
-            wsum = r = g = b = d = 0.0
-            for fy in range(2 * y, min(2 * y + 2, hf)):
-                for fx in range(2 * x, min(2 * x + 2, wf)):
-                    i = o_fine + fy * wf + fx
-                    w = _weight(data, i, mask)
-                    if w > 0.0:
-                        wsum += w
-                        r, g, b, d = r + w * data[i, 0], g + w * data[i, 1], b + w * data[i, 2], d + w * data[i, 4]
+            right = 2 * x + 1 < wf
+            left_x, right_x = 2 * x, min(2 * x + 1, wf - 1)
+            w0, r0, g0, b0, d0 = _child(data, top + left_x, mask, True)
+            w1, r1, g1, b1, d1 = _child(data, top + right_x, mask, right)
+            w2, r2, g2, b2, d2 = _child(data, bottom + left_x, mask, down)
+            w3, r3, g3, b3, d3 = _child(data, bottom + right_x, mask, right and down)
+            wsum = 0.0 + w0 + w1 + w2 + w3
             j = o_coarse + y * wc + x
             if wsum > 0.0:
-                data[j, 0], data[j, 1], data[j, 2], data[j, 4] = r / wsum, g / wsum, b / wsum, d / wsum
+                data[j, 0] = (0.0 + r0 + r1 + r2 + r3) / wsum
+                data[j, 1] = (0.0 + g0 + g1 + g2 + g3) / wsum
+                data[j, 2] = (0.0 + b0 + b1 + b2 + b3) / wsum
+                data[j, 4] = (0.0 + d0 + d1 + d2 + d3) / wsum
             data[j, 3] = min(1.0, wsum)
 
 
