@@ -119,8 +119,9 @@ def _texels(p0, p1, scale, n):
 
 
 @serial
-def _windows(spans, widths, heights, scale_x, scale_y, out):
+def _windows(spans, pyramid, out):
     """enhance_windows from the rows' spans (_read_spans)."""
+    widths, heights, scale_x, scale_y = pyramid.widths, pyramid.heights, pyramid.scale_x, pyramid.scale_y
     for k in range(len(widths)):
         out[k, 0], out[k, 1], out[k, 2], out[k, 3] = 0, widths[k], 0, heights[k]
     for m in range(min(FINE_LEVELS, len(widths))):
@@ -145,7 +146,7 @@ def enhance_windows(ecc: np.ndarray, contrast: Contrast, pyramid: Pyramid, spans
     scratch."""
     _read_spans(ecc, contrast, spans)
     out = np.empty((len(pyramid.offsets), 4), np.int64)
-    _windows(spans, pyramid.widths, pyramid.heights, pyramid.scale_x, pyramid.scale_y, out)
+    _windows(spans, pyramid, out)
     return out
 
 
