@@ -20,7 +20,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.stages.pyramid import Pyramid, sample_row
+from hmdrt.foveation.stages.pyramid import Pyramid, pixel_texels, sample_row
 from hmdrt.jit import kernel, serial
 
 DEGREES_PER_LEVEL = 5.0  # the blur's pyramid level grows by one every 5 degrees beyond r0
@@ -112,13 +112,6 @@ def _read_spans(ecc, contrast, spans):
 
 
 @serial
-def _texels(p0, p1, scale, n):
-    """The texels [t0, t1) of a level of n texels (scale per pixel) that bilinear taps at the centres of pixels
-    p0..p1 read (pyramid.pixel_axes: texel floor((p + 0.5) scale - 0.5) and the next, clamped)."""
-    return max(0, int(math.floor((p0 + 0.5) * scale - 0.5))), min(n, int(math.floor((p1 + 0.5) * scale - 0.5)) + 2)
-
-
-@serial
 def _windows(spans, pyramid, out):
     """enhance_windows from the rows' spans (_read_spans)."""
     widths, heights, scale_x, scale_y = pyramid.widths, pyramid.heights, pyramid.scale_x, pyramid.scale_y
@@ -134,8 +127,8 @@ def _windows(spans, pyramid, out):
         if px1 < 0:  # no pixel reads the level
             out[m, 0] = out[m, 1] = out[m, 2] = out[m, 3] = 0
             continue
-        out[m, 0], out[m, 1] = _texels(px0, px1, scale_x[m], widths[m])
-        out[m, 2], out[m, 3] = _texels(py0, py1, scale_y[m], heights[m])
+        out[m, 0], out[m, 1] = pixel_texels(px0, px1, scale_x[m], widths[m])
+        out[m, 2], out[m, 3] = pixel_texels(py0, py1, scale_y[m], heights[m])
 
 
 def enhance_windows(ecc: np.ndarray, contrast: Contrast, pyramid: Pyramid, spans: np.ndarray) -> np.ndarray:

@@ -104,6 +104,13 @@ def _axis(f, n):
 
 
 @serial
+def pixel_texels(p0, p1, scale, n):
+    """The texels [t0, t1) of a level of n texels (scale of them per full-resolution pixel) that bilinear taps at
+    the centres of pixels p0..p1 along one axis read (_axis of the first and the last)."""
+    return int(_axis((p0 + 0.5) * scale, n)[0]), int(_axis((p1 + 0.5) * scale, n)[1]) + 1
+
+
+@serial
 def _bilinear(data, o, w, ax, ay):
     """Colour and depth of a level (first texel o, width w) between the texels of axes ax and ay, in the
     pyramid's float32."""
