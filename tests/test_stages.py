@@ -45,6 +45,7 @@ from hmdrt.foveation.stages.sampling import (
 from hmdrt.foveation.stages.temporal import History, exponential_smoothing, k_of_age, running_estimate
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
+from hmdrt.optics.projection import FAR
 from hmdrt.scene import Scene
 from hmdrt.scene.model import AreaLight, Material
 from hmdrt.scene.shapes import quad, sphere
@@ -256,6 +257,76 @@ def test_kim21_smoothing_reads_frames_of_the_same_camera_in_place():
         images.append(exponential_smoothing(cam, depth, colors[3], alpha, history, 4, 0.02))
     assert not np.allclose(images[0], colors[3], atol=1e-3)  # the earlier frames count
     np.testing.assert_allclose(images[0], images[1], atol=1e-5)
+
+
+def _smoothed_by_hand(cam, depth, color, alpha, earlier, rel_depth):
+    """kim2021 section 4.7's closed form pixel by pixel from the cameras' geometry: each pixel's surface point in
+    the world, seen by each earlier camera (newest first), its depth read at the texel it lands in and its colour
+    bilinearly with edge texels repeated."""
+    h, w = depth.shape
+    out = np.empty_like(color, dtype=np.float64)
+    dirs = cam.directions(pixel_centres(w, h)).reshape(h, w, 3)
+    for y in range(h):
+        for x in range(w):
+            d = float(depth[y, x])
+            point = cam.position + min(d, FAR) * dirs[y, x]
+            total, acc = 1.0, color[y, x].astype(np.float64)
+            for k, (e_cam, e_depth, e_color) in enumerate(earlier):
+                p = e_cam.rotation.T @ (point - e_cam.position)
+                if p[2] >= 0.0:
+                    continue  # behind the earlier eye
+                qx = (p[0] / -p[2] - e_cam.tan_left) * w / (e_cam.tan_right - e_cam.tan_left)
+                qy = (e_cam.tan_up - p[1] / -p[2]) * h / (e_cam.tan_up - e_cam.tan_down)
+                if not (0.0 <= qx < w and 0.0 <= qy < h):
+                    continue
+                seen, dist = float(e_depth[int(qy), int(qx)]), float(np.linalg.norm(p))
+                if not (math.isinf(seen) if math.isinf(d) else abs(seen - dist) <= rel_depth * dist):
+                    continue
+                fx, fy = qx - 0.5, qy - 0.5
+                x0, y0 = math.floor(fx), math.floor(fy)
+                ax, ay = fx - x0, fy - y0
+                xs = [min(max(x0 + i, 0), w - 1) for i in (0, 1)]
+                ys = [min(max(y0 + i, 0), h - 1) for i in (0, 1)]
+                rgb = sum(
+                    wx * wy * e_color[ys[j], xs[i]].astype(np.float64)
+                    for i, wx in ((0, 1 - ax), (1, ax))
+                    for j, wy in ((0, 1 - ay), (1, ay))
+                )
+                weight = (1.0 - float(alpha[y, x])) ** (k + 1)
+                total, acc = total + weight, acc + weight * rgb
+            out[y, x] = acc / total
+    return out
+
+
+def test_kim21_smoothing_back_projects_into_turned_and_moved_cameras_as_by_hand():
+    """Earlier frames of turned and moved cameras: pixels land between texels, off the image and, for a camera
+    turned half way round, behind it; the kernels' passes (footprints, then the depth test and the blend) give
+    the closed form computed pixel by pixel."""
+    cam = camera(width=40, height=30)
+    rng = np.random.default_rng(5)
+    depth = rng.uniform(2.0, 2.2, (30, 40)).astype(np.float32)
+    depth[:6] = np.inf  # sky: misses match misses
+    depth[20:, :10] = 0.5  # a near surface that moved cameras see elsewhere
+    alpha = rng.uniform(0.0, 0.9, (30, 40)).astype(np.float32)
+    poses = [
+        Pose.looking((0.01, 1.6, 0.0), yaw_deg=3.0),
+        Pose.looking((0.0, 1.61, 0.02), yaw_deg=-8.0, pitch_deg=4.0),
+        Pose.looking((0.0, 1.6, 0.0), yaw_deg=20.0),
+        Pose.looking((0.0, 1.6, 0.0), yaw_deg=150.0),
+    ]
+    history, earlier = History(4), []
+    for pose in reversed(poses):  # oldest first
+        e_cam = EyeCamera.for_eye(get_profile("rift_s").with_resolution(40, 30), pose)
+        e_depth = rng.uniform(2.0, 2.2, (30, 40)).astype(np.float32)
+        e_depth[:8] = np.inf
+        e_color = rng.random((30, 40, 3), dtype=np.float32)
+        history.push(e_cam, e_depth, e_color)
+        earlier.insert(0, (e_cam, e_depth, e_color))
+    color = rng.random((30, 40, 3), dtype=np.float32)
+    image = exponential_smoothing(cam, depth, color, alpha, history, 4, 0.05)
+    expected = _smoothed_by_hand(cam, depth, color, alpha, earlier, 0.05)
+    assert not np.allclose(image, color, atol=1e-3)  # earlier frames count
+    np.testing.assert_allclose(image, expected, atol=2e-5)
 
 
 # -- smith2013 section 3.2.1: refresh cycle groups --

@@ -17,7 +17,7 @@ import numpy as np
 from hmdrt.jit import inline, kernel, serial
 from hmdrt.memory import touched
 from hmdrt.optics.camera import EyeCamera
-from hmdrt.optics.projection import FAR, bilinear3, camera_arrays
+from hmdrt.optics.projection import FAR, camera_arrays
 
 
 @inline
@@ -64,6 +64,7 @@ class History:
         self.depth: np.ndarray | None = None  # (size + 1, h, w) float32
         self.color: np.ndarray | None = None  # (size + 1, h, w, 3) float32
         self.scratch: np.ndarray | None = None  # (threads, ROW, w) float64: what smoothing keeps of a row
+        self.taps: np.ndarray | None = None  # (threads, TAPS, w) uint64: and its footprints
         self._newest = -1
         self._count = 0
 
@@ -73,6 +74,7 @@ class History:
             self.depth = touched((self.size + 1, *shape))  # each slot is first written a frame later
             self.color = touched((self.size + 1, *shape, 3))
             self.scratch = np.empty((nb.get_num_threads(), ROW, shape[1]))
+            self.taps = np.empty((nb.get_num_threads(), TAPS, shape[1]), np.uint64)
             self._newest, self._count = -1, 0
         return (self._newest + 1) % (self.size + 1)
 
@@ -102,7 +104,8 @@ class History:
         return np.array([(self._newest - k) % (self.size + 1) for k in range(self._count)], np.int64)
 
 
-ROW = 10  # smoothing's values per pixel of a row: point (3), back-projection x, y, distance, sums (4)
+ROW = 11  # smoothing's float values per pixel of a row: point (3), footprint weights (2), distance, sums (4), fade
+TAPS = 4  # and its integer ones: the depth texel, the colour footprint's first element and steps (_footprints)
 
 
 class Earlier(NamedTuple):
@@ -114,6 +117,7 @@ class Earlier(NamedTuple):
     depth: np.ndarray  # (size + 1, h, w) float32 ring
     color: np.ndarray  # (size + 1, h, w, 3) float32 ring
     scratch: np.ndarray  # (chunks, ROW, w) float64: one row's values per chunk of rows
+    taps: np.ndarray  # (chunks, TAPS, w) uint64: one row's footprints per chunk of rows, -1 where off the image
 
 
 VIEW = 16  # relative_view: M (9), t (3), tan_left, width / (tan_right - tan_left), tan_up, height / (tan_up - tan_down)
@@ -136,9 +140,9 @@ def relative_view(earlier: EyeCamera, current: EyeCamera) -> np.ndarray:
 def eye_point(frustum, x, y, depth):
     """The point at hit distance `depth` (FAR for a miss) along the view ray through continuous pixel (x, y), in
     the eye frame of the camera with this frustum (CameraArrays.frustum)."""
-    tx = frustum[0] + x * (frustum[1] - frustum[0]) / frustum[4]
-    ty = frustum[2] - y * (frustum[2] - frustum[3]) / frustum[5]
-    s = min(depth, FAR) / math.sqrt(tx * tx + ty * ty + 1.0)
+    tx = frustum[0] + np.divide(x * (frustum[1] - frustum[0]), frustum[4])
+    ty = frustum[2] - np.divide(y * (frustum[2] - frustum[3]), frustum[5])
+    s = np.divide(min(depth, FAR), math.sqrt(tx * tx + ty * ty + 1.0))
     return s * tx, s * ty, -s
 
 
@@ -149,7 +153,7 @@ def view_project(v, px, py, pz):
     lx = v[0] * px + v[1] * py + v[2] * pz + v[9]
     ly = v[3] * px + v[4] * py + v[5] * pz + v[10]
     lz = v[6] * px + v[7] * py + v[8] * pz + v[11]
-    iz = -1.0 / lz
+    iz = np.divide(-1.0, lz)
     qx = (lx * iz - v[12]) * v[13] if lz < 0.0 else -1.0
     return qx, (v[14] - ly * iz) * v[15], math.sqrt(lx * lx + ly * ly + lz * lz)
 
@@ -172,18 +176,41 @@ def earlier_frames(history: History, camera: EyeCamera, shape: tuple[int, int], 
     for k, s in enumerate(slots):
         views[k] = relative_view(history.cameras[s], camera)
     same = np.array([same_camera(history.cameras[s], camera) for s in slots], bool)
-    return Earlier(slots, views, same, history.depth, history.color, history.scratch)
+    return Earlier(slots, views, same, history.depth, history.color, history.scratch, history.taps)
 
 
 @serial
-def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row):
+def _footprints(view, px, py, pz, h, qx, qy, dist, near, corner, step_x, step_y):
+    """A row's points (px, py, pz) back-projected by `view` (view_project) into an earlier frame of height h and
+    the row's width: their distances there, and as flat indices into it the texel whose depth the test reads (-1
+    off the image) and the first element and the x and y steps of the colour's bilinear footprint (the clamped
+    texels of projection.bilinear3), whose weights replace the coordinates in qx and qy. Selects and stores only,
+    in two loops over the row, so that both vectorise."""
+    w = len(px)
+    for x in range(w):
+        qx[x], qy[x], dist[x] = view_project(view, px[x], py[x], pz[x])
+    for x in range(w):
+        cx, cy = qx[x], qy[x]
+        inside = (cx >= 0.0) & (cy >= 0.0) & (cx < w) & (cy < h)
+        fx, fy = cx - 0.5, cy - 0.5
+        x0, y0 = np.floor(fx), np.floor(fy)
+        qx[x], qy[x] = fx - x0, fy - y0
+        ix, iy = min(max(int(x0), 0), w - 1), min(max(int(y0), 0), h - 1)
+        near[x] = np.uint64(min(max(int(cy), 0), h - 1) * w + min(max(int(cx), 0), w - 1) if inside else -1)
+        corner[x] = np.uint64(3 * (iy * w + ix))
+        step_x[x] = np.uint64(3 * (min(max(int(x0) + 1, 0), w - 1) - ix))
+        step_y[x] = np.uint64(3 * w * (min(max(int(y0) + 1, 0), h - 1) - iy))
+
+
+@serial
+def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row, taps):
     """Row y of the closed form, in passes over the row so that the back-projections vectorise: the pixels' points
-    at their hit distances (FAR for a miss) in the current eye frame, then per earlier frame their pixel
-    coordinates and distances there (one matrix product), then the depth test and the blend. Frames seen by the
-    current camera read the pixel itself."""
-    slots, views, same, ring_depth, ring_color, _ = earlier
+    at their hit distances (FAR for a miss) in the current eye frame, then per earlier frame their footprints
+    there (_footprints), then the depth test and the blend. Frames seen by the current camera read the pixel
+    itself."""
+    slots, views, same, ring_depth, ring_color, _, _ = earlier
     h, w = depth.shape
-    px, py, pz, qxs, qys, dists, acc_r, acc_g, acc_b, wsum = (
+    px, py, pz, ax, ay, dists, acc_r, acc_g, acc_b, wsum, fade = (
         row[0],
         row[1],
         row[2],
@@ -194,47 +221,60 @@ def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row):
         row[7],
         row[8],
         row[9],
+        row[10],
     )
     for x in range(w):
         px[x], py[x], pz[x] = eye_point(frustum, x + 0.5, y + 0.5, depth[y, x])
         acc_r[x], acc_g[x], acc_b[x] = color[y, x, 0], color[y, x, 1], color[y, x, 2]
         # the weights a (1 - a)^i over their sum, with the common factor a taken out: at a = 0 (the limit)
         # they are equal, where a (1 - a)^i / sum would be 0 / 0
-        wsum[x] = 1.0
+        wsum[x] = fade[x] = 1.0
+    near_row, corner_row, step_x_row, step_y_row = taps[0], taps[1], taps[2], taps[3]
+    off = np.uint64(-1)
     for k in range(slots.shape[0]):
-        if not same[k]:
-            view = views[k]
-            for x in range(w):
-                qxs[x], qys[x], dists[x] = view_project(view, px[x], py[x], pz[x])
-        image, image_depth = ring_color[slots[k]], ring_depth[slots[k]]
+        image, image_depth = ring_color[slots[k]].reshape(-1), ring_depth[slots[k]].reshape(-1)
         for x in range(w):
-            d = depth[y, x]
-            if same[k]:
-                qx, qy, dist = x + 0.5, y + 0.5, min(np.float64(d), FAR)
-            else:
-                qx, qy, dist = qxs[x], qys[x], dists[x]
-                if not (qx >= 0.0 and qy >= 0.0 and qx < w and qy < h):
-                    continue
-            d_prev = image_depth[int(qy), int(qx)]
+            fade[x] *= 1.0 - alpha[y, x]  # (1 - a)^(k + 1)
+        if same[k]:
+            for x in range(w):
+                near_row[x] = np.uint64(y * w + x)
+                dists[x] = min(np.float64(depth[y, x]), FAR)
+        else:
+            _footprints(views[k], px, py, pz, h, ax, ay, dists, near_row, corner_row, step_x_row, step_y_row)
+        for x in range(w):
+            near = near_row[x]
+            if near == off:
+                continue
+            d, dist = depth[y, x], dists[x]
+            d_prev = image_depth[near]
             if not (math.isinf(d_prev) if math.isinf(d) else abs(d_prev - dist) <= rel_depth * dist):
                 continue
             if same[k]:
-                cr, cg, cb = image[y, x, 0], image[y, x, 1], image[y, x, 2]
+                i = np.uint64(3) * near
+                cr, cg, cb = image[i], image[i + np.uint64(1)], image[i + np.uint64(2)]
             else:
-                cr, cg, cb = bilinear3(image, qx, qy)
-            weight = (1.0 - alpha[y, x]) ** (k + 1)
+                i, sx, sy = corner_row[x], step_x_row[x], step_y_row[x]
+                a, b = ax[x], ay[x]
+                w00, w01, w10, w11 = (1.0 - a) * (1.0 - b), a * (1.0 - b), (1.0 - a) * b, a * b
+                cr = w00 * image[i] + w01 * image[i + sx] + w10 * image[i + sy] + w11 * image[i + sy + sx]
+                i += np.uint64(1)
+                cg = w00 * image[i] + w01 * image[i + sx] + w10 * image[i + sy] + w11 * image[i + sy + sx]
+                i += np.uint64(1)
+                cb = w00 * image[i] + w01 * image[i + sx] + w10 * image[i + sy] + w11 * image[i + sy + sx]
+            weight = fade[x]
             wsum[x] += weight
             acc_r[x] += weight * cr
             acc_g[x] += weight * cg
             acc_b[x] += weight * cb
     for x in range(w):
-        out[y, x, 0], out[y, x, 1], out[y, x, 2] = acc_r[x] / wsum[x], acc_g[x] / wsum[x], acc_b[x] / wsum[x]
+        r, g, b = np.divide(acc_r[x], wsum[x]), np.divide(acc_g[x], wsum[x]), np.divide(acc_b[x], wsum[x])
+        out[y, x, 0], out[y, x, 1], out[y, x, 2] = r, g, b
 
 
 @serial
 def _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out):
     """Row y of the closed form when every earlier frame was seen by the current camera: each pixel reads itself."""
-    slots, _, _, ring_depth, ring_color, _ = earlier
+    slots, _, _, ring_depth, ring_color, _, _ = earlier
     for x in range(depth.shape[1]):
         d = depth[y, x]
         dist = min(np.float64(d), FAR)
@@ -262,9 +302,9 @@ def _smooth(frustum, depth, color, alpha, earlier, rel_depth, out):
             _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out)
     else:
         for t in nb.prange(chunks):
-            row = earlier.scratch[t]
+            row, taps = earlier.scratch[t], earlier.taps[t]
             for y in range(t * h // chunks, (t + 1) * h // chunks):
-                _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row)
+                _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row, taps)
 
 
 def exponential_smoothing(
