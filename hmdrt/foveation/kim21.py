@@ -384,23 +384,36 @@ def _store(width, color, hits, frustum, frame, view, prev_hits, prev, same, test
 
 
 @serial
-def _box_contrast_passes(color, x0, x1, y0, y1, width, bound):
-    """Whether Mitchell's contrast of the box [x0, x1] x [y0, y1] of color (n, 3) stays within bound x (1.36, 1.02,
-    2.04) in every channel, with a margin over float32 rounding. A 2x2 subpixel block inside the box has no more
-    contrast (it grows with max, falls with min, for non-negative colours), so it passes too."""
+def _box_contrast_row(y, width, ref, tau_fov, bound, box, passes):
+    """passes[x] = whether Mitchell's contrast of the 3x3 box around pixel (x, y) of ref (n, 3), clamped to the
+    image, stays within bound x tau_fov x (1.36, 1.02, 2.04) in every channel, with a margin over float32 rounding.
+    A 2x2 subpixel block inside the box has no more contrast (it grows with max, falls with min, for non-negative
+    colours), so it passes too. Separably, in loops that vectorise (unsigned indices: no negative-index wraparound;
+    selects, no branches): each column's three rows into box (lowest and highest per channel, 6 rows of the row's
+    width + 2, the edge columns repeated either side), then three columns of those."""
+    height, u, one, two = ref.shape[0] // width, np.uint64, np.uint64(1), np.uint64(2)
+    flat = ref.reshape(-1)
+    top, mid, bottom = max(y - 1, 0) * width, y * width, min(y + 1, height - 1) * width
+    for x in range(width):
+        passes[x] = True
     for ch in range(3):
-        lo = hi = np.float64(color[y0 * width + x0, ch])
-        for yy in range(y0, y1 + 1):
-            for xx in range(x0, x1 + 1):
-                v = np.float64(color[yy * width + xx, ch])
-                lo, hi = min(lo, v), max(hi, v)
-        if lo < 0.0 or hi + lo > 0.0 and (hi - lo) / (hi + lo) * (1.0 + 1e-6) > MITCHELL[ch] * bound:
-            return False
-    return True
+        lo, hi, scale = box[ch], box[3 + ch], MITCHELL[ch]
+        t, m, b = u(3 * top + ch), u(3 * mid + ch), u(3 * bottom + ch)
+        for x in range(width):
+            k = u(3 * x)
+            va, vb, vc = np.float64(flat[t + k]), np.float64(flat[m + k]), np.float64(flat[b + k])
+            lo[u(x) + one], hi[u(x) + one] = min(min(va, vb), vc), max(max(va, vb), vc)
+        lo[0], hi[0], lo[width + 1], hi[width + 1] = lo[1], hi[1], lo[width], hi[width]
+        for x in range(width):
+            i = u(x)
+            low, high = min(min(lo[i], lo[i + one]), lo[i + two]), max(max(hi[i], hi[i + one]), hi[i + two])
+            spread = np.divide(high - low, high + low) * (1.0 + 1e-6)
+            fails = (low < 0.0) | ((high + low > 0.0) & (spread > scale * (bound * tau_fov[u(mid) + i])))
+            passes[i] = passes[i] & (not fails)
 
 
 @serial
-def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask):
+def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask, box, passes):
     """Row y of the two-step disparity test of every subpixel of every central pixel not reused: the 4-bit mask of
     the problematic subpixels (NW, NE, SW, SE). A subpixel whose contrast passes at the smallest threshold passes
     at tau_sel too, so step one runs only where the contrast is high enough to matter, and a pixel whose 3x3
@@ -410,17 +423,15 @@ def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask)
     thresholds, normal_cos = tests.thresholds, tests.normal_cos
     counts, tau_fov_ = fov.samples, fov.tau_fov
     lowest = thresholds.min()
+    _box_contrast_row(y, width, ref, tau_fov_, lowest, box, passes)
     samples = subpixels = 0
     for x in range(width):
         i = y * width + x
         sub_mask[i] = 0
         k = np.int64(counts[i])
-        if k == 0 or flags[i] != 0:
+        if k == 0 or flags[i] != 0 or passes[x]:
             continue
         tau_f = tau_fov_[i]
-        x0, x1, y0, y1 = max(x - 1, 0), min(x + 1, width - 1), max(y - 1, 0), min(y + 1, height - 1)
-        if _box_contrast_passes(ref, x0, x1, y0, y1, width, lowest * tau_f):
-            continue
         mask = 0
         for s in range(4):
             dx = -1 if s & 1 == 0 else 1
@@ -439,11 +450,15 @@ def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask)
 
 
 @kernel
-def _inspect(width, ref, primary, secondary, fov, flags, tests, sub_mask, row_samples):
-    """_inspect_row over the image: row_samples[y] = row y's extra samples; returns the problematic subpixels."""
+def _inspect(width, ref, primary, secondary, fov, flags, tests, sub_mask, row_samples, box, passes):
+    """_inspect_row over the image: row_samples[y] = row y's extra samples; returns the problematic subpixels. box and
+    passes: _box_contrast_row's scratch, a row per numba thread (nb.get_thread_id())."""
     subpixels = 0
     for y in nb.prange(flags.shape[0] // width):
-        row_samples[y], sub = _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask)
+        t = nb.get_thread_id()
+        row_samples[y], sub = _inspect_row(
+            y, width, ref, primary, secondary, fov, flags, tests, sub_mask, box[t], passes[t]
+        )
         subpixels += sub
     return subpixels
 
@@ -587,6 +602,9 @@ class _EyeState:
         self.color = np.empty((n, 3), np.float32)  # the presampled colour
         self.sub_mask = np.empty(n, np.uint8)
         self.first = np.empty(height + 1, np.int64)  # per row: the index of its first extra sample
+        threads = nb.config.NUMBA_NUM_THREADS
+        self.box = np.empty((threads, 6, width + 2))  # the inspection's 3x3 contrast boxes (_box_contrast_row)
+        self.passes = np.empty((threads, width), np.bool_)
         self.extra_xy = np.empty((0, 2), np.float32)
         self.extra_keys = np.empty(0, np.int64)
         self.extra_color = np.empty((0, 3), np.float32)
@@ -779,7 +797,8 @@ class Kim21(Configurable):
         state, (h, w) = f.state, f.state.shape
         with stats.stage("inspect"):
             g1, g2 = f.cur.gbuffer
-            problematic = _inspect(w, f.cur.ref, g1, g2, f.fov, f.cur.flags, self.tests, state.sub_mask, state.first)
+            scratch = (state.sub_mask, state.first, state.box, state.passes)
+            problematic = _inspect(w, f.cur.ref, g1, g2, f.fov, f.cur.flags, self.tests, *scratch)
             state.first[h] = 0
             total = _exclusive_scan(state.first)
             extra_xy, extra_keys, extra_color = state.extra(total)
