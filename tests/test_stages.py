@@ -619,3 +619,37 @@ def test_light_buffer_is_the_stochastic_part_of_the_colour():
         rgb = tracer.trace_samples(cam, xy, np.arange(len(xy)), FrameStats(), light=light)
     np.testing.assert_allclose(rgb, light.albedo * light.irradiance, atol=1e-5)  # no emission, no specular
     assert light.irradiance.max() > 0
+
+
+@pytest.mark.parametrize("previous_depth", [2.0, FAR])
+def test_weier18_taa_blends_each_sample_only_with_taps_that_see_its_surface(previous_depth):
+    """weier2018 section 3.1's TAA on a still view: a sample on a surface blends with the previous frame's taps at
+    its distance, a miss only with taps that missed too; all five taps seen, the new sample keeps alpha_min."""
+    from hmdrt.foveation.stages.pyramid import quincunx_offset
+    from hmdrt.foveation.stages.temporal import relative_view
+    from hmdrt.foveation.weier18 import Blend, Reprojected, Traced, _taa
+    from hmdrt.optics.projection import camera_arrays
+
+    w, h = 16, 12
+    cam = camera("sim-cpu", width=w, height=h)
+    previous, current = Pyramid.empty(w, h), Pyramid.empty(w, h)
+    previous.data[:, :3] = (1.0, 0.0, 0.0)
+    previous.data[:, 3], previous.data[:, 4] = 1.0, previous_depth
+    surface, miss = 5 * w + 5, 6 * w + 9
+    traced = Traced(
+        np.array([surface, miss]),
+        np.zeros(2),
+        np.full(2, quincunx_offset(0.0)),
+        np.array([2.0, np.inf], np.float32),
+        np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], np.float32),
+    )
+    alpha_min = 0.2
+    blend = Blend(w, alpha_min, 0.05)
+    _taa(
+        traced, camera_arrays(cam).frustum, relative_view(cam, cam), blend, previous, True, current, Reprojected.empty()
+    )
+    blended = alpha_min * np.array([0.0, 0.0, 1.0]) + (1 - alpha_min) * np.array([1.0, 0.0, 0.0])
+    seen = {surface: previous_depth == 2.0, miss: previous_depth == FAR}
+    for pixel, hit in seen.items():
+        np.testing.assert_allclose(current.data[pixel, :3], blended if hit else (0.0, 0.0, 1.0), rtol=1e-6)
+        assert current.data[pixel, 3] == 1.0

@@ -134,7 +134,7 @@ def _tap(u, v, t, expected, tol, valid, r, g, b):
     """Adds the quincunx tap t of the way from its level's u to the next level's v to the count and the colour
     sums if it sees the sample's surface (its depth within tol of the expected one, or both misses)."""
     d = u[3] + t * (v[3] - u[3])
-    if (math.isinf(expected) and d >= 0.5 * FAR) or abs(d - expected) <= tol * expected:
+    if (d >= 0.5 * FAR) if math.isinf(expected) else abs(d - expected) <= tol * expected:
         return valid + 1, r + (u[0] + t * (v[0] - u[0])), g + (u[1] + t * (v[1] - u[1])), b + (u[2] + t * (v[2] - u[2]))
     return valid, r, g, b
 
