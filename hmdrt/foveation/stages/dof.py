@@ -269,7 +269,7 @@ def _periphery(e, r0, r1):
 
 
 @serial
-def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, y, out):
+def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y, out):
     """Row y of the second pass. Far field: the central Gaussian, the pyramid blur in the periphery (read at
     level log2 |CoC| for the row at once, sample_row, into values), blended across [r0, r1); the sharp image
     is interpolated towards it by |CoC|; the near field is alpha-blended over."""
@@ -279,7 +279,7 @@ def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, y, out):
         c = coc[y, x]
         read = c < 0.0 and _periphery(ecc[y, x], r0, r1) > 0.0
         levels[x] = (0.0 if -c <= 1.0 else math.log2(-c)) if read else -1.0
-    sample_row(pyramid.data, len(pyramid.offsets) - 1, axes, y, levels, values)
+    sample_row(pyramid.data, pyramid.widths, axes, y, levels, values, texels)
     for x in range(out.shape[1]):
         c = coc[y, x]
         r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
@@ -307,13 +307,13 @@ def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch
     compile to faster code than one that does both."""
     for y in nb.prange(out.shape[0]):
         thread = nb.get_thread_id()
-        levels, values = scratch.levels[thread], scratch.values[thread]
+        levels, values, texels = scratch.levels[thread], scratch.values[thread], scratch.texels[thread]
         if dof:
-            _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, y, out)
+            _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y, out)
         else:
             out[y] = color[y]
         if contrast.strength != 0.0:
-            enhance_row(ecc, contrast, blurred, axes, levels, values, y, out)
+            enhance_row(ecc, contrast, blurred, axes, levels, values, texels, y, out)
 
 
 def horizontal_pass(color: np.ndarray, ecc: np.ndarray, layers: Layers, blur: Blur) -> None:

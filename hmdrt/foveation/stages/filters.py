@@ -144,15 +144,15 @@ def enhance_windows(ecc: np.ndarray, contrast: Contrast, pyramid: Pyramid, spans
 
 
 @serial
-def enhance_row(ecc, contrast, blurred, axes, levels, values, y, out):
+def enhance_row(ecc, contrast, blurred, axes, levels, values, texels, y, out):
     """Row y of out enhanced in place: color + strength x fade(e) x (color - blur_e(color)) at each pixel of
     eccentricity e, the blur read trilinearly from the prefiltered pyramid `blurred` (prefilter; `axes` its
-    pixel_axes) at the pixel's centre, for the row at once (pyramid.sample_row, with `levels` and `values` its
-    scratch). Negative results are cut at zero (light cannot be negative)."""
+    pixel_axes) at the pixel's centre, for the row at once (pyramid.sample_row, with `levels`, `values` and
+    `texels` its scratch). Negative results are cut at zero (light cannot be negative)."""
     strength, r0, r1, blur_levels = contrast
     for x in range(out.shape[1]):
         levels[x] = blur_levels[y, x] if _fade(ecc[y, x], r0, r1) > 0.0 else -1.0
-    sample_row(blurred.data, len(blurred.offsets) - 1, axes, y, levels, values)
+    sample_row(blurred.data, blurred.widths, axes, y, levels, values, texels)
     for x in range(out.shape[1]):
         fade = _fade(ecc[y, x], r0, r1)
         if fade <= 0.0:
