@@ -13,9 +13,11 @@ median ms per frame, rays per frame, the bare-Embree time of those rays and its 
 over that time; issue 14's target is <= 1.5). Beside it, the mix floor: the same rays at bare embreex's rate on
 rays of their own kind from this view (references.bare_kind_rates: the mirror and glass spheres' secondary rays
 trace several times slower than primary rays, bare or not), and the frame's time over that floor, which is
-what is left to our own work. Then each method's rays by kind, and every stage's median ms and, where the
-stage says how many bytes it must touch (FrameStats.stage(..., touches=)), those bytes and what a copy of them
-costs: a stage far above its copy time is where the next speed-up is.
+what is left to our own work. Last, the tracer: the ms of its own stages (meter.STAGES, wherever a method nests
+them) over the bare time, the factor the method would reach if everything else it does took no time; above the
+target, the method's rays bound it whatever its image work. Then each method's rays by kind, and every stage's
+median ms and, where the stage says how many bytes it must touch (FrameStats.stage(..., touches=)), those bytes
+and what a copy of them costs: a stage far above its copy time is where the next speed-up is.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from hmdrt.optics import get_profile
 from hmdrt.scene import load_scene
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
+from hmdrt.trace.meter import STAGES as TRACER_STAGES
 
 TARGET = 1.5
 METHODS = ["full", "rrm", "weier16", "weier18?dof=none", "weier18", "kim21"]
@@ -65,6 +68,7 @@ def main() -> None:
     rays: dict[str, list[int]] = defaultdict(list)
     kinds: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
     floors: dict[str, list[float]] = defaultdict(list)
+    own: dict[str, list[float]] = defaultdict(list)  # the tracer's own stages
     stages: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
     touched: dict[str, dict[str, int]] = defaultdict(dict)
     with Whitted(scene, threads) as tracer:
@@ -83,6 +87,7 @@ def main() -> None:
                 for kind, count in stats.rays.items():
                     kinds[spec][kind].append(count)
                 floors[spec].append(floor_ms(stats.rays, kind_rates))
+                own[spec].append(sum(v for k, v in stats.stages_ms.items() if k.rsplit("/", 1)[-1] in TRACER_STAGES))
                 for name, v in stats.stages_ms.items():
                     stages[spec][name].append(v)
                 touched[spec].update(stats.touched)
@@ -101,7 +106,7 @@ def main() -> None:
     print(f"  bare embreex by kind of ray, Mrays/s: {measured}")
     print(
         f"  {'method':20s} {'ms/frame':>9s} {'rays/frame':>11s} {'bare ms':>8s} {'overhead':>9s}"
-        f"          {'mix floor ms':>12s} {'over mix':>8s}"
+        f"          {'mix floor ms':>12s} {'over mix':>8s} {'tracer ms':>9s} {'tracer':>7s}"
     )
     for spec in methods:
         frame_ms = statistics.median(ms[spec])
@@ -110,9 +115,10 @@ def main() -> None:
         factor = frame_ms / bare_ms if bare_ms else float("inf")
         verdict = "ok" if factor <= TARGET else f"over {TARGET}"
         mix_ms = statistics.median(floors[spec])
+        tracer_ms = statistics.median(own[spec])
         print(
             f"  {spec:20s} {frame_ms:9.1f} {int(n):11,d} {bare_ms:8.1f} {factor:8.2f}x  {verdict:9s}"
-            f" {mix_ms:12.1f} {frame_ms / mix_ms:7.2f}x"
+            f" {mix_ms:12.1f} {frame_ms / mix_ms:7.2f}x {tracer_ms:9.1f} {tracer_ms / bare_ms:6.2f}x"
         )
     for spec in methods:
         counts = ", ".join(f"{kind} {int(statistics.median(v)):,d}" for kind, v in kinds[spec].items() if any(v))
