@@ -638,13 +638,14 @@ def test_weier18_taa_blends_each_sample_only_with_taps_that_see_its_surface(prev
     surface, miss = 5 * w + 5, 6 * w + 9
     traced = Traced(
         np.array([surface, miss]),
+        np.array([[5.5, 5.5], [9.5, 6.5]], np.float32),
         np.zeros(2),
         np.full(2, quincunx_offset(0.0)),
         np.array([2.0, np.inf], np.float32),
         np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], np.float32),
     )
     alpha_min = 0.2
-    blend = Blend(w, alpha_min, 0.05)
+    blend = Blend(alpha_min, 0.05)
     _taa(
         traced, camera_arrays(cam).frustum, relative_view(cam, cam), blend, previous, True, current, Reprojected.empty()
     )

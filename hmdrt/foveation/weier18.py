@@ -95,10 +95,11 @@ class Weier18Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 
 class Traced(NamedTuple):
-    """A frame's traced samples: row-major pixel, footprint level and its quincunx offset, hit distance
-    (inf: miss), radiance."""
+    """A frame's traced samples: row-major pixel and its centre, footprint level and its quincunx offset, hit
+    distance (inf: miss), radiance."""
 
     pixels: np.ndarray  # (n,) int64
+    xy: np.ndarray  # (n, 2) float32
     level: np.ndarray  # (n,) float64
     offset: np.ndarray  # (n,) float64
     depth: np.ndarray  # (n,) float32
@@ -106,9 +107,8 @@ class Traced(NamedTuple):
 
 
 class Blend(NamedTuple):
-    """TAA's image width and blend settings."""
+    """TAA's blend settings."""
 
-    width: int
     alpha_min: float
     tol: float  # relative depth tolerance of a tap
 
@@ -142,18 +142,18 @@ def _tap(u, v, t, expected, tol, valid, r, g, b):
 @serial
 def _taa_block(traced, frustum, view, blend, previous, history, data, start, stop, where):
     """Samples [start, stop) into level 0 (weight 1, depth capped at FAR); with history, each one's point in the
-    current eye frame (frustum) seen from the previous frame (its relative_view `view`) into `where`, then the
-    previous pyramid's quincunx taps there blended in, in one pass per level the block reads (as
-    pyramid.sample_row: a pass's level constants stay put, where a loop that picks each sample's level
-    reloads them)."""
-    pixels, levels, offsets, depth, rgb = traced
-    width, alpha_min, tol = blend
+    current eye frame (frustum) seen from the previous frame (its relative_view `view`) into `where`, in a loop
+    of selects that vectorises, then the previous pyramid's quincunx taps there blended in, in one pass per
+    level the block reads (as pyramid.sample_row: a pass's level constants stay put, where a loop that picks
+    each sample's level reloads them); a sample on a whole level reads that level alone."""
+    pixels, xy, levels, offsets, depth, rgb = traced
+    alpha_min, tol = blend
     p_data, p_offsets, p_widths, p_heights, p_sx, p_sy = previous
     at_x, at_y, expected, at_level = where
     top = len(p_offsets) - 1
-    pw, ph, lo, hi = p_widths[0], p_heights[0], top, -1
+    pw, ph = p_widths[0], p_heights[0]
     for s in range(start, stop):
-        i, j = pixels[s], s - start
+        i = pixels[s]
         data[i, 0], data[i, 1], data[i, 2], data[i, 3], data[i, 4] = (
             rgb[s, 0],
             rgb[s, 1],
@@ -161,15 +161,21 @@ def _taa_block(traced, frustum, view, blend, previous, history, data, start, sto
             1.0,
             min(depth[s], FAR),
         )
-        if not history:
-            continue
-        px, py, pz = eye_point(frustum, i % width + 0.5, i // width + 0.5, depth[s])
-        at_x[j], at_y[j], dist = view_project(view, px, py, pz)
+    if not history:
+        return
+    ftop = float(top)
+    for s in range(start, stop):
+        j = s - start
+        px, py, pz = eye_point(frustum, np.float64(xy[s, 0]), np.float64(xy[s, 1]), depth[s])
+        qx, qy, dist = view_project(view, px, py, pz)
+        at_x[j], at_y[j] = qx, qy
         expected[j] = dist if depth[s] < FAR else math.inf
-        at_level[j] = -1.0
-        if at_x[j] >= 0.0 and at_y[j] >= 0.0 and at_x[j] < pw and at_y[j] < ph:
-            at_level[j] = level = min(max(levels[s], 0.0), float(top))
-            lo, hi = min(lo, int(level)), max(hi, int(level))
+        inside = (qx >= 0.0) & (qy >= 0.0) & (qx < pw) & (qy < ph)
+        at_level[j] = min(max(levels[s], 0.0), ftop) if inside else -1.0
+    lo, hi = top, -1
+    for j in range(stop - start):
+        if at_level[j] >= 0.0:
+            lo, hi = min(lo, int(at_level[j])), max(hi, int(at_level[j]))
     for k in range(lo, hi + 1):
         up = min(k + 1, top)
         o, w, h, sx, sy = p_offsets[k], p_widths[k], p_heights[k], p_sx[k], p_sy[k]
@@ -181,8 +187,8 @@ def _taa_block(traced, frustum, view, blend, previous, history, data, start, sto
                 continue
             qx, qy, off, e = at_x[j], at_y[j], offsets[s], expected[j]
             u = quincunx_level(p_data, o, w, h, sx, sy, off, qx, qy)
-            v = u if k == top else quincunx_level(p_data, o_up, w_up, h_up, sx_up, sy_up, off, qx, qy)
-            t = level - k  # 0 on the top level
+            t = level - k  # 0 on the top level and on whole levels, where v adds nothing to finite u
+            v = u if t == 0.0 else quincunx_level(p_data, o_up, w_up, h_up, sx_up, sy_up, off, qx, qy)
             valid, tr, tg, tb = _tap(u[0], v[0], t, e, tol, 0, 0.0, 0.0, 0.0)
             valid, tr, tg, tb = _tap(u[1], v[1], t, e, tol, valid, tr, tg, tb)
             valid, tr, tg, tb = _tap(u[2], v[2], t, e, tol, valid, tr, tg, tb)
@@ -345,7 +351,7 @@ class Weier18(Configurable):
         with stats.stage("trace"):
             gbuf, rgb = self._gbuffers.rows(samples.count)
             self.tracer.trace_samples(request.camera, samples.xy, keys, stats, gbuf, out=rgb)
-        return Traced(samples.pixels, samples.level, samples.offset, gbuf.primary.depth, rgb)
+        return Traced(samples.pixels, samples.xy, samples.level, samples.offset, gbuf.primary.depth, rgb)
 
     def _reconstruct(
         self, state: _EyeState, cam: EyeCamera, traced: Traced, steps: tuple[str, ...], stats: FrameStats
@@ -356,7 +362,7 @@ class Weier18(Configurable):
         state.pyramids.reverse()
         current, previous = state.pyramids
         frustum, view = camera_arrays(cam).frustum, relative_view(state.camera, cam)
-        blend = Blend(cam.width, p.alpha_min, p.taa_depth)
+        blend = Blend(p.alpha_min, p.taa_depth)
         texel = current.data.itemsize * current.data.shape[1]
         if "taa" in steps:  # each sample read, its texel written and at least one of the previous frame's read
             with stats.stage("taa", touches=nbytes(*traced) + 2 * len(traced.pixels) * texel):
