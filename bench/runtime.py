@@ -188,6 +188,12 @@ def describe(name: str, report: dict) -> None:
             f"{controller['level']}, at floor {controller['at_floor']}; "
             f"last knobs {controller['trajectory'][-1] if levels else {}}"
         )
+        spread = report["controller_level"]
+        if spread:
+            print(
+                f"    level over the {spread['frames']} new frames: p10 {spread['p10']} p50 {spread['p50']} "
+                f"p90 {spread['p90']}, at 0.5 or above {spread['share_at_least_half']:.1%} of them"
+            )
 
 
 def main() -> None:

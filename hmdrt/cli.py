@@ -261,11 +261,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         compositor.close()
     if report_path:
         _write_json(report_path, report)
-    gaze = report["latency_ms"]["gaze_to_photon"]
+    gaze, levels = report["latency_ms"]["gaze_to_photon"], report["controller_level"]
     print(
         f"{report['vsyncs']} VSyncs: {report['presented']} frames shown ({report['late']} late), "
         f"{report['re_presented']} repeated, {report['dropped']} dropped; miss rate {report['miss_rate']:.1%}; "
         f"frame p99 {report['frame_ms']['p99']} ms; gaze-to-photon p99 {gaze['p99']} ms"
+        + (f"; controller level p50 {levels['p50']}" if levels and "controller" in report else "")
         + (f"; report {report_path}" if report_path else "")
     )
     return 0

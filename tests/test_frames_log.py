@@ -354,3 +354,27 @@ def test_a_bad_input_file_is_a_one_line_error_naming_file_and_line(tmp_path, cap
     assert main([*command, str(path), "--out", str(tmp_path / "out")]) == 1
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and err.startswith(f"hmdrt: error: {path}{message}"), err
+
+
+def test_the_report_spreads_the_new_frames_controller_levels_and_leaves_repeats_out():
+    from hmdrt.telemetry.report import RunReport
+
+    report = RunReport(30.0)
+    for v, level in enumerate([1.0] * 6 + [0.3] * 4):
+        report.add(frame(2 * v, level=level))
+        report.add(frame(2 * v + 1, "repeat", frame_id=2 * v, level=0.1))  # a repeat renders nothing
+    snapshot = report.snapshot()
+    report.add(frame(20, level=0.0))
+    assert snapshot.to_dict()["controller_level"] == {
+        "frames": 10,
+        "p10": 0.3,
+        "p50": 1.0,
+        "p90": 1.0,
+        "share_at_least_half": 0.6,
+    }
+    after = report.to_dict()["controller_level"]
+    assert after["frames"] == 11 and after["share_at_least_half"] == round(6 / 11, 5)
+    assert RunReport(30.0).to_dict()["controller_level"] is None
+    unlevelled = RunReport(30.0)
+    unlevelled.add(frame(0, level=None))
+    assert unlevelled.to_dict()["controller_level"] is None

@@ -253,6 +253,13 @@ def test_hold_budget_controller_lowers_the_quality_of_a_renderer_over_budget(hmd
     params = [r.params for r in records if r.shown != "repeat"]
     assert params[0]["fovea_deg"] == 10.0 and params[0]["group_w"] == 3
     assert (params[-1]["fovea_deg"], params[-1]["group_w"]) == (lowered["fovea_deg"], lowered["group_w"])
+    # the report's spread of levels is that of the new frames' records
+    new_levels = [r.level for r in records if r.shown != "repeat"]
+    spread = report["controller_level"]
+    assert spread["frames"] == len(new_levels) == report["frames"]
+    assert spread["share_at_least_half"] == pytest.approx(np.mean([v >= 0.5 for v in new_levels]), abs=1e-5)
+    nearest_rank_p10 = sorted(new_levels)[math.ceil(0.1 * len(new_levels)) - 1]
+    assert spread["p90"] == 1.0 and spread["p10"] == round(nearest_rank_p10, 2)
 
 
 # --- virtual time -----------------------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ so its memory and the cost of a summary stay the same however long the daemon ru
 from __future__ import annotations
 
 import copy
+from array import array
 from dataclasses import dataclass, field
 
 import msgspec
@@ -21,6 +22,7 @@ from hmdrt.bus.messages import numpy_scalar
 from hmdrt.telemetry.histogram import Histogram
 
 SHOWN = ("new", "late", "repeat")
+LEVEL_STEPS = 100  # the controller's level is counted in hundredths: bounded memory, as the times
 
 
 @dataclass(frozen=True)
@@ -112,6 +114,7 @@ class RunReport:
         self.held = {"gaze": 0, "pose": 0}  # VSyncs whose sample was held through a blink or lost tracking
         self.stages_ms: dict[str, float] = {}
         self.rays = 0
+        self.levels = array("q", bytes(8 * (LEVEL_STEPS + 1)))  # new frames per controller level, in hundredths
         self.first_present: int | None = None
         self.last_present: int | None = None
         self.last_frame_id = -1
@@ -149,6 +152,8 @@ class RunReport:
         self._settled(record.actual_present_ns, record.missed)
         self.frame_ms.add(record.frame_ms)
         self.rays += record.rays
+        if record.level is not None:
+            self.levels[round(record.level * LEVEL_STEPS)] += 1
         for stage, ms in record.stages_ms.items():
             self.stages_ms[stage] = self.stages_ms.get(stage, 0.0) + ms
 
@@ -160,6 +165,24 @@ class RunReport:
             setattr(out, name, dict(getattr(self, name)))
         for name in ("frame_ms", "overhead_ms", "warp_ms", "gaze_ms", "pose_ms"):
             setattr(out, name, getattr(self, name).copy())
+        out.levels = array("q", self.levels)
+        return out
+
+    def level_summary(self) -> dict | None:
+        """How the new frames' controller levels spread over the run: the frames rendered under a controller,
+        their level's p10, p50 and p90 (hundredths) and the share at 0.5 or above (None without a controller)."""
+        n = sum(self.levels)
+        if not n:
+            return None
+        ranks = {f"p{k}": max(1, -(-k * n // 100)) for k in (10, 50, 90)}
+        out: dict = {"frames": n}
+        seen = 0
+        for step, count in enumerate(self.levels):
+            seen += count
+            for key, rank in ranks.items():
+                if key not in out and seen >= rank:
+                    out[key] = step / LEVEL_STEPS
+        out["share_at_least_half"] = round(sum(self.levels[LEVEL_STEPS // 2 :]) / n, 5)
         return out
 
     @property
@@ -207,5 +230,6 @@ class RunReport:
             },
             "stages_ms": {k: round(v / n, 3) for k, v in self.stages_ms.items()},
             "rays_per_frame": round(self.rays / n),
+            "controller_level": self.level_summary(),
             **extra,
         }
