@@ -9,7 +9,8 @@ device, robust scene, one triangle geometry with 16-byte vertex stride), so the 
 Rays go to Embree in packets of PACKET (RTCRayHit8 of rtcore_ray.h: RTCRayHit's fields as arrays of 8, in
 a float32 array per thread) with the coherent flag, which traverses the BVH once for the whole packet:
 primary and shadow rays of neighbouring pixels trace about 2x faster than one by one (rtcIntersect1), with
-the same hits.
+the same hits. The kernels take a packet's views and rays' coordinates apart once per batch, not per ray:
+each array view numba makes costs reference counting.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import ctypes
 import glob
 import os
+from typing import NamedTuple
 
 import embreex
 import llvmlite.binding as llvm
@@ -139,14 +141,30 @@ def coherent_args() -> np.ndarray:
     return args
 
 
+class Packet(NamedTuple):
+    """A packet as the helpers fill and read it: its words as float32 (origins, directions, distances) and as
+    uint32 (masks, ids, hits), and the valid mask after them; taken apart once per batch (packet_views)."""
+
+    rays: np.ndarray  # (PACKET_WORDS,) float32
+    words: np.ndarray  # (PACKET_WORDS,) uint32, the same memory
+    valid: np.ndarray  # (PACKET,) int32
+
+
 @inline
-def set_lane(packet, k, ox, oy, oz, dx, dy, dz, tfar, ident):
-    """Ray k of a packet (words field * PACKET + k), with no hit yet; ident: the caller's, kept (lane_id)."""
-    packet[k], packet[PACKET + k], packet[2 * PACKET + k], packet[3 * PACKET + k] = ox, oy, oz, 0.0
-    packet[4 * PACKET + k], packet[5 * PACKET + k], packet[6 * PACKET + k] = dx, dy, dz
-    packet[7 * PACKET + k] = 0.0
-    packet[_TFAR * PACKET + k] = tfar
-    words = packet.view(np.uint32)
+def packet_views(packet):
+    """The Packet over one row of packets()."""
+    rays = packet[:PACKET_WORDS]
+    return Packet(rays, rays.view(np.uint32), packet[PACKET_WORDS : PACKET_WORDS + PACKET].view(np.int32))
+
+
+@inline
+def set_lane(p, k, ox, oy, oz, dx, dy, dz, tfar, ident):
+    """Ray k of Packet p (words field * PACKET + k), with no hit yet; ident: the caller's, kept (lane_id)."""
+    rays, words = p.rays, p.words
+    rays[k], rays[PACKET + k], rays[2 * PACKET + k], rays[3 * PACKET + k] = ox, oy, oz, 0.0
+    rays[4 * PACKET + k], rays[5 * PACKET + k], rays[6 * PACKET + k] = dx, dy, dz
+    rays[7 * PACKET + k] = 0.0
+    rays[_TFAR * PACKET + k] = tfar
     words[_MASK * PACKET + k] = INVALID_ID
     words[_ID * PACKET + k] = ident
     words[_FLAGS * PACKET + k] = 0
@@ -154,42 +172,42 @@ def set_lane(packet, k, ox, oy, oz, dx, dy, dz, tfar, ident):
 
 
 @inline
-def _valid(packet, lanes):
-    valid = packet[PACKET_WORDS : PACKET_WORDS + PACKET].view(np.int32)
+def _valid(p, lanes):
+    valid = p.valid
     for k in range(PACKET):
         valid[k] = -1 if k < lanes else 0
     return valid
 
 
 @inline
-def intersect_packet(scene, packet, lanes, args):
-    """Trace the first `lanes` rays of a packet (set_lane) to their first hits (lane_hit)."""
-    _rtc_intersect8(_valid(packet, lanes).ctypes.data, scene, packet.ctypes.data, args.ctypes.data)
+def intersect_packet(scene, p, lanes, args):
+    """Trace the first `lanes` rays of Packet p (set_lane) to their first hits (lane_hit)."""
+    _rtc_intersect8(_valid(p, lanes).ctypes.data, scene, p.rays.ctypes.data, args.ctypes.data)
 
 
 @inline
-def occluded_packet(scene, packet, lanes, args):
-    """Trace the first `lanes` rays of a packet (set_lane) for occluders (lane_occluded)."""
-    _rtc_occluded8(_valid(packet, lanes).ctypes.data, scene, packet.ctypes.data, args.ctypes.data)
+def occluded_packet(scene, p, lanes, args):
+    """Trace the first `lanes` rays of Packet p (set_lane) for occluders (lane_occluded)."""
+    _rtc_occluded8(_valid(p, lanes).ctypes.data, scene, p.rays.ctypes.data, args.ctypes.data)
 
 
 @inline
-def lane_hit(packet, k):
-    """(prim, t, u, v) of ray k of a traced packet, as intersect() returns them."""
-    prim = packet.view(np.uint32)[_PRIM * PACKET + k]
+def lane_hit(p, k):
+    """(prim, t, u, v) of ray k of a traced Packet, as intersect() returns them."""
+    prim = p.words[_PRIM * PACKET + k]
     if prim == INVALID_ID:
         return -1, np.float32(np.inf), np.float32(0.0), np.float32(0.0)
-    return np.int32(prim), packet[_TFAR * PACKET + k], packet[_U * PACKET + k], packet[_V * PACKET + k]
+    return np.int32(prim), p.rays[_TFAR * PACKET + k], p.rays[_U * PACKET + k], p.rays[_V * PACKET + k]
 
 
 @inline
-def lane_occluded(packet, k):
-    return packet[_TFAR * PACKET + k] < 0.0
+def lane_occluded(p, k):
+    return p.rays[_TFAR * PACKET + k] < 0.0
 
 
 @inline
-def lane_id(packet, k):
-    return packet.view(np.uint32)[_ID * PACKET + k]
+def lane_id(p, k):
+    return p.words[_ID * PACKET + k]
 
 
 @serial
@@ -197,43 +215,44 @@ def intersect_rays(scene, args, packet, origins, directions, far, hits, start, s
     """hits[i] = first hit of ray i within (0, far[i]] (far None: MISS_T), for i in [start, stop), in packets of
     consecutive rays."""
     prim, t, u, v = hits
+    p = packet_views(packet)
     for s in range(start, stop, PACKET):
         lanes = min(PACKET, stop - s)
         for k in range(lanes):
             i = s + k
-            o, d = origins[i], directions[i]
-            tfar = MISS_T if far is None else far[i]
-            set_lane(packet, k, o[0], o[1], o[2], d[0], d[1], d[2], tfar, 0)
-        intersect_packet(scene, packet, lanes, args)
+            o, d, tfar = origins, directions, MISS_T if far is None else far[i]
+            set_lane(p, k, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], tfar, 0)
+        intersect_packet(scene, p, lanes, args)
         for k in range(lanes):
-            prim[s + k], t[s + k], u[s + k], v[s + k] = lane_hit(packet, k)
+            prim[s + k], t[s + k], u[s + k], v[s + k] = lane_hit(p, k)
 
 
 @serial
 def intersect_selected(scene, args, packet, origins, directions, select, want, hits, count):
     """hits[i] = first hit of ray i (within MISS_T), for the rays i < count with select[i] == want, in packets of
     such rays (reflected and refracted rays apart: each kind is coherent on its own, a mix is not)."""
+    p = packet_views(packet)
     lanes = 0
     for i in range(count):
         if select[i] != want:
             continue
-        o, d = origins[i], directions[i]
-        set_lane(packet, lanes, o[0], o[1], o[2], d[0], d[1], d[2], MISS_T, i)
+        o, d = origins, directions
+        set_lane(p, lanes, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], MISS_T, i)
         lanes += 1
         if lanes == PACKET:
-            _flush_hits(scene, args, packet, lanes, hits)
+            _flush_hits(scene, args, p, lanes, hits)
             lanes = 0
-    _flush_hits(scene, args, packet, lanes, hits)
+    _flush_hits(scene, args, p, lanes, hits)
 
 
 @inline
-def _flush_hits(scene, args, packet, lanes, hits):
+def _flush_hits(scene, args, p, lanes, hits):
     if lanes:
-        intersect_packet(scene, packet, lanes, args)
+        intersect_packet(scene, p, lanes, args)
         prim, t, u, v = hits
         for k in range(lanes):
-            i = lane_id(packet, k)
-            prim[i], t[i], u[i], v[i] = lane_hit(packet, k)
+            i = lane_id(p, k)
+            prim[i], t[i], u[i], v[i] = lane_hit(p, k)
 
 
 @serial
@@ -242,6 +261,7 @@ def occluded_rays(scene, args, packet, origins, directions, far, occluded, rows,
     j = row * columns + column, of the rows with select[row] == want (select None: all). Rays with far <= 0 are
     not traced (False); the others go in packets column by column, so that a packet holds the same light sample
     of neighbouring hits. Returns how many were traced."""
+    p = packet_views(packet)
     traced = lanes = 0
     for column in range(columns):
         for row in range(rows):
@@ -251,19 +271,19 @@ def occluded_rays(scene, args, packet, origins, directions, far, occluded, rows,
             if far[j] <= 0.0:
                 occluded[j] = False
                 continue
-            o, d = origins[j], directions[j]
-            set_lane(packet, lanes, o[0], o[1], o[2], d[0], d[1], d[2], far[j], j)
+            o, d = origins, directions
+            set_lane(p, lanes, o[j, 0], o[j, 1], o[j, 2], d[j, 0], d[j, 1], d[j, 2], far[j], j)
             lanes += 1
             if lanes == PACKET:
-                traced += _flush_occluded(scene, args, packet, lanes, occluded)
+                traced += _flush_occluded(scene, args, p, lanes, occluded)
                 lanes = 0
-    return traced + _flush_occluded(scene, args, packet, lanes, occluded)
+    return traced + _flush_occluded(scene, args, p, lanes, occluded)
 
 
 @inline
-def _flush_occluded(scene, args, packet, lanes, occluded):
+def _flush_occluded(scene, args, p, lanes, occluded):
     if lanes:
-        occluded_packet(scene, packet, lanes, args)
+        occluded_packet(scene, p, lanes, args)
         for k in range(lanes):
-            occluded[lane_id(packet, k)] = lane_occluded(packet, k)
+            occluded[lane_id(p, k)] = lane_occluded(p, k)
     return lanes
