@@ -273,22 +273,25 @@ def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row, t
 
 @serial
 def _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out):
-    """Row y of the closed form when every earlier frame was seen by the current camera: each pixel reads itself."""
+    """Row y of the closed form when every earlier frame was seen by the current camera: each pixel reads itself.
+    The weights (1 - a)^(k + 1) as a running product, as _smooth_row takes them (a power per frame costs more
+    than the rest of the pixel's work)."""
     slots, _, _, ring_depth, ring_color, _, _ = earlier
     for x in range(depth.shape[1]):
         d = depth[y, x]
         dist = min(np.float64(d), FAR)
         r, g, b = np.float64(color[y, x, 0]), np.float64(color[y, x, 1]), np.float64(color[y, x, 2])
-        wsum = 1.0  # as in _smooth_row
+        wsum = fade = 1.0  # as in _smooth_row
+        keep = 1.0 - alpha[y, x]
         for k in range(slots.shape[0]):
             slot = slots[k]
+            fade *= keep  # (1 - a)^(k + 1)
             d_prev = ring_depth[slot, y, x]
             if math.isinf(d_prev) if math.isinf(d) else abs(d_prev - dist) <= rel_depth * dist:
-                weight = (1.0 - alpha[y, x]) ** (k + 1)
-                wsum += weight
-                r += weight * ring_color[slot, y, x, 0]
-                g += weight * ring_color[slot, y, x, 1]
-                b += weight * ring_color[slot, y, x, 2]
+                wsum += fade
+                r += fade * ring_color[slot, y, x, 0]
+                g += fade * ring_color[slot, y, x, 1]
+                b += fade * ring_color[slot, y, x, 2]
         out[y, x, 0], out[y, x, 1], out[y, x, 2] = r / wsum, g / wsum, b / wsum
 
 
