@@ -58,7 +58,16 @@ from hmdrt.foveation.stages.sampling import FOVEAL_REGION_KNOBS, Foveal, foveal_
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
 from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
-from hmdrt.optics.projection import FAR, bilinear3, camera_arrays, view_distance, view_point, world_point
+from hmdrt.optics.projection import (
+    FAR,
+    bilinear3,
+    bilinear_footprint,
+    blend_footprint,
+    camera_arrays,
+    view_distance,
+    view_point,
+    world_point,
+)
 from hmdrt.ranges import Deg, Fraction
 from hmdrt.rng import uniform
 from hmdrt.telemetry.stats import FrameStats, nbytes
@@ -193,6 +202,16 @@ class CacheRule(NamedTuple):
     stochastic: bool  # the light buffer is accumulated too
 
 
+class RowTaps(NamedTuple):
+    """The cache update's scratch, a row per numba thread (nb.get_thread_id()): each pixel's footprint spread
+    (row_footprints) and the bilinear footprint of its reprojection in the previous final colour
+    (projection.bilinear_footprint), taken for a whole row in passes that vectorise before the pixels' loop."""
+
+    spread: np.ndarray  # (threads, >= w) float32
+    weights: np.ndarray  # (threads, 2, w) float64: across, down
+    index: np.ndarray  # (threads, 3, w) uint64: top-left element, step right, step down
+
+
 class PostRule(NamedTuple):
     """Section 3.5's search, and the surface test a donor must pass (the paper gives none)."""
 
@@ -214,6 +233,8 @@ class _Buffers:
         self.low_mesh = CoarseMesh()  # at support resolution, for the resampling info
         self.resample = np.empty((sh, sw), bool)
         self.footprints = np.empty((nb.config.NUMBA_NUM_THREADS, w), np.float32)  # a row's, per thread
+        threads = nb.config.NUMBA_NUM_THREADS
+        self.taps = RowTaps(self.footprints, np.empty((threads, 2, w)), np.empty((threads, 3, w), np.uint64))
         self.low_scratch = InfoScratch(np.empty((sh, sw), np.uint8), np.empty((sh, sw), np.float32), self.footprints)
         self.no_resample = np.zeros((0, 0), bool)  # stand-ins for a frame without history
         self.no_zinv = np.zeros((0, 0), np.float32)
@@ -427,7 +448,7 @@ def _support_light(light, base, sw, sh, x, y, c):
 
 
 @serial
-def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule, scratch, final, image):
+def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule, taps, final, image):
     flags, row_start = selection.flags, selection.row_start
     prev, zinv = mesh.prev, mesh.zinv
     prev_color, prev_info, prev_light = previous.color, previous.info, previous.light
@@ -435,11 +456,17 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule,
     color, info, light = final.color, final.info, final.light
     h, w = flags.shape
     sh, sw = support.shape[0], support.shape[1]
-    spread_row = scratch[nb.get_thread_id()]
+    t = nb.get_thread_id()
+    spread_row, across, down = taps.spread[t], taps.weights[t, 0], taps.weights[t, 1]
+    corner, step_x, step_y = taps.index[t, 0], taps.index[t, 1], taps.index[t, 2]
+    flat = prev_color.reshape(-1)
     history = zinv.shape[0] == h  # else no pixel is covered, and the mesh buffers may be empty
     for y in range(y0, y1):
         if history:
             row_footprints(prev, flags, COVERED, y, spread_row)
+            px, py = prev[0, y], prev[1, y]
+            for x in range(w):
+                across[x], down[x], corner[x], step_x[x], step_y[x] = bilinear_footprint(px[x], py[x], w, h)
         s = row_start[y]
         merged = 0
         for x in range(w):
@@ -457,7 +484,7 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule,
             if covered and not new:  # the previous frame seen through the mesh
                 qx, qy, spread = prev[0, y, x], prev[1, y, x], spread_row[x]
                 if spread <= 1.5 or rule.footprint_samples <= 1:
-                    r, g, b = bilinear3(prev_color, qx, qy)
+                    r, g, b = blend_footprint(flat, corner[x], step_x[x], step_y[x], across[x], down[x])
                 else:
                     key = (y * w + x) * 64 + rule.seed
                     r, g, b = gaussian_taps(prev_color, qx, qy, 0.5 * spread, rule.footprint_samples, key)
@@ -501,7 +528,7 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule,
 
 
 @kernel
-def _update(selection, mesh, cur, previous, samples, support, rule, scratch, final, image):
+def _update(selection, mesh, cur, previous, samples, support, rule, taps, final, image):
     """Sections 3.2 and 3.4 in one pass: each pixel's previous colour and cache info gathered through the
     mesh, its sample merged into them with the running estimate (or replacing them: fovea, resampled,
     uncovered or moved), and pixels left without colour taken from the support image; into the final
@@ -518,7 +545,7 @@ def _update(selection, mesh, cur, previous, samples, support, rule, scratch, fin
             samples,
             support,
             rule,
-            scratch,
+            taps,
             final,
             image,
         )
@@ -798,10 +825,9 @@ class Weier16(Configurable):
             rule = CacheRule(
                 float(t), p.k_min, p.k_max, p.t_max, p.eps_cache, p.footprint_samples, f.request.seed + t, stochastic
             )
-            footprints = f.buf.footprints
             dynamic(
                 _update, f.buf.selection, mesh, camera_arrays(f.camera), previous, samples, support_image, rule,
-                footprints, final, f.image,
+                f.buf.taps, final, f.image,
             )  # fmt: skip
 
     def _post(self, f: _Frame, samples: Samples, normals: np.ndarray, stats: FrameStats) -> None:

@@ -116,6 +116,33 @@ def bilinear3(image, x, y):
     )
 
 
+@inline
+def bilinear_footprint(x, y, w, h):
+    """bilinear3's footprint at continuous (x, y) of an image (h, w, 3) read flat: the weights across and down
+    (float64), the flat index of the top-left texel's first channel and the steps to its right and lower
+    neighbours (uint64, 0 where the border clamps them). A row's footprints taken in one pass of selects
+    vectorise; the gather (blend_footprint) then reads only texels."""
+    fx, fy = x - 0.5, y - 0.5
+    x0, y0 = np.floor(fx), np.floor(fy)
+    ix, iy = min(max(int(x0), 0), w - 1), min(max(int(y0), 0), h - 1)
+    step_x = np.uint64(3 * (min(max(int(x0) + 1, 0), w - 1) - ix))
+    step_y = np.uint64(3 * w * (min(max(int(y0) + 1, 0), h - 1) - iy))
+    return fx - x0, fy - y0, np.uint64(3 * (iy * w + ix)), step_x, step_y
+
+
+@inline
+def blend_footprint(flat, i, step_x, step_y, a, b):
+    """The three channels at a bilinear_footprint (i, step_x, step_y, weights a, b) of the flat image: bilinear3's
+    sums in the same order, so the same values."""
+    w00, w01, w10, w11 = (1.0 - a) * (1.0 - b), a * (1.0 - b), (1.0 - a) * b, a * b
+    red = w00 * flat[i] + w01 * flat[i + step_x] + w10 * flat[i + step_y] + w11 * flat[i + step_y + step_x]
+    i += np.uint64(1)
+    green = w00 * flat[i] + w01 * flat[i + step_x] + w10 * flat[i + step_y] + w11 * flat[i + step_y + step_x]
+    i += np.uint64(1)
+    blue = w00 * flat[i] + w01 * flat[i + step_x] + w10 * flat[i + step_y] + w11 * flat[i + step_y + step_x]
+    return red, green, blue
+
+
 NEAR = 1e-4  # metres: mesh vertices closer to (or behind) the current eye drop their triangles
 
 

@@ -17,7 +17,7 @@ import numpy as np
 from hmdrt.jit import inline, kernel, serial
 from hmdrt.memory import touched
 from hmdrt.optics.camera import EyeCamera
-from hmdrt.optics.projection import FAR, camera_arrays
+from hmdrt.optics.projection import FAR, bilinear_footprint, blend_footprint, camera_arrays
 
 
 @inline
@@ -192,14 +192,8 @@ def _footprints(view, px, py, pz, h, qx, qy, dist, near, corner, step_x, step_y)
     for x in range(w):
         cx, cy = qx[x], qy[x]
         inside = (cx >= 0.0) & (cy >= 0.0) & (cx < w) & (cy < h)
-        fx, fy = cx - 0.5, cy - 0.5
-        x0, y0 = np.floor(fx), np.floor(fy)
-        qx[x], qy[x] = fx - x0, fy - y0
-        ix, iy = min(max(int(x0), 0), w - 1), min(max(int(y0), 0), h - 1)
         near[x] = np.uint64(min(max(int(cy), 0), h - 1) * w + min(max(int(cx), 0), w - 1) if inside else -1)
-        corner[x] = np.uint64(3 * (iy * w + ix))
-        step_x[x] = np.uint64(3 * (min(max(int(x0) + 1, 0), w - 1) - ix))
-        step_y[x] = np.uint64(3 * w * (min(max(int(y0) + 1, 0), h - 1) - iy))
+        qx[x], qy[x], corner[x], step_x[x], step_y[x] = bilinear_footprint(cx, cy, w, h)
 
 
 @serial
@@ -253,14 +247,7 @@ def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row, t
                 i = np.uint64(3) * near
                 cr, cg, cb = image[i], image[i + np.uint64(1)], image[i + np.uint64(2)]
             else:
-                i, sx, sy = corner_row[x], step_x_row[x], step_y_row[x]
-                a, b = ax[x], ay[x]
-                w00, w01, w10, w11 = (1.0 - a) * (1.0 - b), a * (1.0 - b), (1.0 - a) * b, a * b
-                cr = w00 * image[i] + w01 * image[i + sx] + w10 * image[i + sy] + w11 * image[i + sy + sx]
-                i += np.uint64(1)
-                cg = w00 * image[i] + w01 * image[i + sx] + w10 * image[i + sy] + w11 * image[i + sy + sx]
-                i += np.uint64(1)
-                cb = w00 * image[i] + w01 * image[i + sx] + w10 * image[i + sy] + w11 * image[i + sy + sx]
+                cr, cg, cb = blend_footprint(image, corner_row[x], step_x_row[x], step_y_row[x], ax[x], ay[x])
             weight = fade[x]
             wsum[x] += weight
             acc_r[x] += weight * cr
