@@ -36,14 +36,15 @@ def camera_arrays(camera: EyeCamera, width: int | None = None, height: int | Non
 
 @serial
 def _tangents(f, x, y):
-    """The view ray's tangents (x right, y up) through continuous pixel (x, y) of frustum f."""
-    return f[0] + x * (f[1] - f[0]) / f[4], f[2] - y * (f[2] - f[3]) / f[5]
+    """The view ray's tangents (x right, y up) through continuous pixel (x, y) of frustum f. Divisions as ufuncs
+    here and below: numba's zero-division branch on `/` keeps a loop that calls these from vectorising."""
+    return f[0] + np.divide(x * (f[1] - f[0]), f[4]), f[2] - np.divide(y * (f[2] - f[3]), f[5])
 
 
 @serial
 def _pixel(f, tx, ty):
     """Continuous pixel coordinates of the view ray with tangents (tx, ty) in frustum f."""
-    return (tx - f[0]) / (f[1] - f[0]) * f[4], (f[2] - ty) / (f[2] - f[3]) * f[5]
+    return np.divide(tx - f[0], f[1] - f[0]) * f[4], np.divide(f[2] - ty, f[2] - f[3]) * f[5]
 
 
 @inline
@@ -62,7 +63,7 @@ def _to_eye(cam, px, py, pz):
 def ray_direction(cam, x, y):
     """World unit direction of the view ray through continuous pixel (x, y)."""
     tx, ty = _tangents(cam.frustum, x, y)
-    inv = 1.0 / math.sqrt(tx * tx + ty * ty + 1.0)
+    inv = np.divide(1.0, math.sqrt(tx * tx + ty * ty + 1.0))
     r = cam.rotation
     ex, ey, ez = tx * inv, ty * inv, -inv
     return (
@@ -79,7 +80,7 @@ def project(cam, px, py, pz):
     dist = math.sqrt(lx * lx + ly * ly + lz * lz)
     if lz >= 0.0:
         return math.nan, math.nan, dist
-    x, y = _pixel(cam.frustum, lx / -lz, ly / -lz)
+    x, y = _pixel(cam.frustum, np.divide(lx, -lz), np.divide(ly, -lz))
     return x, y, dist
 
 
@@ -172,5 +173,5 @@ def project_view(cam, px, py, pz):
     z = -lz
     if z <= NEAR:
         return 0.0, 0.0, z
-    x, y = _pixel(cam.frustum, lx / z, ly / z)
+    x, y = _pixel(cam.frustum, np.divide(lx, z), np.divide(ly, z))
     return x, y, z

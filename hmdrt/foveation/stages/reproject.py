@@ -97,7 +97,7 @@ def _mesh_vertices(prev, grid_x, grid_y, depth, cur, vertices):
             sx, sy, sz = project_view(cur, px, py, pz)
             screen[j, i, 0], screen[j, i, 1], screen[j, i, 2] = sx, sy, sz
             zp = project_view(prev, px, py, pz)[2]
-            iz = 1.0 / sz if sz > NEAR else 0.0  # a vertex at or behind the near plane culls its triangles
+            iz = np.divide(1.0, sz) if sz > NEAR else 0.0  # a vertex at or behind the near plane culls its triangles
             attr[j, i, 0], attr[j, i, 1], attr[j, i, 2] = grid_x[i] * zp * iz, grid_y[j] * zp * iz, zp * iz
             attr[j, i, 3] = iz
 
