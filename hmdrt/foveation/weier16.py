@@ -211,6 +211,11 @@ class RowTaps(NamedTuple):
     weights: np.ndarray  # (threads, 2, w) float64: across, down
     index: np.ndarray  # (threads, 3, w) uint64: top-left element, step right, step down
 
+    @classmethod
+    def empty(cls, w: int) -> RowTaps:
+        threads = nb.config.NUMBA_NUM_THREADS
+        return cls(np.empty((threads, w), np.float32), np.empty((threads, 2, w)), np.empty((threads, 3, w), np.uint64))
+
 
 class PostRule(NamedTuple):
     """Section 3.5's search, and the surface test a donor must pass (the paper gives none)."""
@@ -232,9 +237,8 @@ class _Buffers:
         self.mesh = CoarseMesh()  # at full resolution
         self.low_mesh = CoarseMesh()  # at support resolution, for the resampling info
         self.resample = np.empty((sh, sw), bool)
-        self.footprints = np.empty((nb.config.NUMBA_NUM_THREADS, w), np.float32)  # a row's, per thread
-        threads = nb.config.NUMBA_NUM_THREADS
-        self.taps = RowTaps(self.footprints, np.empty((threads, 2, w)), np.empty((threads, 3, w), np.uint64))
+        self.taps = RowTaps.empty(w)
+        self.footprints = self.taps.spread  # a row's, per thread
         self.low_scratch = InfoScratch(np.empty((sh, sw), np.uint8), np.empty((sh, sw), np.float32), self.footprints)
         self.no_resample = np.zeros((0, 0), bool)  # stand-ins for a frame without history
         self.no_zinv = np.zeros((0, 0), np.float32)

@@ -10,7 +10,7 @@ import pytest
 
 from hmdrt.foveation.stages.reproject import MeshImage
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
-from hmdrt.foveation.weier16 import COVERED, TRACED, CacheRule, Final, Samples, Selection, _update
+from hmdrt.foveation.weier16 import COVERED, TRACED, CacheRule, Final, RowTaps, Samples, Selection, _update
 from hmdrt.optics.projection import camera_arrays
 from tests.stability.common import (
     camera,
@@ -84,7 +84,7 @@ def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0):
     selection = Selection(np.full((size, size), TRACED, np.uint8), rows, np.arange(size + 1) * size, rows * 0, rows * 0)
     finals = (Final.empty(size, size), Final.empty(size, size))
     image = np.empty((size, size, 3), np.float32)
-    scratch = np.empty((numba.config.NUMBA_NUM_THREADS, size), np.float32)
+    taps = RowTaps.empty(size)
     last = []
     threads = numba.get_num_threads()
     numba.set_num_threads(1)  # 16 pixels: starting the thread pool each frame would cost 100x the work
@@ -101,7 +101,7 @@ def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0):
                 samples,
                 zeros.reshape(size, size, 3),
                 rule,
-                scratch,
+                taps,
                 final,
                 image,
             )
