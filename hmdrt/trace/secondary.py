@@ -44,11 +44,13 @@ def rays_empty(n):
 
 
 @serial
-def interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, start, stop):
-    """Weights of the reflected and refracted rays at hits [start, stop), and how many children each spawns."""
+def interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, spawners, start, stop):
+    """Weights of the reflected and refracted rays at hits [start, stop), and how many children each spawns; the
+    hits that spawn any, in order, into spawners, and how many there are (the spawn passes read those alone)."""
     refl, trans, ior = mats.reflectance, mats.transmittance, mats.ior
     hits, ns, entering, material = surf.hit, surf.normal_shading, surf.entering, surf.material
     dirs, thr = rays.directions, rays.throughput
+    n = 0
     for i in range(start, stop):
         kr_out[i] = kt_out[i] = 0.0
         counts[i] = 0
@@ -63,6 +65,10 @@ def interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, start, st
         if spawn:
             peak = max(thr[i, 0], thr[i, 1], thr[i, 2])
             counts[i] = int(kr * peak > MIN_THROUGHPUT) + int(kt * peak > MIN_THROUGHPUT)
+            if counts[i]:
+                spawners[n] = i
+                n += 1
+    return n
 
 
 @inline
@@ -80,11 +86,13 @@ def _child(out, j, surf, parent, i, direction, side, weight, key, principal):
 
 
 @serial
-def spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, start, stop):
-    """Write the children of hits [start, stop) at out[first[i]:] (reflection first, then refraction)."""
+def spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, spawners, n):
+    """Write the children of the hits spawners[:n] (interaction_block) at out[first[i]:] (reflection first, then
+    refraction)."""
     ior, ng, ns, entering, material = mats.ior, surf.normal_geometric, surf.normal_shading, surf.entering, surf.material
     dirs, thr, keys = rays.directions, rays.throughput, rays.key
-    for i in range(start, stop):
+    for j in range(n):
+        i = spawners[j]
         kr, kt = kr_in[i], kt_in[i]
         peak = max(thr[i, 0], thr[i, 1], thr[i, 2])
         want_r, want_t = kr * peak > MIN_THROUGHPUT, kt * peak > MIN_THROUGHPUT

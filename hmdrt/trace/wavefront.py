@@ -45,6 +45,7 @@ class Work(NamedTuple):
     kr: np.ndarray  # (n,) float32
     kt: np.ndarray  # (n,) float32
     counts: np.ndarray  # (n,) int64 children of each hit
+    spawners: np.ndarray  # (n,) int64 the hits with children, in order
     first: np.ndarray  # (n,) int64 where its children go
     rows: np.ndarray  # (n,) int64 G-buffer row of each ray, -1 for none
 
@@ -104,6 +105,7 @@ def work_empty(n, n_point, n_area, n_ao):
         np.empty((n, 3), np.float32),
         np.empty(n, np.float32),
         np.empty(n, np.float32),
+        np.empty(n, np.int64),
         np.empty(n, np.int64),
         np.empty(n, np.int64),
         np.empty(n, np.int64),
@@ -221,15 +223,17 @@ def _shade(scene, w, rays, count):
 
 
 @serial
-def _spawn(scene, w, rays, children, count, depth):
-    """The next level's rays, in a larger buffer than `children` where they do not fit, and how many there are."""
+def _spawn(scene, w, rays, children, spawners, depth):
+    """The next level's rays, the children of the level's first `spawners` hits in w.spawners, in a larger buffer
+    than `children` where they do not fit, and how many there are."""
     total = 0
-    for i in range(count):
+    for j in range(spawners):
+        i = w.spawners[j]
         w.first[i] = total
         total += w.counts[i]
     if total > children.owner.shape[0]:
         children = rays_empty(total)
-    spawn_block(scene.materials, w.surf, rays, w.kr, w.kt, w.first, depth + 1, children, 0, count)
+    spawn_block(scene.materials, w.surf, rays, w.kr, w.kt, w.first, depth + 1, children, w.spawners, spawners)
     return children, total
 
 
@@ -275,15 +279,17 @@ def _block(scene, frame, lane, start, stop):
         t = meter.tick(tally, clock, meter.SHADE, t)
         spawn = depth < scene.max_depth and scene.secondary
         store = frame.has_gbuffer and depth <= 1
+        spawners = 0
         if spawn or store:
-            interaction_block(scene.materials, w.surf, rays, spawn, w.kr, w.kt, w.counts, 0, count)
+            mats, kr, kt = scene.materials, w.kr, w.kt
+            spawners = interaction_block(mats, w.surf, rays, spawn, kr, kt, w.counts, w.spawners, 0, count)
             t = meter.tick(tally, clock, meter.SECONDARY if spawn else meter.GBUFFER, t)
         if store:
             _store_gbuffer(frame, scene, w, rays, start, count, depth)
             t = meter.tick(tally, clock, meter.GBUFFER, t)
         if not spawn:
             break
-        next_rays, count = _spawn(scene, w, rays, children, count, depth)
+        next_rays, count = _spawn(scene, w, rays, children, spawners, depth)
         rays, children = next_rays, rays
         tally[meter.NEED] = max(tally[meter.NEED], count)
         t = meter.tick(tally, clock, meter.SECONDARY, t)
