@@ -237,9 +237,8 @@ class _Buffers:
         self.mesh = CoarseMesh()  # at full resolution
         self.low_mesh = CoarseMesh()  # at support resolution, for the resampling info
         self.resample = np.empty((sh, sw), bool)
-        self.taps = RowTaps.empty(w)
-        self.footprints = self.taps.spread  # a row's, per thread
-        self.low_scratch = InfoScratch(np.empty((sh, sw), np.uint8), np.empty((sh, sw), np.float32), self.footprints)
+        self.taps = RowTaps.empty(w)  # its spread row is also the resampling info's footprints row
+        self.low_scratch = InfoScratch(np.empty((sh, sw), np.uint8), np.empty((sh, sw), np.float32), self.taps.spread)
         self.no_resample = np.zeros((0, 0), bool)  # stand-ins for a frame without history
         self.no_zinv = np.zeros((0, 0), np.float32)
         self.selection = Selection(

@@ -215,12 +215,12 @@ def intersect_rays(scene, args, packet, origins, directions, far, hits, start, s
     """hits[i] = first hit of ray i within (0, far[i]] (far None: MISS_T), for i in [start, stop), in packets of
     consecutive rays."""
     prim, t, u, v = hits
-    p = packet_views(packet)
+    p, o, d = packet_views(packet), origins, directions
     for s in range(start, stop, PACKET):
         lanes = min(PACKET, stop - s)
         for k in range(lanes):
             i = s + k
-            o, d, tfar = origins, directions, MISS_T if far is None else far[i]
+            tfar = MISS_T if far is None else far[i]
             set_lane(p, k, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], tfar, 0)
         intersect_packet(scene, p, lanes, args)
         for k in range(lanes):
@@ -231,12 +231,11 @@ def intersect_rays(scene, args, packet, origins, directions, far, hits, start, s
 def intersect_selected(scene, args, packet, origins, directions, select, want, hits, count):
     """hits[i] = first hit of ray i (within MISS_T), for the rays i < count with select[i] == want, in packets of
     such rays (reflected and refracted rays apart: each kind is coherent on its own, a mix is not)."""
-    p = packet_views(packet)
+    p, o, d = packet_views(packet), origins, directions
     lanes = 0
     for i in range(count):
         if select[i] != want:
             continue
-        o, d = origins, directions
         set_lane(p, lanes, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], MISS_T, i)
         lanes += 1
         if lanes == PACKET:
@@ -261,7 +260,7 @@ def occluded_rays(scene, args, packet, origins, directions, far, occluded, rows,
     j = row * columns + column, of the rows with select[row] == want (select None: all). Rays with far <= 0 are
     not traced (False); the others go in packets column by column, so that a packet holds the same light sample
     of neighbouring hits. Returns how many were traced."""
-    p = packet_views(packet)
+    p, o, d = packet_views(packet), origins, directions
     traced = lanes = 0
     for column in range(columns):
         for row in range(rows):
@@ -271,7 +270,6 @@ def occluded_rays(scene, args, packet, origins, directions, far, occluded, rows,
             if far[j] <= 0.0:
                 occluded[j] = False
                 continue
-            o, d = origins, directions
             set_lane(p, lanes, o[j, 0], o[j, 1], o[j, 2], d[j, 0], d[j, 1], d[j, 2], far[j], j)
             lanes += 1
             if lanes == PACKET:

@@ -91,13 +91,11 @@ def spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, spawners, n):
     refraction)."""
     ior, ng, ns, entering, material = mats.ior, surf.normal_geometric, surf.normal_shading, surf.entering, surf.material
     dirs, thr, keys = rays.directions, rays.throughput, rays.key
-    for j in range(n):
-        i = spawners[j]
+    for m in range(n):
+        i = spawners[m]
         kr, kt = kr_in[i], kt_in[i]
         peak = max(thr[i, 0], thr[i, 1], thr[i, 2])
-        want_r, want_t = kr * peak > MIN_THROUGHPUT, kt * peak > MIN_THROUGHPUT
-        if not (want_r or want_t):
-            continue
+        want_r, want_t = kr * peak > MIN_THROUGHPUT, kt * peak > MIN_THROUGHPUT  # one at least: it spawns
         dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
         gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
         nx, ny, nz = ns[i, 0], ns[i, 1], ns[i, 2]

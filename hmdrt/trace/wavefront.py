@@ -281,8 +281,9 @@ def _block(scene, frame, lane, start, stop):
         store = frame.has_gbuffer and depth <= 1
         spawners = 0
         if spawn or store:
-            mats, kr, kt = scene.materials, w.kr, w.kt
-            spawners = interaction_block(mats, w.surf, rays, spawn, kr, kt, w.counts, w.spawners, 0, count)
+            spawners = interaction_block(
+                scene.materials, w.surf, rays, spawn, w.kr, w.kt, w.counts, w.spawners, 0, count
+            )
             t = meter.tick(tally, clock, meter.SECONDARY if spawn else meter.GBUFFER, t)
         if store:
             _store_gbuffer(frame, scene, w, rays, start, count, depth)
