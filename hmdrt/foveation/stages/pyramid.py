@@ -133,41 +133,46 @@ def _blend4(data, k00, k01, k10, k11, a, b):
 
 
 @inline
-def _child(data, i, mask, present):
+def _child(data, bits, i, mask, present):
     """A child texel's weight and its weighted colour and depth in the pull, all 0 where its weight is 0 or it is
-    not present (past an odd level's edge; i is then a texel it repeats). Its channels are read whatever the
-    weight, so that the pull's loop runs without branches."""
-    w = _weight(data, i, mask)
-    r, g, b, d = data[i, 0], data[i, 1], data[i, 2], data[i, 4]
-    valid = present and w > 0.0
-    return (
-        (w if valid else 0.0),
-        (w * r if valid else 0.0),
-        (w * g if valid else 0.0),
-        (w * b if valid else 0.0),
-        (w * d if valid else 0.0),
-    )
+    not present (past an odd level's edge; i is then a texel it repeats), whatever its channels hold (NaN too).
+    Without a branch: the channels are read as bits (`bits`, data's uint32 view) and masked, where a select per
+    term compiles to a branch that mispredicts on sparse samples (the pull took 1.6-2.8x as long)."""
+    if mask is None:  # keep: all ones for a child that counts, else 0
+        keep = np.uint32(0) - np.uint32(present & (data[i, 3] > 0.0))
+        w = np.uint32(bits[i, 3] & keep).view(np.float32)
+    else:
+        keep = np.uint32(0) - np.uint32(present & mask[i])
+        w = float(keep & np.uint32(1))
+    r = np.uint32(bits[i, 0] & keep).view(np.float32)
+    g = np.uint32(bits[i, 1] & keep).view(np.float32)
+    b = np.uint32(bits[i, 2] & keep).view(np.float32)
+    d = np.uint32(bits[i, 4] & keep).view(np.float32)
+    return w, w * r, w * g, w * b, w * d
 
 
 @kernel
 def _pull_level(pyramid, k, mask):
     """Level k from level k - 1: the weighted mean of each texel's valid children (summed in the order top left,
-    top right, bottom left, bottom right)."""
+    top right, bottom left, bottom right). Unsigned indices: numba adds no negative-index wraparound to their
+    loads."""
     data = pyramid.data
+    bits = data.view(np.uint32)
     o_fine, wf, hf = pyramid.offsets[k - 1], pyramid.widths[k - 1], pyramid.heights[k - 1]
     o_coarse, wc, hc = pyramid.offsets[k], pyramid.widths[k], pyramid.heights[k]
     for y in nb.prange(hc):
         down = 2 * y + 1 < hf
-        top, bottom = o_fine + 2 * y * wf, o_fine + min(2 * y + 1, hf - 1) * wf
+        top, bottom = np.uint64(o_fine + 2 * y * wf), np.uint64(o_fine + min(2 * y + 1, hf - 1) * wf)
+        row = np.uint64(o_coarse + y * wc)
         for x in range(wc):
             right = 2 * x + 1 < wf
-            left_x, right_x = 2 * x, min(2 * x + 1, wf - 1)
-            w0, r0, g0, b0, d0 = _child(data, top + left_x, mask, True)
-            w1, r1, g1, b1, d1 = _child(data, top + right_x, mask, right)
-            w2, r2, g2, b2, d2 = _child(data, bottom + left_x, mask, down)
-            w3, r3, g3, b3, d3 = _child(data, bottom + right_x, mask, right and down)
+            left_x, right_x = np.uint64(2 * x), np.uint64(min(2 * x + 1, wf - 1))
+            w0, r0, g0, b0, d0 = _child(data, bits, top + left_x, mask, True)
+            w1, r1, g1, b1, d1 = _child(data, bits, top + right_x, mask, right)
+            w2, r2, g2, b2, d2 = _child(data, bits, bottom + left_x, mask, down)
+            w3, r3, g3, b3, d3 = _child(data, bits, bottom + right_x, mask, right and down)
             wsum = 0.0 + w0 + w1 + w2 + w3
-            j = o_coarse + y * wc + x
+            j = row + np.uint64(x)
             if wsum > 0.0:
                 data[j, 0] = (0.0 + r0 + r1 + r2 + r3) / wsum
                 data[j, 1] = (0.0 + g0 + g1 + g2 + g3) / wsum
