@@ -241,39 +241,38 @@ class RowSamples(NamedTuple):
     the two texel rows of a level and of the next one blended vertically."""
 
     levels: np.ndarray  # (threads, width) float64
-    values: np.ndarray  # (threads, width, 4) float64: colour and depth
-    texels: np.ndarray  # (threads, 2, width, 4) float32: colour and depth
+    values: np.ndarray  # (threads, width, 3) float64: colour
+    texels: np.ndarray  # (threads, 2, width, 3) float32: colour
 
     @classmethod
     def empty(cls, width: int) -> RowSamples:
         threads = nb.config.NUMBA_NUM_THREADS
         return cls(
-            np.zeros((threads, width)), np.zeros((threads, width, 4)), np.zeros((threads, 2, width, 4), np.float32)
+            np.zeros((threads, width)), np.zeros((threads, width, 3)), np.zeros((threads, 2, width, 3), np.float32)
         )
 
 
 @serial
 def _vertical(data, first, second, weight, n, out):
-    """Colour and depth of n texels, texel rows from flat indices first and second blended by weight, into out."""
+    """Colour of n texels, texel rows from flat indices first and second blended by weight, into out."""
     q = np.float32(1.0) - weight
     for c in range(n):
         i, j = first + np.uint64(c), second + np.uint64(c)
         out[c, 0] = q * data[i, 0] + weight * data[j, 0]
         out[c, 1] = q * data[i, 1] + weight * data[j, 1]
         out[c, 2] = q * data[i, 2] + weight * data[j, 2]
-        out[c, 3] = q * data[i, 4] + weight * data[j, 4]
 
 
 @serial
 def sample_row(data, widths, axes, y, levels, values, texels):
-    """values[x] = colour and depth at the centre of full-resolution pixel (x, y) on level levels[x] (fractional,
+    """values[x] = colour at the centre of full-resolution pixel (x, y) on level levels[x] (fractional,
     clamped to the top level), trilinearly, of the pyramid with `data` and level widths `widths`, for every pixel
     of row y whose level is >= 0; the others are left as they are (levels and values: at least a row long).
-    `axes`: its PixelAxes (pixel_axes); `texels`: a (2, width, 4) float32 scratch. One pass per integer level
+    `axes`: its PixelAxes (pixel_axes); `texels`: a (2, width, 3) float32 scratch. One pass per integer level
     the row holds: a pass keeps one level's tables and constants out of its loop, where a loop that picks each
-    pixel's level reloads them per pixel (2.5x slower at rift_s). Each pass blends the level's two texel rows
-    about y (and the next level's) once per texel, then each pixel blends two of those: two taps per pixel and
-    level, not four. Level 0 is the texel itself."""
+    pixel's level reloads them per pixel (2.5x slower at rift_s). Each pass blends the next level's two texel rows
+    about y once per texel (the first pass its own level's too; the others have it from the pass before), then
+    each pixel blends two of those: two taps per pixel and level, not four. Level 0 is the texel itself."""
     col0, col1, col_weight, row0, row1, row_weight = axes
     top = len(widths) - 1
     width, ftop = col0.shape[1], float(top)
@@ -283,11 +282,11 @@ def sample_row(data, widths, axes, y, levels, values, texels):
             k = int(min(levels[x], ftop))
             lo, hi = min(lo, k), max(hi, k)
     first = np.uint64(y * width)
-    here, above = texels[0], texels[1]
     for k in range(lo, hi + 1):
         up = min(k + 1, top)  # blended in where the level has a fraction (not above the top one)
         k0, k1, kw, u0, u1, uw = col0[k], col1[k], col_weight[k], col0[up], col1[up], col_weight[up]
-        if k > 0:
+        here, above = texels[k % 2], texels[(k + 1) % 2]  # the pass before blended this level as its next one
+        if k == lo and k > 0:
             _vertical(data, row0[k, y], row1[k, y], row_weight[k, y], widths[k], here)
         if k < top:
             _vertical(data, row0[up, y], row1[up, y], row_weight[up, y], widths[up], above)
@@ -297,20 +296,20 @@ def sample_row(data, widths, axes, y, levels, values, texels):
                 continue
             if k == 0:
                 i = first + np.uint64(x)
-                r, g, b, d = data[i, 0], data[i, 1], data[i, 2], data[i, 4]
+                r, g, b = data[i, 0], data[i, 1], data[i, 2]
             else:
                 i0, i1, a = k0[x], k1[x], kw[x]
                 p = np.float32(1.0) - a
                 r, g = p * here[i0, 0] + a * here[i1, 0], p * here[i0, 1] + a * here[i1, 1]
-                b, d = p * here[i0, 2] + a * here[i1, 2], p * here[i0, 3] + a * here[i1, 3]
+                b = p * here[i0, 2] + a * here[i1, 2]
             if k < top:  # level - k is 0 on integer levels, where this adds 0 to finite values
                 t = level - k
                 i0, i1, a = u0[x], u1[x], uw[x]
                 p = np.float32(1.0) - a
                 ur, ug = p * above[i0, 0] + a * above[i1, 0], p * above[i0, 1] + a * above[i1, 1]
-                ub, ud = p * above[i0, 2] + a * above[i1, 2], p * above[i0, 3] + a * above[i1, 3]
-                r, g, b, d = r + t * (ur - r), g + t * (ug - g), b + t * (ub - b), d + t * (ud - d)
-            values[x, 0], values[x, 1], values[x, 2], values[x, 3] = r, g, b, d
+                ub = p * above[i0, 2] + a * above[i1, 2]
+                r, g, b = r + t * (ur - r), g + t * (ug - g), b + t * (ub - b)
+            values[x, 0], values[x, 1], values[x, 2] = r, g, b
 
 
 @inline
