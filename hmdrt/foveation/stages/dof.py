@@ -275,6 +275,9 @@ def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y,
     is interpolated towards it by |CoC|; the near field is alpha-blended over."""
     coc, far, near, rows = layers
     r0, r1, ramp, radius = blur
+    near_rows = False  # whether a row within reach holds the near field: else no pixel of this one is covered
+    for yy in range(max(0, y - radius), min(coc.shape[0], y + radius + 1)):
+        near_rows |= rows[yy, ROW_MAX] > 0.0
     for x in range(out.shape[1]):
         c = coc[y, x]
         read = c < 0.0 and _periphery(ecc[y, x], r0, r1) > 0.0
@@ -295,9 +298,10 @@ def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y,
                 fr, fg, fb = fr + blend * (pr - fr), fg + blend * (pg - fg), fb + blend * (pb - fb)
             t = min(1.0, -c / ramp)
             r, g, b = r + t * (fr - r), g + t * (fg - g), b + t * (fb - b)
-        nr, ng, nb_, a = _near_vertical(near, rows, y, x, radius)
-        if a > 0.0:
-            r, g, b = r + a * (nr - r), g + a * (ng - g), b + a * (nb_ - b)
+        if near_rows:
+            nr, ng, nb_, a = _near_vertical(near, rows, y, x, radius)
+            if a > 0.0:
+                r, g, b = r + a * (nr - r), g + a * (ng - g), b + a * (nb_ - b)
         out[y, x, 0], out[y, x, 1], out[y, x, 2] = r, g, b
 
 
