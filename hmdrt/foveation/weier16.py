@@ -249,6 +249,7 @@ class _Buffers:
             np.empty(h, np.int64),
         )
         self.sample_index = np.empty((h, w), np.int32)
+        self.draws = np.empty((nb.config.NUMBA_NUM_THREADS, w))  # a row's random numbers per thread (_select)
         self.grid_x, self.grid_y = (np.arange(sw) + 0.5) * w / sw, (np.arange(sh) + 0.5) * h / sh
         self.low_cols = np.arange(w) * sw // w  # the support column each pixel's resampling info comes from
         # the sample list for the most a frame can trace, every pixel and the support image: pages a frame
@@ -377,14 +378,18 @@ def _resampling_info(mesh, cur, color, normal, prev_position, full_w, full_h, ru
 
 
 @kernel
-def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, selection):
+def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, selection, draws):
     """Section 3.1's ray generation (pixel q traced when xi_q < p(q), sampling.bernoulli_mask's xi) and the
-    pixels of cells marked in the resampling info, with each pixel's flags and each row's sample count."""
+    pixels of cells marked in the resampling info, with each pixel's flags and each row's sample count. The row's
+    xi are drawn first, in a loop of their own that vectorises, into the thread's row of `draws`."""
     flags, counts, resampled = selection.flags, selection.counts, selection.resampled
     h, w = flags.shape
     sh = resample.shape[0]
     history = zinv.shape[0] == h
     for y in nb.prange(h):
+        xi, key = draws[nb.get_thread_id()], y * w + (seed << 32)
+        for x in range(w):
+            xi[x] = uniform(key + x, 0x5A3, frame)
         ly = y * sh // h
         n = nr = 0
         for x in range(w):
@@ -399,7 +404,7 @@ def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, selection):
                 f |= TRACED | FRESH
             else:
                 p = foveal_probability(e, foveal.r0, foveal.r1, foveal.p_min)
-                if p >= 1.0 or uniform(y * w + x + (seed << 32), 0x5A3, frame) < p:
+                if p >= 1.0 or xi[x] < p:
                     f |= TRACED
             flags[y, x] = f
             n += f & TRACED
@@ -791,7 +796,9 @@ class Weier16(Configurable):
         with stats.stage("sample"):
             ecc = eccentricity_map(f.camera, request.gaze)
             zinv = mesh.zinv if f.history else buf.no_zinv
-            dynamic(_select, ecc, self.foveal, request.seed, request.frame, zinv, resample, buf.low_cols, sel)
+            dynamic(
+                _select, ecc, self.foveal, request.seed, request.frame, zinv, resample, buf.low_cols, sel, buf.draws
+            )
             np.cumsum(sel.counts, out=sel.row_start[1:])
             n = int(sel.row_start[-1])
             xy, keys, light = buf.sample_list(n + sw * sh)
