@@ -31,6 +31,7 @@ from hmdrt.optics.camera import eccentricity_map
 from hmdrt.optics.projection import camera_arrays, view_distance
 from hmdrt.quality import psnr
 from hmdrt.scene import load_scene
+from hmdrt.schedule import dynamic
 from hmdrt.sequence import builtin_path, eye_cameras, frame_requests
 from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
@@ -173,7 +174,7 @@ def post_buffers(cam: EyeCamera):
 
 def run_post(selection, surfaces, samples, final, cam, seed: int = 0) -> np.ndarray:
     image = samples.rgb.reshape(SIZE, SIZE, 3).copy()
-    _post(selection, surfaces, samples, final, camera_arrays(cam), PostRule(32, 8, seed, 0.02, 0.9), image)
+    dynamic(_post, selection, surfaces, samples, final, camera_arrays(cam), PostRule(32, 8, seed, 0.02, 0.9), image)
     return image
 
 

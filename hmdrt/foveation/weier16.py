@@ -49,7 +49,6 @@ from hmdrt.foveation.stages.reproject import (
     ROWS,
     CoarseMesh,
     MeshImage,
-    dynamic,
     gaussian_taps,
     nearest_texel,
     row_footprints,
@@ -70,6 +69,7 @@ from hmdrt.optics.projection import (
 )
 from hmdrt.ranges import Deg, Fraction
 from hmdrt.rng import uniform
+from hmdrt.schedule import claim, dynamic
 from hmdrt.telemetry.stats import FrameStats, nbytes
 from hmdrt.trace.gbuffer import GBufferPool, LightBuffer
 from hmdrt.trace.integrator import Whitted
@@ -378,7 +378,7 @@ def _resampling_info(mesh, cur, color, normal, prev_position, full_w, full_h, ru
 
 
 @kernel
-def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, selection, draws):
+def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, selection, draws, counter, threads):
     """Section 3.1's ray generation (pixel q traced when xi_q < p(q), sampling.bernoulli_mask's xi) and the
     pixels of cells marked in the resampling info, with each pixel's flags and each row's sample count. The row's
     xi are drawn first, in a loop of their own that vectorises, into the thread's row of `draws`."""
@@ -386,30 +386,33 @@ def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, selection, draws
     h, w = flags.shape
     sh = resample.shape[0]
     history = zinv.shape[0] == h
-    for y in nb.prange(h):
-        xi, key = draws[nb.get_thread_id()], y * w + (seed << 32)
-        for x in range(w):
-            xi[x] = uniform(key + x, 0x5A3, frame)
-        ly = y * sh // h
-        n = nr = 0
-        for x in range(w):
-            e = ecc[y, x]
-            f = COVERED if history and zinv[y, x] > 0.0 else 0
-            if e < foveal.r0:
-                f |= FOVEA
-            if sh > 0 and resample[ly, low_cols[x]]:
-                f |= TRACED | FRESH | RESAMPLE
-                nr += 1
-            elif e < foveal.r0:  # p(q) = 1
-                f |= TRACED | FRESH
-            else:
-                p = foveal_probability(e, foveal.r0, foveal.r1, foveal.p_min)
-                if p >= 1.0 or xi[x] < p:
-                    f |= TRACED
-            flags[y, x] = f
-            n += f & TRACED
-        counts[y] = n
-        resampled[y] = nr
+    for _ in nb.prange(threads):
+        y = claim(counter)
+        while y < h:
+            xi, key = draws[nb.get_thread_id()], y * w + (seed << 32)
+            for x in range(w):
+                xi[x] = uniform(key + x, 0x5A3, frame)
+            ly = y * sh // h
+            n = nr = 0
+            for x in range(w):
+                e = ecc[y, x]
+                f = COVERED if history and zinv[y, x] > 0.0 else 0
+                if e < foveal.r0:
+                    f |= FOVEA
+                if sh > 0 and resample[ly, low_cols[x]]:
+                    f |= TRACED | FRESH | RESAMPLE
+                    nr += 1
+                elif e < foveal.r0:  # p(q) = 1
+                    f |= TRACED | FRESH
+                else:
+                    p = foveal_probability(e, foveal.r0, foveal.r1, foveal.p_min)
+                    if p >= 1.0 or xi[x] < p:
+                        f |= TRACED
+                flags[y, x] = f
+                n += f & TRACED
+            counts[y] = n
+            resampled[y] = nr
+            y = claim(counter)
 
 
 @kernel
@@ -536,27 +539,19 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule,
 
 
 @kernel
-def _update(selection, mesh, cur, previous, samples, support, rule, taps, final, image):
+def _update(selection, mesh, cur, previous, samples, support, rule, taps, final, image, counter, threads):
     """Sections 3.2 and 3.4 in one pass: each pixel's previous colour and cache info gathered through the
     mesh, its sample merged into them with the running estimate (or replacing them: fovea, resampled,
     uncovered or moved), and pixels left without colour taken from the support image; into the final
     colour, cache info and the caller's image."""
     h = selection.flags.shape[0]
-    for b in nb.prange((h + ROWS - 1) // ROWS):
-        _update_rows(
-            b * ROWS,
-            min(h, (b + 1) * ROWS),
-            selection,
-            mesh,
-            cur,
-            previous,
-            samples,
-            support,
-            rule,
-            taps,
-            final,
-            image,
-        )
+    blocks = (h + ROWS - 1) // ROWS
+    for _ in nb.prange(threads):
+        b = claim(counter)
+        while b < blocks:
+            y0, y1 = b * ROWS, min(h, (b + 1) * ROWS)
+            _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule, taps, final, image)
+            b = claim(counter)
 
 
 @serial
@@ -648,12 +643,16 @@ def _post_rows(y0, y1, selection, surfaces, samples, final, cur, rule, image):
 
 
 @kernel
-def _post(selection, surfaces, samples, final, cur, rule, image):
+def _post(selection, surfaces, samples, final, cur, rule, image, counter, threads):
     """weier2016 section 3.5 on the image shown: each resampled pixel outside the fovea takes the accumulated
     light buffer of the closest donor found (_post_pixel); the cache keeps the colour before the filter."""
     h = selection.flags.shape[0]
-    for b in nb.prange((h + ROWS - 1) // ROWS):
-        _post_rows(b * ROWS, min(h, (b + 1) * ROWS), selection, surfaces, samples, final, cur, rule, image)
+    blocks = (h + ROWS - 1) // ROWS
+    for _ in nb.prange(threads):
+        b = claim(counter)
+        while b < blocks:
+            _post_rows(b * ROWS, min(h, (b + 1) * ROWS), selection, surfaces, samples, final, cur, rule, image)
+            b = claim(counter)
 
 
 class _EyeState:

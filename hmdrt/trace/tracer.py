@@ -13,6 +13,7 @@ import numpy as np
 
 from hmdrt.jit import kernel
 from hmdrt.scene.pack import Geometry
+from hmdrt.schedule import claim, dynamic
 from hmdrt.trace import embree
 from hmdrt.trace.blocks import BLOCK
 
@@ -34,21 +35,30 @@ def _check_rays(origins: np.ndarray, directions: np.ndarray) -> None:
 
 
 @kernel
-def _intersect_kernel(scene, args, packets, origins, directions, tfar, hits):
+def _intersect_kernel(scene, args, packets, origins, directions, tfar, hits, counter, threads):
     n = origins.shape[0]
-    for b in nb.prange((n + BLOCK - 1) // BLOCK):
+    blocks = (n + BLOCK - 1) // BLOCK
+    for _ in nb.prange(threads):
         packet = packets[nb.get_thread_id()]
-        embree.intersect_rays(scene, args, packet, origins, directions, tfar, hits, b * BLOCK, min(n, (b + 1) * BLOCK))
+        b = claim(counter)
+        while b < blocks:
+            start, stop = b * BLOCK, min(n, (b + 1) * BLOCK)
+            embree.intersect_rays(scene, args, packet, origins, directions, tfar, hits, start, stop)
+            b = claim(counter)
 
 
 @kernel
-def _occluded_kernel(scene, args, packets, origins, directions, tfar, out):
+def _occluded_kernel(scene, args, packets, origins, directions, tfar, out, counter, threads):
     n = origins.shape[0]
-    for b in nb.prange((n + BLOCK - 1) // BLOCK):
-        start, stop = b * BLOCK, min(n, (b + 1) * BLOCK)
+    blocks = (n + BLOCK - 1) // BLOCK
+    for _ in nb.prange(threads):
         packet = packets[nb.get_thread_id()]
-        o, d, far, occ = origins[start:stop], directions[start:stop], tfar[start:stop], out[start:stop]
-        embree.occluded_rays(scene, args, packet, o, d, far, occ, stop - start, 1)
+        b = claim(counter)
+        while b < blocks:
+            start, stop = b * BLOCK, min(n, (b + 1) * BLOCK)
+            o, d, far, occ = origins[start:stop], directions[start:stop], tfar[start:stop], out[start:stop]
+            embree.occluded_rays(scene, args, packet, o, d, far, occ, stop - start, 1)
+            b = claim(counter)
 
 
 class Tracer:
@@ -62,12 +72,12 @@ class Tracer:
         self.args = embree.coherent_args()
 
     def run(self, fn, *args) -> None:
-        """fn(*args), a parallel kernel, on this tracer's threads (numba's count is per calling thread)."""
+        """fn(*args), a parallel kernel that claims its blocks (hmdrt.schedule.dynamic: they differ in cost), on
+        this tracer's threads (numba's count is per calling thread)."""
         before = nb.get_num_threads()
         nb.set_num_threads(self.threads)
         try:
-            with nb.parallel_chunksize(1):  # blocks handed out one at a time: they differ in cost
-                fn(*args)
+            dynamic(fn, *args)
         finally:
             nb.set_num_threads(before)
 

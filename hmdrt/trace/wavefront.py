@@ -22,6 +22,7 @@ import numpy as np
 
 from hmdrt.jit import kernel, serial
 from hmdrt.optics.camera import eye_direction
+from hmdrt.schedule import claim
 from hmdrt.trace import embree, meter
 from hmdrt.trace.gbuffer import GBuffer, store_block
 from hmdrt.trace.lighting import RayBatch, batch_empty, light_rays_block, shade_block
@@ -322,16 +323,24 @@ def _trace_kernel(
     flags,
     lanes,
     block,
+    counter,
+    threads,
 ):
     n = xy.shape[0]
-    for b in nb.prange((n + block - 1) // block):
+    blocks = (n + block - 1) // block
+    for _ in nb.prange(threads):
         scene = SceneArgs(handle, args, geo, mats, lights, plan, textured, max_depth, secondary)
         frame = Frame(eye, xy, keys, out, GBuffer(gb1, gb2), light, flags[0], flags[1])
-        _block(scene, frame, lanes[nb.get_thread_id()], b * block, min(n, (b + 1) * block))
+        lane = lanes[nb.get_thread_id()]
+        b = claim(counter)
+        while b < blocks:
+            _block(scene, frame, lane, b * block, min(n, (b + 1) * block))
+            b = claim(counter)
 
 
-def trace(scene: SceneArgs, frame: Frame, lanes, block: int) -> None:
-    """Radiance of every sample of `frame` into frame.out, blocks of `block` samples handed to the threads
-    (lanes: a numba typed List of one Lane per numba thread). A parallel kernel's arguments cannot nest
-    tuples of arrays (numba builds its gufunc from the flat ones), so the namedtuples travel field by field."""
-    _trace_kernel(*scene, *frame[:4], *frame.gbuffer, frame.light, frame[6:], lanes, block)
+def trace(scene: SceneArgs, frame: Frame, lanes, block: int, counter: np.ndarray, threads: int) -> None:
+    """Radiance of every sample of `frame` into frame.out, blocks of `block` samples claimed by the threads as
+    each frees up (call it through hmdrt.schedule.dynamic); lanes: a numba typed List of one Lane per numba
+    thread. A parallel kernel's arguments cannot nest tuples of arrays (numba builds its gufunc from the flat
+    ones), so the namedtuples travel field by field."""
+    _trace_kernel(*scene, *frame[:4], *frame.gbuffer, frame.light, frame[6:], lanes, block, counter, threads)

@@ -12,6 +12,7 @@ from hmdrt.foveation.stages.reproject import MeshImage
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
 from hmdrt.foveation.weier16 import COVERED, TRACED, CacheRule, Final, RowTaps, Samples, Selection, _update
 from hmdrt.optics.projection import camera_arrays
+from hmdrt.schedule import dynamic
 from tests.stability.common import (
     camera,
 )
@@ -93,7 +94,8 @@ def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0):
             previous, final = finals[t % 2], finals[(t + 1) % 2]
             samples = Samples(a if t % 2 == 0 else b, depth, zeros, zeros)
             rule = CacheRule(float(t), k, k, 15.0, 0.05, 4, 0, False)
-            _update(
+            dynamic(
+                _update,
                 selection,
                 mesh,
                 camera_arrays(cam),

@@ -18,6 +18,7 @@ from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.optics.projection import FAR, NEAR, bilinear3, camera_arrays, project, project_view, world_point
 from hmdrt.rng import uniform
+from hmdrt.schedule import claim, dynamic
 
 
 @kernel
@@ -48,18 +49,6 @@ VERTEX_ATTRS = 4  # previous pixel x z, y z and z (z: previous view depth), each
 # 1 over it: linear in the screen on a planar facet, so perspective-correct interpolation recovers x and y exactly
 ROWS = 4  # rows of a block, the unit of work of the row-parallel kernels (see hmdrt/trace/blocks.py)
 BANDS = 64  # bands of image rows the rasteriser splits the image into, one parallel task each
-
-
-def dynamic(kernel, *args) -> None:
-    """Run a parallel kernel with numba's chunk size at one iteration: a thread takes the next block when it
-    is free rather than a fixed share, for kernels whose blocks cost unequal time (fovea or periphery, empty
-    bands); on a machine shared with other processes, a thread that loses its core then delays one block.
-    (Set around the call: set inside a kernel, it keeps numba from caching the kernel.)"""
-    chunk = nb.set_parallel_chunksize(1)
-    try:
-        kernel(*args)
-    finally:
-        nb.set_parallel_chunksize(chunk)
 
 
 class MeshVertices(NamedTuple):
@@ -198,10 +187,13 @@ def _raster_band(y0, vertices, triangles, image):
 
 
 @kernel
-def _raster_mesh(vertices, triangles, image):
+def _raster_mesh(vertices, triangles, image, counter, threads):
     bands = (image.zinv.shape[0] + triangles.band_rows - 1) // triangles.band_rows
-    for band in nb.prange(bands):
-        _raster_band(band * triangles.band_rows, vertices, triangles, image)
+    for _ in nb.prange(threads):
+        band = claim(counter)
+        while band < bands:
+            _raster_band(band * triangles.band_rows, vertices, triangles, image)
+            band = claim(counter)
 
 
 class CoarseMesh:
