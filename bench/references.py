@@ -41,19 +41,31 @@ def copy_rate(width: int, height: int, repeats: int = 15) -> float:
     return 2 * src.nbytes / statistics.median(times)
 
 
+PARTS_PER_THREAD = 32  # a thread takes the next part when it is free: rays differ in cost across the image
+MIN_PART = 16384  # rays: a call's own cost (~0.1 ms) stays within a few percent of its part's
+
+
+def parts(n: int, threads: int) -> list[slice]:
+    """n rays in PARTS_PER_THREAD x `threads` equal parts of MIN_PART rays at least, for `threads` pool threads to
+    take in turn as each frees up (as hmdrt's tracer claims its blocks: hmdrt.schedule); equal halves would
+    leave one thread idle while the other traces the costlier half of the image."""
+    count = max(threads, min(threads * PARTS_PER_THREAD, n // MIN_PART))
+    return [slice(p[0], p[-1] + 1) for p in np.array_split(np.arange(n), count) if len(p)]
+
+
 def _timed_rate(bare, origins, dirs, threads: int, repeats: int, dists=None, query: str = "INTERSECT") -> float:
-    """Rays per second of bare embreex on these rays, split in equal parts over `threads`."""
+    """Rays per second of bare embreex on these rays, their parts() traced on `threads` pool threads."""
     if len(dirs) == 0:
         return float("nan")
-    parts = [slice(p[0], p[-1] + 1) for p in np.array_split(np.arange(len(dirs)), threads) if len(p)]
+    parts_ = parts(len(dirs), threads)
     times = []
     with ThreadPoolExecutor(threads) as pool:
         for _ in range(repeats):
             t = time.perf_counter()
             if query == "INTERSECT":
-                list(pool.map(lambda s: bare.run(origins[s], dirs[s], output=1), parts))
+                list(pool.map(lambda s: bare.run(origins[s], dirs[s], output=1), parts_))
             else:
-                list(pool.map(lambda s: bare.run(origins[s], dirs[s], dists[s], query=query), parts))
+                list(pool.map(lambda s: bare.run(origins[s], dirs[s], dists[s], query=query), parts_))
             times.append(time.perf_counter() - t)
     return len(dirs) / statistics.median(times)
 

@@ -5,8 +5,8 @@
                                  [--methods full rrm weier16 weier18?dof=none weier18 kim21]
 
 Two references are measured first, on this machine in this run: bare embreex on the scene's primary rays of
-the whole image (one EmbreeScene.run(..., output=1) per thread on equal parts, as many threads as the tracer
-uses), and a numba copy of a 4-channel float32 image of the profile's size (the bandwidth one fused
+the whole image (EmbreeScene.run(..., output=1) on parts of them that as many pool threads as the tracer uses
+take in turn, references.parts), and a numba copy of a 4-channel float32 image of the profile's size (the bandwidth one fused
 image-space pass can reach). Then every method renders --frames frames interleaved across methods (the first
 --warmup not counted), on a still view or the built-in head path, and for each method the bench prints its
 median ms per frame, rays per frame, the bare-Embree time of those rays and its overhead factor (ms per frame

@@ -5,7 +5,7 @@
 Measures, on the same primary rays of one eye (1280x1440 at rift_s; --rays: only the first N of them, the
 size of a foveated method's batches, e.g. 4000 at sim-cpu):
   bare      one embreex EmbreeScene.run(..., output=1) call (one thread, as embreex offers it)
-  bare-N    the same rays split into N equal parts, each traced on one of N pool threads
+  bare-N    the same rays in parts that N pool threads take in turn (references.parts)
   tracer    hmdrt.trace.tracer.Tracer.intersect (Embree called from a numba kernel on the tracer's threads)
   primary   ray generation from the camera + Tracer.intersect (the project's whole primary path)
 Repeats are interleaved and the median is reported, since these machines are shared and noisy.
@@ -24,6 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
+from references import parts
 
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
@@ -60,13 +61,13 @@ def main() -> None:
     threads = os.cpu_count() or 1
     pool = ThreadPoolExecutor(threads)
     tracer = Tracer(geometry)
-    parts = [slice(p[0], p[-1] + 1) for p in np.array_split(np.arange(n), threads)]
+    chunks = parts(n, threads)
 
     def run_bare() -> None:
         bare.run(origins, dirs, output=1)
 
     def run_bare_threads() -> None:
-        list(pool.map(lambda s: bare.run(origins[s], dirs[s], output=1), parts))
+        list(pool.map(lambda s: bare.run(origins[s], dirs[s], output=1), chunks))
 
     def run_tracer() -> None:
         tracer.intersect(origins, dirs)
