@@ -25,6 +25,7 @@ import numpy as np
 from hmdrt.foveation.stages.filters import Contrast, enhance_row
 from hmdrt.foveation.stages.pyramid import PixelAxes, Pyramid, RowSamples, pixel_axes, sample_row
 from hmdrt.jit import inline, kernel, serial
+from hmdrt.schedule import claim, dynamic
 
 IMAGE_DISTANCE_MM = 22.4  # d_i, the eye's lens-to-retina distance (Gross 2005)
 DEPTH_INACCURACY_M = 0.2  # t, the mean gaze-depth estimation error over 6 m (Weier et al. 2018)
@@ -114,17 +115,20 @@ def _row_stats(coc, y, rows):
 
 
 @kernel
-def _coc_rows(depth_m, miss, lens, coc, rows):
+def _coc_rows(depth_m, miss, lens, coc, rows, counter, threads):
     """The CoC of every pixel (hit distances in metres; `miss` and beyond: misses, at infinity) and each row's
-    figures."""
+    figures, rows claimed (hmdrt.schedule: a row of misses or of focused pixels costs less)."""
     d_n, d_f, f_n, f_f, k, e = lens
     h, w = coc.shape
-    for y in nb.prange(h):
-        for x in range(w):
-            d = depth_m[y, x]
-            g = math.inf if d >= miss else d * 1000.0
-            coc[y, x] = circle_of_confusion(g, d_n, d_f, f_n, f_f, k, e)
-        _row_stats(coc, y, rows)
+    for _ in nb.prange(threads):
+        y = claim(counter)
+        while y < h:
+            for x in range(w):
+                d = depth_m[y, x]
+                g = math.inf if d >= miss else d * 1000.0
+                coc[y, x] = circle_of_confusion(g, d_n, d_f, f_n, f_f, k, e)
+            _row_stats(coc, y, rows)
+            y = claim(counter)
 
 
 @kernel
@@ -152,7 +156,7 @@ class Layers(NamedTuple):
 
     def compute_coc(self, depth_m: np.ndarray, lens: Lens, miss: float = math.inf) -> None:
         """The CoC map of hit distances depth_m (m; `miss` and beyond, or inf: misses) and its row figures."""
-        _coc_rows(depth_m, miss, lens, self.coc, self.rows)
+        dynamic(_coc_rows, depth_m, miss, lens, self.coc, self.rows)
 
     def near_radius(self) -> int:
         """How far the near field spreads: the largest CoC, rounded up, at most MAX_BLUR_PX."""
@@ -237,11 +241,15 @@ def _horizontal_row(color, ecc, coc, far, near, y, r1, radius, has_near):
 
 
 @kernel
-def _horizontal(color, ecc, layers, blur):
+def _horizontal(color, ecc, layers, blur, counter, threads):
+    """Rows claimed (hmdrt.schedule): the near field's rows, at the bottom of the image, cost several times more."""
     coc, far, near, rows = layers.coc, layers.far, layers.near, layers.rows
     r1, radius = blur.r1, blur.radius
-    for y in nb.prange(coc.shape[0]):
-        _horizontal_row(color, ecc, coc, far, near, y, r1, radius, rows[y, ROW_MAX] > 0.0)
+    for _ in nb.prange(threads):
+        y = claim(counter)
+        while y < coc.shape[0]:
+            _horizontal_row(color, ecc, coc, far, near, y, r1, radius, rows[y, ROW_MAX] > 0.0)
+            y = claim(counter)
 
 
 @inline
@@ -306,23 +314,26 @@ def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y,
 
 
 @kernel
-def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, dof, out):
+def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, dof, out, counter, threads):
     """Row by row, the depth of field then the contrast over the row while it is in cache: two simple loops
-    compile to faster code than one that does both."""
-    for y in nb.prange(out.shape[0]):
+    compile to faster code than one that does both. Rows claimed (hmdrt.schedule): their cost varies."""
+    for _ in nb.prange(threads):
         thread = nb.get_thread_id()
         levels, values, texels = scratch.levels[thread], scratch.values[thread], scratch.texels[thread]
-        if dof:
-            _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y, out)
-        else:
-            out[y] = color[y]
-        if contrast.strength != 0.0:
-            enhance_row(ecc, contrast, blurred, axes, levels, values, texels, y, out)
+        y = claim(counter)
+        while y < out.shape[0]:
+            if dof:
+                _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y, out)
+            else:
+                out[y] = color[y]
+            if contrast.strength != 0.0:
+                enhance_row(ecc, contrast, blurred, axes, levels, values, texels, y, out)
+            y = claim(counter)
 
 
 def horizontal_pass(color: np.ndarray, ecc: np.ndarray, layers: Layers, blur: Blur) -> None:
     """The first pass of the layered blur (layers.coc and its rows computed): into layers.far and layers.near."""
-    _horizontal(color, ecc, layers, blur)
+    dynamic(_horizontal, color, ecc, layers, blur)
 
 
 def combine(
@@ -343,7 +354,7 @@ def combine(
     strength 0: none). `axes`: the pixel_axes of both pyramids' size; `scratch`: RowSamples of their width."""
     no_layers = layers is None
     layers = _NO_LAYERS if no_layers else layers
-    _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, not no_layers, out)
+    dynamic(_combine, color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, not no_layers, out)
     return out
 
 
