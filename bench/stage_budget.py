@@ -4,20 +4,20 @@
                                  [--trace builtin] [--gaze 0,0]
                                  [--methods full rrm weier16 weier18?dof=none weier18 kim21]
 
-Two references are measured first, on this machine in this run: bare embreex on the scene's primary rays of
-the whole image (EmbreeScene.run(..., output=1) on parts of them that as many pool threads as the tracer uses
-take in turn, references.parts), and a numba copy of a 4-channel float32 image of the profile's size (the bandwidth one fused
-image-space pass can reach). Then every method renders --frames frames interleaved across methods (the first
---warmup not counted), on a still view or the built-in head path, and for each method the bench prints its
-median ms per frame, rays per frame, the bare-Embree time of those rays and its overhead factor (ms per frame
-over that time; issue 14's target is <= 1.5). Beside it, the mix floor: the same rays at bare embreex's rate on
-rays of their own kind from this view (references.bare_kind_rates: the mirror and glass spheres' secondary rays
-trace several times slower than primary rays, bare or not), and the frame's time over that floor, which is
-what is left to our own work. Last, the tracer: the ms of its own stages (meter.STAGES, wherever a method nests
-them) over the bare time, the factor the method would reach if everything else it does took no time; above the
-target, the method's rays bound it whatever its image work. Then each method's rays by kind, and every stage's
-median ms and, where the stage says how many bytes it must touch (FrameStats.stage(..., touches=)), those bytes
-and what a copy of them costs: a stage far above its copy time is where the next speed-up is.
+Two references are measured first, on this machine in this run: bare embreex on the scene's primary rays of the
+whole image (EmbreeScene.run(..., output=1) on parts of them that as many pool threads as the tracer uses take in
+turn, references.parts), and a numba copy of a 4-channel float32 image of the profile's size (the bandwidth one
+fused image-space pass can reach). Then every method renders --frames frames interleaved across methods (the first
+--warmup not counted), on a still view or the built-in head path, and for each method the bench prints its median
+ms per frame, rays per frame, the bare-Embree time of those rays and its overhead factor (ms per frame over that
+time; issue 14's target is <= 1.5). Beside it, the mix floor: the same rays at bare embreex's rate on rays of
+their own kind from this view (references.bare_kind_rates: the mirror and glass spheres' secondary rays trace
+several times slower than primary rays, bare or not), and the frame's time over that floor, which is what is left
+to our own work. Last, the tracer: the ms of its own stages (meter.STAGES, wherever a method nests them) over the
+bare time, the factor the method would reach if everything else it does took no time; above the target, the
+method's rays bound it whatever its image work. Then each method's rays by kind, and every stage's median ms and,
+where the stage says how many bytes it must touch (FrameStats.stage(..., touches=)), those bytes and what a copy
+of them costs: a stage far above its copy time is where the next speed-up is.
 """
 
 from __future__ import annotations
