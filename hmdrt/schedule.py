@@ -19,6 +19,9 @@ and the thread count to its arguments (read outside: nb.get_num_threads() in a k
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any, TypeVar
+
 import numba as nb
 import numpy as np
 from llvmlite import ir
@@ -27,6 +30,8 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from hmdrt.jit import serial
+
+T = TypeVar("T")
 
 
 @intrinsic
@@ -49,7 +54,7 @@ def claim(counter: np.ndarray) -> int:
     return _fetch_add(counter, np.int64(1))
 
 
-def dynamic(kernel, *args) -> None:
+def dynamic(kernel: Callable[..., T], *args: Any) -> T:
     """kernel(*args, counter, threads): a parallel kernel that claims its blocks, on numba's current thread count,
     with a counter of its own (calls from several threads do not share one)."""
-    kernel(*args, np.zeros(1, np.int64), nb.get_num_threads())
+    return kernel(*args, np.zeros(1, np.int64), nb.get_num_threads())

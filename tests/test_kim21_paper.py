@@ -12,6 +12,7 @@ from hmdrt.optics import get_profile
 from hmdrt.optics.projection import bilinear3
 from hmdrt.quality import band_psnr
 from hmdrt.scene import load_scene
+from hmdrt.schedule import dynamic
 from hmdrt.sequence import FrameInput, eye_cameras, frame_requests
 from hmdrt.spatial import Pose, gaze_direction, quat_multiply
 from hmdrt.telemetry.stats import FrameStats
@@ -117,7 +118,7 @@ def test_resolve_interpolates_the_subpixels_that_are_not_problematic(interpolate
     extra = np.array([[1.0, 2.0, 3.0], [3.0, 4.0, 5.0]], np.float32)
     held = rng.random((h * w, 3), dtype=np.float32)
     out = held.copy()
-    _resolve(image, sub_mask, samples, flags, first, extra, interpolate, out)
+    dynamic(_resolve, image, sub_mask, samples, flags, first, extra, interpolate, out)
     for i in range(h * w):
         y, x = divmod(i, w)
         if i in (3, 7):

@@ -46,6 +46,7 @@ from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map, pixel_grid
 from hmdrt.optics.projection import FAR, bilinear3, camera_arrays, nearest_index
 from hmdrt.ranges import Deg
+from hmdrt.schedule import claim, dynamic
 from hmdrt.telemetry.stats import FrameStats, nbytes
 from hmdrt.trace.gbuffer import GBuffer
 from hmdrt.trace.integrator import Whitted
@@ -375,11 +376,18 @@ def _clear(width, hits):
 
 
 @kernel
-def _store(width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples):
-    """_store_row over the image; returns the number of reused pixels."""
+def _store(width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples, counter, threads):
+    """_store_row over the image, rows claimed (hmdrt.schedule: a row of reused pixels costs more); returns the
+    number of reused pixels."""
     reused = 0
-    for y in nb.prange(frame.depth.shape[0] // width):
-        reused += _store_row(y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples)
+    h = frame.depth.shape[0] // width
+    for _ in nb.prange(threads):
+        y = claim(counter)
+        while y < h:
+            reused += _store_row(
+                y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples
+            )
+            y = claim(counter)
     return reused
 
 
@@ -562,12 +570,15 @@ def _resolve_row(y, image, sub_mask, samples, flags, first, extra, interpolate, 
 
 
 @kernel
-def _resolve(image, sub_mask, samples, flags, first, extra, interpolate, out):
+def _resolve(image, sub_mask, samples, flags, first, extra, interpolate, out, counter, threads):
     """Section 4.6.2 and Figure 2: each central pixel that was rendered (flags 0) is the mean of its four subpixels,
     a problematic one the mean of its extra samples, the others their _subpixel_color from the presampled colours
     (image, (h, w, 3)); out already holds the presampled colour, which stays where nothing is interpolated."""
-    for y in nb.prange(image.shape[0]):
-        _resolve_row(y, image, sub_mask, samples, flags, first, extra, interpolate, out)
+    for _ in nb.prange(threads):
+        y = claim(counter)
+        while y < image.shape[0]:
+            _resolve_row(y, image, sub_mask, samples, flags, first, extra, interpolate, out)
+            y = claim(counter)
 
 
 class _Buffers(NamedTuple):
@@ -776,7 +787,8 @@ class Kim21(Configurable):
         cam, state = f.camera, f.state
         reuse = self.params.reuse and "reuse" in f.steps
         with stats.stage("reuse" if reuse else "store"):
-            return _store(
+            return dynamic(
+                _store,
                 state.shape[1],
                 color,
                 f.cur.gbuffer.primary,
@@ -811,7 +823,9 @@ class Kim21(Configurable):
         state, (h, w) = f.state, f.state.shape
         with stats.stage("resolve"):
             image, flags, interpolate = f.cur.ref.reshape(h, w, 3), f.cur.flags, self.params.interpolate
-            _resolve(image, state.sub_mask, f.fov.samples, flags, state.first, extra, interpolate, f.kept.rendered)
+            dynamic(
+                _resolve, image, state.sub_mask, f.fov.samples, flags, state.first, extra, interpolate, f.kept.rendered
+            )
 
     def _smooth(self, f: _Frame, out: np.ndarray | None, stats: FrameStats) -> np.ndarray:
         """Section 4.7: exponential smoothing over the history by eccentricity; the frame as resolved without it."""

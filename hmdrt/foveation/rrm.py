@@ -28,6 +28,7 @@ from hmdrt.foveation.stages.gaze import FixationFilter
 from hmdrt.foveation.stages.sampling import SMALL_R0, pixels_per_degree
 from hmdrt.jit import inline, kernel, serial
 from hmdrt.optics.camera import EyeCamera
+from hmdrt.schedule import claim, dynamic
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
 
@@ -171,21 +172,27 @@ def _put(xy: np.ndarray, keys: np.ndarray, i: int, x: int, y: int, width: int, b
 
 
 @kernel
-def _update(rgb: np.ndarray, samples: Samples, buffer: np.ndarray, out: np.ndarray) -> None:
-    """The traced pixels into the persistent buffer, and the buffer into `out`, a band of rows at a time."""
+def _update(
+    rgb: np.ndarray, samples: Samples, buffer: np.ndarray, out: np.ndarray, counter: np.ndarray, threads: int
+) -> None:
+    """The traced pixels into the persistent buffer, and the buffer into `out`, a band of rows at a time, bands
+    claimed (hmdrt.schedule: the fovea's bands write many more samples)."""
     xy, row_start = samples.xy, samples.row_start
     h, w = buffer.shape[0], buffer.shape[1]
     # flat views and unsigned indices: no negative-index checks, and the band's copy is one contiguous slice
     flat_buffer, flat_out = buffer.reshape(-1), out.reshape(-1)
     one, two = np.uint64(1), np.uint64(2)
     bands = (h + UPDATE_ROWS - 1) // UPDATE_ROWS
-    for b in nb.prange(bands):
-        y0, y1 = b * UPDATE_ROWS, min(h, (b + 1) * UPDATE_ROWS)
-        for i in range(row_start[y0], row_start[y1]):
-            k = np.uint64((int(xy[i, 1]) * w + int(xy[i, 0])) * 3)
-            flat_buffer[k], flat_buffer[k + one], flat_buffer[k + two] = rgb[i, 0], rgb[i, 1], rgb[i, 2]
-        lo, hi = np.uint64(y0 * w * 3), np.uint64(y1 * w * 3)
-        flat_out[lo:hi] = flat_buffer[lo:hi]
+    for _ in nb.prange(threads):
+        b = claim(counter)
+        while b < bands:
+            y0, y1 = b * UPDATE_ROWS, min(h, (b + 1) * UPDATE_ROWS)
+            for i in range(row_start[y0], row_start[y1]):
+                k = np.uint64((int(xy[i, 1]) * w + int(xy[i, 0])) * 3)
+                flat_buffer[k], flat_buffer[k + one], flat_buffer[k + two] = rgb[i, 0], rgb[i, 1], rgb[i, 2]
+            lo, hi = np.uint64(y0 * w * 3), np.uint64(y1 * w * 3)
+            flat_out[lo:hi] = flat_buffer[lo:hi]
+            b = claim(counter)
 
 
 def _refilter(previous: FixationFilter, params: RrmParams) -> FixationFilter:
@@ -289,7 +296,7 @@ class Rrm(Configurable):
             buffer = self._buffers.get(request.eye)
             if buffer is None or buffer.shape != shape:
                 buffer = self._buffers[request.eye] = np.zeros(shape, dtype=np.float32)
-            _update(rgb, samples, buffer, out)
+            dynamic(_update, rgb, samples, buffer, out)
         stats.metrics["sample_fraction"] = n / (cam.width * cam.height)
         stats.metrics["fovea_pixels"] = (x1 - x0) * (y1 - y0)
         return out
