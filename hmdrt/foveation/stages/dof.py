@@ -327,7 +327,7 @@ def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch
             else:
                 out[y] = color[y]
             if contrast.strength != 0.0:
-                enhance_row(ecc, contrast, blurred, axes, levels, values, texels, y, out)
+                enhance_row(ecc, contrast, blurred, axes, values, texels, y, out)
             y = claim(counter)
 
 

@@ -33,7 +33,7 @@ class Contrast(NamedTuple):
     strength: float
     r0: float
     r1: float
-    levels: np.ndarray  # (height, width) float32: the blur's pyramid level per pixel
+    levels: np.ndarray  # (height, width) float32: the blur's pyramid level per pixel, -1 where e <= r0
 
 
 @kernel
@@ -41,14 +41,16 @@ def _levels(ecc, r0, degrees_per_level, out):
     h, w = ecc.shape
     for y in nb.prange(h):
         for x in range(w):
-            out[y, x] = math.log2(1.0 + max(ecc[y, x] - r0, 0.0) / degrees_per_level)
+            e = ecc[y, x]
+            out[y, x] = math.log2(1.0 + (e - r0) / degrees_per_level) if e > r0 else -1.0
 
 
 def contrast_levels(
     ecc: np.ndarray, r0: float, out: np.ndarray, degrees_per_level: float = DEGREES_PER_LEVEL
 ) -> np.ndarray:
-    """The blur's pyramid level at every pixel, log2(1 + max(e - r0, 0) / degrees_per_level), into out
-    (height, width)."""
+    """The blur's pyramid level at every pixel, log2(1 + (e - r0) / degrees_per_level), into out (height, width);
+    -1 where the enhancement does not apply (e <= r0), so that enhance_row hands a row of them to sample_row as
+    it is."""
     _levels(ecc, r0, degrees_per_level, out)
     return out
 
@@ -144,15 +146,13 @@ def enhance_windows(ecc: np.ndarray, contrast: Contrast, pyramid: Pyramid, spans
 
 
 @serial
-def enhance_row(ecc, contrast, blurred, axes, levels, values, texels, y, out):
+def enhance_row(ecc, contrast, blurred, axes, values, texels, y, out):
     """Row y of out enhanced in place: color + strength x fade(e) x (color - blur_e(color)) at each pixel of
     eccentricity e, the blur read trilinearly from the prefiltered pyramid `blurred` (prefilter; `axes` its
-    pixel_axes) at the pixel's centre, for the row at once (pyramid.sample_row, with `levels`, `values` and
-    `texels` its scratch). Negative results are cut at zero (light cannot be negative)."""
+    pixel_axes) at the pixel's centre, for the row at once (pyramid.sample_row at the contrast's own row of levels,
+    with `values` and `texels` its scratch). Negative results are cut at zero (light cannot be negative)."""
     strength, r0, r1, blur_levels = contrast
-    for x in range(out.shape[1]):
-        levels[x] = blur_levels[y, x] if _fade(ecc[y, x], r0, r1) > 0.0 else -1.0
-    sample_row(blurred.data, blurred.widths, axes, y, levels, values, texels)
+    sample_row(blurred.data, blurred.widths, axes, y, blur_levels[y], values, texels)
     for x in range(out.shape[1]):
         fade = _fade(ecc[y, x], r0, r1)
         if fade <= 0.0:
