@@ -18,6 +18,7 @@ from hmdrt.jit import inline, kernel, serial
 from hmdrt.memory import touched
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.optics.projection import FAR, bilinear_footprint, blend_footprint, camera_arrays
+from hmdrt.schedule import claim, dynamic
 
 
 @inline
@@ -73,8 +74,8 @@ class History:
         if self.depth is None or self.depth.shape[1:] != shape:
             self.depth = touched((self.size + 1, *shape))  # each slot is first written a frame later
             self.color = touched((self.size + 1, *shape, 3))
-            self.scratch = np.empty((nb.get_num_threads(), ROW, shape[1]))
-            self.taps = np.empty((nb.get_num_threads(), TAPS, shape[1]), np.uint64)
+            self.scratch = np.empty((nb.config.NUMBA_NUM_THREADS, ROW, shape[1]))
+            self.taps = np.empty((nb.config.NUMBA_NUM_THREADS, TAPS, shape[1]), np.uint64)
             self._newest, self._count = -1, 0
         return (self._newest + 1) % (self.size + 1)
 
@@ -116,8 +117,8 @@ class Earlier(NamedTuple):
     same: np.ndarray  # (k,) bool: the frame's camera is the current one, so each pixel sees itself there
     depth: np.ndarray  # (size + 1, h, w) float32 ring
     color: np.ndarray  # (size + 1, h, w, 3) float32 ring
-    scratch: np.ndarray  # (chunks, ROW, w) float64: one row's values per chunk of rows
-    taps: np.ndarray  # (chunks, TAPS, w) uint64: one row's footprints per chunk of rows, -1 where off the image
+    scratch: np.ndarray  # (threads, ROW, w) float64: one row's values per numba thread (nb.get_thread_id())
+    taps: np.ndarray  # (threads, TAPS, w) uint64: one row's footprints per numba thread, -1 where off the image
 
 
 VIEW = 16  # relative_view: M (9), t (3), tan_left, width / (tan_right - tan_left), tan_up, height / (tan_up - tan_down)
@@ -283,18 +284,21 @@ def _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out):
 
 
 @kernel
-def _smooth(frustum, depth, color, alpha, earlier, rel_depth, out):
-    """The closed form over the image: pixel by pixel when no earlier camera moved, else in one chunk of rows per
-    scratch row."""
-    chunks, h = earlier.scratch.shape[0], depth.shape[0]
+def _smooth(frustum, depth, color, alpha, earlier, rel_depth, out, counter, threads):
+    """The closed form over the image: pixel by pixel when no earlier camera moved, else row by row in the scratch
+    row of the thread that claims it (hmdrt.schedule: the sky's rows cost less)."""
+    h = depth.shape[0]
     if earlier.same.all():
         for y in nb.prange(h):
             _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out)
     else:
-        for t in nb.prange(chunks):
+        for _ in nb.prange(threads):
+            t = nb.get_thread_id()
             row, taps = earlier.scratch[t], earlier.taps[t]
-            for y in range(t * h // chunks, (t + 1) * h // chunks):
+            y = claim(counter)
+            while y < h:
                 _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row, taps)
+                y = claim(counter)
 
 
 def exponential_smoothing(
@@ -318,5 +322,5 @@ def exponential_smoothing(
     if len(earlier.slots) == 0:
         out[:] = color
         return out
-    _smooth(camera_arrays(camera).frustum, depth, color, alpha, earlier, rel_depth, out)
+    dynamic(_smooth, camera_arrays(camera).frustum, depth, color, alpha, earlier, rel_depth, out)
     return out
