@@ -6,6 +6,7 @@ from __future__ import annotations
 import statistics
 import time
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -28,17 +29,23 @@ def _copy(src, dst):
             dst[i, j] = src[i, j]
 
 
-def copy_rate(width: int, height: int, repeats: int = 15) -> float:
-    """Bytes per second (read + write) of a parallel numba copy of a (height * width, 4) float32 image."""
-    src = np.random.default_rng(0).random((width * height, 4), dtype=np.float32)
-    dst = np.empty_like(src)
-    _copy(src, dst)
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        _copy(src, dst)
-        times.append(time.perf_counter() - t)
-    return 2 * src.nbytes / statistics.median(times)
+class ImageCopy:
+    """A parallel numba copy of a (height * width, 4) float32 image, the bandwidth one fused image-space pass can
+    reach, timed as often as a bench asks (rate)."""
+
+    def __init__(self, width: int, height: int):
+        self._src = np.random.default_rng(0).random((width * height, 4), dtype=np.float32)
+        self._dst = np.empty_like(self._src)
+        _copy(self._src, self._dst)
+
+    def rate(self, repeats: int = 5) -> float:
+        """Bytes per second (read + write), the median of `repeats` copies."""
+        times = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            _copy(self._src, self._dst)
+            times.append(time.perf_counter() - t)
+        return 2 * self._src.nbytes / statistics.median(times)
 
 
 PARTS_PER_THREAD = 32  # a thread takes the next part when it is free: rays differ in cost across the image
@@ -53,21 +60,108 @@ def parts(n: int, threads: int) -> list[slice]:
     return [slice(p[0], p[-1] + 1) for p in np.array_split(np.arange(n), count) if len(p)]
 
 
-def _timed_rate(bare, origins, dirs, threads: int, repeats: int, dists=None, query: str = "INTERSECT") -> float:
-    """Rays per second of bare embreex on these rays, their parts() traced on `threads` pool threads."""
-    if len(dirs) == 0:
-        return float("nan")
-    parts_ = parts(len(dirs), threads)
-    times = []
-    with ThreadPoolExecutor(threads) as pool:
+class _Kind(NamedTuple):
+    """One kind of ray of a view, ready for bare embreex: intersections (dists None) or occlusion queries."""
+
+    origins: np.ndarray
+    dirs: np.ndarray
+    dists: np.ndarray | None
+
+
+class BareRays:
+    """Bare embreex on each kind of ray the tracer casts (meter.RAY_KINDS), built from one view: primary (the
+    camera's rays), secondary (the mirror reflections and refractions at the first hits on reflective or
+    transmissive surfaces), shadow (each first hit to each point light), area (to a random point of each area
+    light) and ao (cosine-distributed within the scene's ao_distance); occlusion queries for the last three.
+    The rays are built once and timed as often as a bench asks (rates), on `threads` pool threads taking their
+    parts() in turn: a bench that times them beside each round of its frames sets each round against what the
+    machine ran at just then, since these machines slow down and speed up by 1.5-2x for minutes at a time. The
+    floor of a method's frame is its rays of each kind at these rates: what the scene's rays cost before any of
+    our own work."""
+
+    def __init__(self, scene: Scene, camera: EyeCamera, threads: int):
+        packed, self._bare = _embree(scene)
+        self._pool = ThreadPoolExecutor(threads)
+        self._threads = threads
+        origins, dirs = _primary_rays(camera)
+        self._bare.run(origins[:1], dirs[:1])  # commit the BVH outside the timing
+        self.kinds: dict[str, _Kind | None] = {"primary": _Kind(origins, dirs, None)}
+        first = self._bare.run(origins, dirs, output=1)
+        hit = first["primID"] >= 0
+        prim, t = first["primID"][hit], first["tfar"][hit]
+        geo, mats, lights = packed.geometry, packed.materials, packed.lights
+        normal = geo.face_normals[prim].astype(np.float64)
+        d = dirs[hit].astype(np.float64)
+        normal[(normal * d).sum(1) > 0] *= -1  # facing the ray
+        point = origins[hit] + d * t[:, None]
+        eps = 1e-4 * np.maximum(1.0, np.abs(point).max(axis=1, keepdims=True))
+        above = (point + normal * eps).astype(np.float32)
+        material = geo.object_material[geo.tri_object[prim]]
+        cos_i = -(d * normal).sum(1, keepdims=True)
+        reflective = mats.reflectance[material] > 0
+        transmissive = mats.transmittance[material] > 0
+        eta = 1.0 / mats.ior[material][:, None]
+        k = 1.0 - eta**2 * (1.0 - cos_i**2)
+        refracts = transmissive & (k[:, 0] > 0)
+        refracted = eta * d + (eta * cos_i - np.sqrt(np.maximum(k, 0.0))) * normal
+        sec_o = np.concatenate([above[reflective], (point - normal * eps).astype(np.float32)[refracts]])
+        sec_d = np.concatenate([_unit((d + 2 * cos_i * normal)[reflective]), _unit(refracted[refracts])])
+        self.kinds["secondary"] = _Kind(sec_o, sec_d, None) if len(sec_d) else None
+        rng = np.random.default_rng(0)
+
+        def occlusion(targets: list[np.ndarray]) -> _Kind | None:
+            if not targets:
+                return None
+            to = np.concatenate([target - point for target in targets])
+            dist = np.linalg.norm(to, axis=1)
+            o = np.concatenate([above] * len(targets))
+            return _Kind(o, _unit(to), (dist * 0.999).astype(np.float32))
+
+        self.kinds["shadow"] = occlusion([np.broadcast_to(p, point.shape) for p in lights.point_position])
+        corners = [
+            c + rng.random((len(point), 1)) * u + rng.random((len(point), 1)) * v
+            for c, u, v in zip(lights.area_corner, lights.area_u, lights.area_v, strict=True)
+        ]
+        self.kinds["area"] = occlusion(corners)
+        self.kinds["ao"] = None
+        if scene.ao_samples:
+            tangent = _unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
+            bitangent = np.cross(normal, tangent)
+            u1, u2 = rng.random((2, len(point), 1))
+            r, phi = np.sqrt(u1), 2 * np.pi * u2
+            ao_dir = _unit(r * np.cos(phi) * tangent + r * np.sin(phi) * bitangent + np.sqrt(1 - u1) * normal)
+            self.kinds["ao"] = _Kind(above, ao_dir, np.full(len(point), scene.ao_distance, np.float32))
+
+    def rate(self, kind: str, repeats: int = 1) -> float:
+        """Rays per second of bare embreex on this view's rays of `kind` (the median of `repeats` timings), nan for
+        a kind the view has none of."""
+        rays = self.kinds[kind]
+        if rays is None:
+            return float("nan")
+        o, d, far = rays
+        parts_ = parts(len(d), self._threads)
+        times = []
         for _ in range(repeats):
             t = time.perf_counter()
-            if query == "INTERSECT":
-                list(pool.map(lambda s: bare.run(origins[s], dirs[s], output=1), parts_))
+            if far is None:
+                list(self._pool.map(lambda s: self._bare.run(o[s], d[s], output=1), parts_))
             else:
-                list(pool.map(lambda s: bare.run(origins[s], dirs[s], dists[s], query=query), parts_))
+                list(self._pool.map(lambda s: self._bare.run(o[s], d[s], far[s], query="OCCLUDED"), parts_))
             times.append(time.perf_counter() - t)
-    return len(dirs) / statistics.median(times)
+        return len(d) / statistics.median(times)
+
+    def rates(self, repeats: int = 1) -> dict[str, float]:
+        """rate() of every kind."""
+        return {kind: self.rate(kind, repeats) for kind in self.kinds}
+
+    def close(self) -> None:
+        self._pool.shutdown()
+
+    def __enter__(self) -> BareRays:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def _embree(scene: Scene):
@@ -86,67 +180,6 @@ def _primary_rays(camera: EyeCamera) -> tuple[np.ndarray, np.ndarray]:
 
 def _unit(v: np.ndarray) -> np.ndarray:
     return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
-
-
-def bare_kind_rates(scene: Scene, camera: EyeCamera, threads: int, repeats: int = 3) -> dict[str, float]:
-    """Bare embreex's rays per second on each kind of ray the tracer casts (meter.RAY_KINDS), built from this
-    view: primary (the camera's rays), secondary (the mirror reflections and refractions at the first hits on
-    reflective or transmissive surfaces), shadow (each first hit to each point light), area (to a random point
-    of each area light) and ao (cosine-distributed within the scene's ao_distance); occlusion queries for the
-    last three. A kind the view has none of is nan. The floor of a method's frame is its rays of each kind at
-    these rates: what the scene's rays cost before any of our own work."""
-    packed, bare = _embree(scene)
-    origins, dirs = _primary_rays(camera)
-    bare.run(origins[:1], dirs[:1])  # commit the BVH outside the timing
-    rates = {"primary": _timed_rate(bare, origins, dirs, threads, repeats)}
-    first = bare.run(origins, dirs, output=1)
-    hit = first["primID"] >= 0
-    prim, t = first["primID"][hit], first["tfar"][hit]
-    geo, mats, lights = packed.geometry, packed.materials, packed.lights
-    normal = geo.face_normals[prim].astype(np.float64)
-    d = dirs[hit].astype(np.float64)
-    normal[(normal * d).sum(1) > 0] *= -1  # facing the ray
-    point = origins[hit] + d * t[:, None]
-    eps = 1e-4 * np.maximum(1.0, np.abs(point).max(axis=1, keepdims=True))
-    above = (point + normal * eps).astype(np.float32)
-    material = geo.object_material[geo.tri_object[prim]]
-    cos_i = -(d * normal).sum(1, keepdims=True)
-    reflective = mats.reflectance[material] > 0
-    transmissive = mats.transmittance[material] > 0
-    eta = 1.0 / mats.ior[material][:, None]
-    k = 1.0 - eta**2 * (1.0 - cos_i**2)
-    refracts = transmissive & (k[:, 0] > 0)
-    refracted = eta * d + (eta * cos_i - np.sqrt(np.maximum(k, 0.0))) * normal
-    sec_o = np.concatenate([above[reflective], (point - normal * eps).astype(np.float32)[refracts]])
-    sec_d = np.concatenate([_unit((d + 2 * cos_i * normal)[reflective]), _unit(refracted[refracts])])
-    rates["secondary"] = _timed_rate(bare, sec_o, sec_d, threads, repeats)
-    rng = np.random.default_rng(0)
-
-    def occluded_rate(targets: list[np.ndarray]) -> float:
-        if not targets:
-            return float("nan")
-        to = np.concatenate([target - point for target in targets])
-        dist = np.linalg.norm(to, axis=1)
-        o = np.concatenate([above] * len(targets))
-        return _timed_rate(bare, o, _unit(to), threads, repeats, (dist * 0.999).astype(np.float32), "OCCLUDED")
-
-    rates["shadow"] = occluded_rate([np.broadcast_to(p, point.shape) for p in lights.point_position])
-    corners = [
-        c + rng.random((len(point), 1)) * u + rng.random((len(point), 1)) * v
-        for c, u, v in zip(lights.area_corner, lights.area_u, lights.area_v, strict=True)
-    ]
-    rates["area"] = occluded_rate(corners)
-    if scene.ao_samples:
-        tangent = _unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
-        bitangent = np.cross(normal, tangent)
-        u1, u2 = rng.random((2, len(point), 1))
-        r, phi = np.sqrt(u1), 2 * np.pi * u2
-        ao_dir = _unit(r * np.cos(phi) * tangent + r * np.sin(phi) * bitangent + np.sqrt(1 - u1) * normal)
-        far = np.full(len(point), scene.ao_distance, np.float32)
-        rates["ao"] = _timed_rate(bare, above, ao_dir, threads, repeats, far, "OCCLUDED")
-    else:
-        rates["ao"] = float("nan")
-    return rates
 
 
 def floor_ms(rays: dict[str, float], rates: dict[str, float]) -> float:

@@ -4,20 +4,22 @@
                                  [--trace builtin] [--gaze 0,0]
                                  [--methods full rrm weier16 weier18?dof=none weier18 kim21]
 
-Two references are measured first, on this machine in this run: bare embreex on the scene's primary rays of the
-whole image (EmbreeScene.run(..., output=1) on parts of them that as many pool threads as the tracer uses take in
-turn, references.parts), and a numba copy of a 4-channel float32 image of the profile's size (the bandwidth one
-fused image-space pass can reach). Then every method renders --frames frames interleaved across methods (the first
---warmup not counted), on a still view or the built-in head path, and for each method the bench prints its median
-ms per frame, rays per frame, the bare-Embree time of those rays and its overhead factor (ms per frame over that
-time; issue 14's target is <= 1.5). Beside it, the mix floor: the same rays at bare embreex's rate on rays of
-their own kind from this view (references.bare_kind_rates: the mirror and glass spheres' secondary rays trace
-several times slower than primary rays, bare or not), and the frame's time over that floor, which is what is left
-to our own work. Last, the tracer: the ms of its own stages (meter.STAGES, wherever a method nests them) over the
-bare time, the factor the method would reach if everything else it does took no time; above the target, the
-method's rays bound it whatever its image work. Then each method's rays by kind, and every stage's median ms and,
-where the stage says how many bytes it must touch (FrameStats.stage(..., touches=)), those bytes and what a copy
-of them costs: a stage far above its copy time is where the next speed-up is.
+Two references are timed on this machine in this run, once in every round of frames, right after it: bare
+embreex on the scene's rays of each kind from the first frame's view (references.BareRays: EmbreeScene.run on
+parts of them that as many pool threads as the tracer uses take in turn), and a numba copy of a 4-channel float32
+image of the profile's size (the bandwidth one fused image-space pass can reach). Every method renders --frames
+frames interleaved across methods (the first --warmup rounds not counted), on a still view or the built-in head
+path, and each round's figures are set against the references of the same round, since these machines slow down
+and speed up by 1.5-2x for minutes at a time; each ratio printed is the median of those rounds' ratios. For each
+method the bench prints its median ms per frame, rays per frame, bare embreex's time for as many primary rays
+and its overhead factor (ms per frame over that time; issue 14's target is <= 1.5). Beside it, the mix floor:
+the same rays at bare embreex's rate on rays of their own kind (the mirror and glass spheres' secondary rays
+trace several times slower than primary rays, bare or not), and the frame's time over that floor, which is what
+is left to our own work. Last, the tracer: the ms of its own stages (meter.STAGES, wherever a method nests them)
+over the bare time, the factor the method would reach if everything else it does took no time; above the target,
+the method's rays bound it whatever its image work. Then each method's rays by kind, and every stage's median ms
+and, where the stage says how many bytes it must touch (FrameStats.stage(..., touches=)), those bytes and what a
+copy of them costs: a stage far above its copy time is where the next speed-up is.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import time
 from collections import defaultdict
 
 import numpy as np
-from references import bare_kind_rates, copy_rate, floor_ms, left_eye_requests
+from references import BareRays, ImageCopy, floor_ms, left_eye_requests
 
 from hmdrt.foveation import make_method
 from hmdrt.optics import get_profile
@@ -59,66 +61,82 @@ def main() -> None:
     profile = get_profile(args.profile)
     frames = left_eye_requests(scene, profile, args.frames, args.trace, args.gaze)
     threads = os.cpu_count() or 1
-    kind_rates = bare_kind_rates(scene, frames[0].camera, threads)
-    bare_rate = kind_rates["primary"]
-    bytes_per_s = copy_rate(profile.width, profile.height)
-    image_copy_ms = 2 * profile.width * profile.height * 16 / bytes_per_s * 1e3
+    image_copy = ImageCopy(profile.width, profile.height)
 
+    rates: dict[str, list[float]] = defaultdict(list)  # per round, by kind of ray
+    copy_rates: list[float] = []  # per round, bytes/s
     ms: dict[str, list[float]] = defaultdict(list)
     rays: dict[str, list[int]] = defaultdict(list)
     kinds: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
+    bare: dict[str, list[float]] = defaultdict(list)  # the round's bare-embreex ms of the frame's rays
     floors: dict[str, list[float]] = defaultdict(list)
     own: dict[str, list[float]] = defaultdict(list)  # the tracer's own stages
     stages: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    copies: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))  # a copy of its bytes, ms
     touched: dict[str, dict[str, int]] = defaultdict(dict)
-    with Whitted(scene, threads) as tracer:
+    with Whitted(scene, threads) as tracer, BareRays(scene, frames[0].camera, threads) as reference:
         methods = {spec: make_method(spec, tracer) for spec in args.methods}
         outs = {spec: np.empty((profile.height, profile.width, 3), np.float32) for spec in methods}
         for k, request in enumerate(frames):
+            round_stats = {}
             for spec, method in methods.items():
                 stats = FrameStats()
                 t = time.perf_counter()
                 method.render(request, stats, outs[spec])
-                took = time.perf_counter() - t
-                if k < args.warmup:
-                    continue
+                round_stats[spec] = (time.perf_counter() - t, stats)
+            if k < args.warmup:
+                continue
+            round_rates, copy_rate = reference.rates(), image_copy.rate()  # beside the round's frames
+            for kind, rate in round_rates.items():
+                rates[kind].append(rate)
+            copy_rates.append(copy_rate)
+            for spec, (took, stats) in round_stats.items():
                 ms[spec].append(took * 1e3)
                 rays[spec].append(sum(stats.rays.values()))
                 for kind, count in stats.rays.items():
                     kinds[spec][kind].append(count)
-                floors[spec].append(floor_ms(stats.rays, kind_rates))
+                bare[spec].append(rays[spec][-1] / round_rates["primary"] * 1e3)
+                floors[spec].append(floor_ms(stats.rays, round_rates))
                 own[spec].append(sum(v for k, v in stats.stages_ms.items() if k.rsplit("/", 1)[-1] in TRACER_STAGES))
                 for name, v in stats.stages_ms.items():
                     stages[spec][name].append(v)
+                    if stats.touched.get(name):
+                        copies[spec][name].append(stats.touched[name] / copy_rate * 1e3)
                 touched[spec].update(stats.touched)
+
+    def spread(values: list[float], scale: float = 1.0) -> str:
+        return f"{statistics.median(values) * scale:.1f} ({min(values) * scale:.1f}-{max(values) * scale:.1f})"
+
+    def ratio(a: list[float], b: list[float]) -> float:
+        """The median over the rounds of a / b: each round against the references timed beside it."""
+        return statistics.median(x / y if y else float("inf") for x, y in zip(a, b, strict=True))
 
     counted = args.frames - args.warmup
     print(
         f"{args.scene} at {args.profile} ({profile.width}x{profile.height}, one eye), "
         f"{'built-in head path' if args.trace else f'still view, gaze {args.gaze}'}, "
-        f"{threads} threads, median of {counted} frames after {args.warmup}"
+        f"{threads} threads, median of {counted} rounds after {args.warmup}, the references timed in each round"
     )
+    image_ms = [2 * profile.width * profile.height * 16 / r * 1e3 for r in copy_rates]
     print(
-        f"  bare embreex {bare_rate / 1e6:.1f} Mrays/s on primary rays; numba copy {bytes_per_s / 1e9:.1f} GB/s "
-        f"(a {profile.width}x{profile.height}x4 float32 image read and written in {image_copy_ms:.2f} ms)"
+        f"  bare embreex {spread(rates['primary'], 1e-6)} Mrays/s on primary rays; numba copy "
+        f"{spread(copy_rates, 1e-9)} GB/s (a {profile.width}x{profile.height}x4 float32 image read and written in "
+        f"{spread(image_ms)} ms); median (lowest-highest) over the rounds"
     )
-    measured = ", ".join(f"{kind} {rate / 1e6:.1f}" for kind, rate in kind_rates.items() if rate == rate)
+    measured = ", ".join(f"{kind} {spread(v, 1e-6)}" for kind, v in rates.items() if v[0] == v[0])
     print(f"  bare embreex by kind of ray, Mrays/s: {measured}")
     print(
         f"  {'method':20s} {'ms/frame':>9s} {'rays/frame':>11s} {'bare ms':>8s} {'overhead':>9s}"
         f"          {'mix floor ms':>12s} {'over mix':>8s} {'tracer ms':>9s} {'tracer':>7s}"
     )
     for spec in methods:
-        frame_ms = statistics.median(ms[spec])
-        n = statistics.median(rays[spec])
-        bare_ms = n / bare_rate * 1e3
-        factor = frame_ms / bare_ms if bare_ms else float("inf")
+        factor = ratio(ms[spec], bare[spec])
         verdict = "ok" if factor <= TARGET else f"over {TARGET}"
-        mix_ms = statistics.median(floors[spec])
-        tracer_ms = statistics.median(own[spec])
         print(
-            f"  {spec:20s} {frame_ms:9.1f} {int(n):11,d} {bare_ms:8.1f} {factor:8.2f}x  {verdict:9s}"
-            f" {mix_ms:12.1f} {frame_ms / mix_ms:7.2f}x {tracer_ms:9.1f} {tracer_ms / bare_ms:6.2f}x"
+            f"  {spec:20s} {statistics.median(ms[spec]):9.1f} {int(statistics.median(rays[spec])):11,d}"
+            f" {statistics.median(bare[spec]):8.1f} {factor:8.2f}x  {verdict:9s}"
+            f" {statistics.median(floors[spec]):12.1f} {ratio(ms[spec], floors[spec]):7.2f}x"
+            f" {statistics.median(own[spec]):9.1f} {ratio(own[spec], bare[spec]):6.2f}x"
         )
     for spec in methods:
         counts = ", ".join(f"{kind} {int(statistics.median(v)):,d}" for kind, v in kinds[spec].items() if any(v))
@@ -128,10 +146,9 @@ def main() -> None:
             depth = name.count("/")
             label = "  " * depth + name.rsplit("/", 1)[-1]
             line = f"    {label:28s} {statistics.median(values):9.2f}"
-            nbytes = touched[spec].get(name)
-            if nbytes:
-                copy_ms = nbytes / bytes_per_s * 1e3
-                line += f" {nbytes / 1e6:9.1f} {copy_ms:8.2f} {statistics.median(values) / copy_ms:7.1f}x"
+            copy = copies[spec].get(name)
+            if copy:
+                line += f" {touched[spec][name] / 1e6:9.1f} {statistics.median(copy):8.2f} {ratio(values, copy):7.1f}x"
             print(line)
 
 
