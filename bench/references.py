@@ -183,7 +183,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def floor_ms(rays: dict[str, float], rates: dict[str, float]) -> float:
-    """The bare-embreex time of a frame's rays by kind at `rates` (bare_kind_rates)."""
+    """The bare-embreex time of a frame's rays by kind at `rates` (BareRays.rates)."""
     return sum(n / rates[kind] * 1e3 for kind, n in rays.items() if n)
 
 
