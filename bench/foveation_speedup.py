@@ -6,7 +6,9 @@
 A still view with a fixed gaze (or, with --trace builtin, the built-in head path: head sway, fixations and
 saccades) is rendered for --frames frames by every method, frames interleaved across methods so that load
 on this shared machine hits all alike. ms per frame is the median of the frames after the first two
-(compilation, empty history); the speed-up is full's median over the method's. PSNR (dB) is of the last
+(compilation, empty history); the speed-up is full's median over the method's, and its ceiling full's median
+over the method's tracer alone (the median of its tracer's own stages, meter.STAGES, wherever it nests them):
+the speed-up it would reach if all its other work took no time, which its rays bound. PSNR (dB) is of the last
 frame against regular with 36 stratified samples per pixel (the ground truth of kim2021) of that frame's
 view, in the foveal band (eccentricity < 3.3 deg) and over the whole image. RRM needs N = 12 frames to
 refresh its whole periphery, hence 14 frames by default.
@@ -28,6 +30,7 @@ from hmdrt.quality import band_psnr
 from hmdrt.scene import load_scene
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
+from hmdrt.trace.meter import STAGES as TRACER_STAGES
 
 
 def main() -> None:
@@ -52,6 +55,7 @@ def main() -> None:
         methods = {spec: make_method(spec, tracer) for spec in args.methods}
         outs = {spec: np.empty((profile.height, profile.width, 3), np.float32) for spec in methods}
         times: dict[str, list[float]] = {spec: [] for spec in methods}
+        tracer_ms: dict[str, list[float]] = {spec: [] for spec in methods}
         rays: dict[str, int] = {}
         for request in requests:
             for spec, method in methods.items():
@@ -59,20 +63,34 @@ def main() -> None:
                 t = time.perf_counter()
                 method.render(request, stats, outs[spec])
                 times[spec].append(time.perf_counter() - t)
+                tracer_ms[spec].append(
+                    sum(v for k, v in stats.stages_ms.items() if k.rsplit("/", 1)[-1] in TRACER_STAGES)
+                )
                 rays[spec] = sum(stats.rays.values())
 
-    ms = {spec: statistics.median(v[2:] if len(v) > 2 else v) * 1e3 for spec, v in times.items()}
+    def counted(values: list[float]) -> float:
+        return statistics.median(values[2:] if len(values) > 2 else values)
+
+    ms = {spec: counted(v) * 1e3 for spec, v in times.items()}
+    traced = {spec: counted(v) for spec, v in tracer_ms.items()}
     base = ms.get("full")
     print(
         f"{args.scene} at {args.profile} ({profile.width}x{profile.height}, one eye), "
         f"{'built-in head path' if args.trace else f'still view, gaze {args.gaze}'}, "
         f"{args.frames} frames, median ms/frame after frame 2; truth: regular 36 spp ({truth_s:.1f} s)"
     )
-    print(f"  {'method':28s} {'ms/frame':>9s} {'speed-up':>9s} {'rays/frame':>11s} {'fovea dB':>9s} {'image dB':>9s}")
+    print(
+        f"  {'method':28s} {'ms/frame':>9s} {'speed-up':>9s} {'tracer ms':>9s} {'ceiling':>8s} {'rays/frame':>11s}"
+        f" {'fovea dB':>9s} {'image dB':>9s}"
+    )
     for spec in methods:
         psnr = band_psnr(outs[spec], truth, ecc)
-        speedup = f"{base / ms[spec]:8.2f}x" if base else "        -"
-        print(f"  {spec:28s} {ms[spec]:9.1f} {speedup:>9s} {rays[spec]:11,d} {psnr['fovea']:9.1f} {psnr['image']:9.1f}")
+        speedup = f"{base / ms[spec]:8.2f}x" if base else "-"
+        ceiling = f"{base / traced[spec]:7.2f}x" if base and traced[spec] else "-"
+        print(
+            f"  {spec:28s} {ms[spec]:9.1f} {speedup:>9s} {traced[spec]:9.1f} {ceiling:>8s} {rays[spec]:11,d}"
+            f" {psnr['fovea']:9.1f} {psnr['image']:9.1f}"
+        )
 
 
 if __name__ == "__main__":
