@@ -17,9 +17,11 @@ the same rays at bare embreex's rate on rays of their own kind (the mirror and g
 trace several times slower than primary rays, bare or not), and the frame's time over that floor, which is what
 is left to our own work. Last, the tracer: the ms of its own stages (meter.STAGES, wherever a method nests them)
 over the bare time, the factor the method would reach if everything else it does took no time; above the target,
-the method's rays bound it whatever its image work. Then each method's rays by kind, and every stage's median ms
-and, where the stage says how many bytes it must touch (FrameStats.stage(..., touches=)), those bytes and what a
-copy of them costs: a stage far above its copy time is where the next speed-up is.
+the method's rays bound it whatever its image work. With full among the methods, each one's ray ceiling: full's
+mix floor over the method's, the most it could gain over full were both at bare embreex's rates and all else
+free (what issue 14's speed-ups over full can reach on these rays). Then each method's rays by kind, and every
+stage's median ms and, where the stage says how many bytes it must touch (FrameStats.stage(..., touches=)), those
+bytes and what a copy of them costs: a stage far above its copy time is where the next speed-up is.
 """
 
 from __future__ import annotations
@@ -128,6 +130,7 @@ def main() -> None:
     print(
         f"  {'method':20s} {'ms/frame':>9s} {'rays/frame':>11s} {'bare ms':>8s} {'overhead':>9s}"
         f"          {'mix floor ms':>12s} {'over mix':>8s} {'tracer ms':>9s} {'tracer':>7s}"
+        + (f" {'ray ceiling':>11s}" if "full" in methods else "")
     )
     for spec in methods:
         factor = ratio(ms[spec], bare[spec])
@@ -137,6 +140,7 @@ def main() -> None:
             f" {statistics.median(bare[spec]):8.1f} {factor:8.2f}x  {verdict:9s}"
             f" {statistics.median(floors[spec]):12.1f} {ratio(ms[spec], floors[spec]):7.2f}x"
             f" {statistics.median(own[spec]):9.1f} {ratio(own[spec], bare[spec]):6.2f}x"
+            + (f" {ratio(floors['full'], floors[spec]):10.2f}x" if "full" in methods else "")
         )
     for spec in methods:
         counts = ", ".join(f"{kind} {int(statistics.median(v)):,d}" for kind, v in kinds[spec].items() if any(v))
