@@ -21,7 +21,7 @@ import statistics
 import time
 
 import numpy as np
-from references import left_eye_requests
+from references import left_eye_requests, tracer_ms
 
 from hmdrt.foveation import make_method
 from hmdrt.optics import get_profile
@@ -30,7 +30,6 @@ from hmdrt.quality import band_psnr
 from hmdrt.scene import load_scene
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
-from hmdrt.trace.meter import STAGES as TRACER_STAGES
 
 
 def main() -> None:
@@ -55,7 +54,7 @@ def main() -> None:
         methods = {spec: make_method(spec, tracer) for spec in args.methods}
         outs = {spec: np.empty((profile.height, profile.width, 3), np.float32) for spec in methods}
         times: dict[str, list[float]] = {spec: [] for spec in methods}
-        tracer_ms: dict[str, list[float]] = {spec: [] for spec in methods}
+        tracer: dict[str, list[float]] = {spec: [] for spec in methods}  # its tracer's own ms
         rays: dict[str, int] = {}
         for request in requests:
             for spec, method in methods.items():
@@ -63,16 +62,14 @@ def main() -> None:
                 t = time.perf_counter()
                 method.render(request, stats, outs[spec])
                 times[spec].append(time.perf_counter() - t)
-                tracer_ms[spec].append(
-                    sum(v for k, v in stats.stages_ms.items() if k.rsplit("/", 1)[-1] in TRACER_STAGES)
-                )
+                tracer[spec].append(tracer_ms(stats))
                 rays[spec] = sum(stats.rays.values())
 
     def counted(values: list[float]) -> float:
         return statistics.median(values[2:] if len(values) > 2 else values)
 
     ms = {spec: counted(v) * 1e3 for spec, v in times.items()}
-    traced = {spec: counted(v) for spec, v in tracer_ms.items()}
+    traced = {spec: counted(v) for spec, v in tracer.items()}
     base = ms.get("full")
     print(
         f"{args.scene} at {args.profile} ({profile.width}x{profile.height}, one eye), "

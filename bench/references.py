@@ -20,6 +20,8 @@ from hmdrt.optics.camera import pixel_centres
 from hmdrt.scene import Scene
 from hmdrt.scene.pack import pack
 from hmdrt.sequence import eye_cameras, frame_requests, sequence_inputs
+from hmdrt.telemetry.stats import FrameStats
+from hmdrt.trace.meter import STAGES as TRACER_STAGES
 
 
 @kernel
@@ -180,6 +182,11 @@ def _primary_rays(camera: EyeCamera) -> tuple[np.ndarray, np.ndarray]:
 
 def _unit(v: np.ndarray) -> np.ndarray:
     return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
+def tracer_ms(stats: FrameStats) -> float:
+    """A frame's ms in the tracer's own stages (meter.STAGES), wherever the method nests them."""
+    return sum(v for k, v in stats.stages_ms.items() if k.rsplit("/", 1)[-1] in TRACER_STAGES)
 
 
 def floor_ms(rays: dict[str, float], rates: dict[str, float]) -> float:

@@ -33,14 +33,13 @@ import time
 from collections import defaultdict
 
 import numpy as np
-from references import BareRays, ImageCopy, floor_ms, left_eye_requests
+from references import BareRays, ImageCopy, floor_ms, left_eye_requests, tracer_ms
 
 from hmdrt.foveation import make_method
 from hmdrt.optics import get_profile
 from hmdrt.scene import load_scene
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
-from hmdrt.trace.meter import STAGES as TRACER_STAGES
 
 TARGET = 1.5
 METHODS = ["full", "rrm", "weier16", "weier18?dof=none", "weier18", "kim21"]
@@ -99,7 +98,7 @@ def main() -> None:
                     kinds[spec][kind].append(count)
                 bare[spec].append(rays[spec][-1] / round_rates["primary"] * 1e3)
                 floors[spec].append(floor_ms(stats.rays, round_rates))
-                own[spec].append(sum(v for k, v in stats.stages_ms.items() if k.rsplit("/", 1)[-1] in TRACER_STAGES))
+                own[spec].append(tracer_ms(stats))
                 for name, v in stats.stages_ms.items():
                     stages[spec][name].append(v)
                     if stats.touched.get(name):
