@@ -38,14 +38,14 @@ import zmq
 # this script shares the drivers package's name: keep its own folder from shadowing the package
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
-from drivers import open_driver  # noqa: E402
-from drivers.clocksync import ClockSync  # noqa: E402
-from drivers.emulators.dk2_stub import HeadMotion  # noqa: E402
-from drivers.emulators.pupil_server import PupilEmulator  # noqa: E402
-from drivers.emulators.serial_emulator import SerialTrackerEmulator  # noqa: E402
-from drivers.emulators.smi_server import SmiEmulator  # noqa: E402
-from drivers.host import DriverHost  # noqa: E402
 from hmdrt.bus.messages import decode  # noqa: E402
+from hmdrt.drivers import open_driver  # noqa: E402
+from hmdrt.drivers.clocksync import ClockSync  # noqa: E402
+from hmdrt.drivers.emulators.dk2_stub import HeadMotion  # noqa: E402
+from hmdrt.drivers.emulators.pupil_server import PupilEmulator  # noqa: E402
+from hmdrt.drivers.emulators.serial_emulator import SerialTrackerEmulator  # noqa: E402
+from hmdrt.drivers.emulators.smi_server import SmiEmulator  # noqa: E402
+from hmdrt.drivers.host import DriverHost  # noqa: E402
 from hmdrt.spatial import quat_multiply  # noqa: E402
 
 WARMUP_NS = 500_000_000

@@ -23,10 +23,10 @@ import time
 import numpy as np
 from references import left_eye_requests, tracer_ms
 
+from hmdrt.evaluate.quality import band_psnr
 from hmdrt.foveation import make_method
 from hmdrt.optics import get_profile
 from hmdrt.optics.camera import eccentricity_map
-from hmdrt.quality import band_psnr
 from hmdrt.scene import load_scene
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted

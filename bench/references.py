@@ -14,14 +14,14 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from hmdrt.foveation import FrameRequest
-from hmdrt.jit import kernel
+from hmdrt.kernels.jit import kernel
 from hmdrt.optics import EyeCamera, HmdProfile
 from hmdrt.optics.camera import pixel_centres
 from hmdrt.scene import Scene
 from hmdrt.scene.pack import pack
-from hmdrt.sequence import eye_cameras, frame_requests, sequence_inputs
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.meter import STAGES as TRACER_STAGES
+from hmdrt.views import eye_cameras, frame_requests, sequence_inputs
 
 
 @kernel
@@ -56,7 +56,7 @@ MIN_PART = 16384  # rays: a call's own cost (~0.1 ms) stays within a few percent
 
 def parts(n: int, threads: int) -> list[slice]:
     """n rays in PARTS_PER_THREAD x `threads` equal parts of MIN_PART rays at least, for `threads` pool threads to
-    take in turn as each frees up (as hmdrt's tracer claims its blocks: hmdrt.schedule); equal halves would
+    take in turn as each frees up (as hmdrt's tracer claims its blocks: hmdrt.kernels.schedule); equal halves would
     leave one thread idle while the other traces the costlier half of the image."""
     count = max(threads, min(threads * PARTS_PER_THREAD, n // MIN_PART))
     return [slice(p[0], p[-1] + 1) for p in np.array_split(np.arange(n), count) if len(p)]

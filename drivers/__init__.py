@@ -13,18 +13,18 @@ from __future__ import annotations
 
 import importlib
 
-from drivers.base import DeviceLost, Driver, DriverError, DriverNotFound, DriverUrl
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.base import DeviceLost, Driver, DriverError, DriverNotFound, DriverUrl
 
 REGISTRY: dict[str, str] = {
-    "synthetic": "drivers.synthetic:SyntheticDriver",
-    "replay": "drivers.replay:ReplayDriver",
-    "smi": "drivers.smi:SmiDriver",
-    "fove": "drivers.fove:FoveDriver",
-    "pupil": "drivers.pupil:PupilDriver",
-    "hid": "drivers.hid:HidDriver",
-    "serial": "drivers.serial_port:SerialDriver",
-    "lsl": "drivers.lsl:LslDriver",
+    "synthetic": "hmdrt.drivers.synthetic:SyntheticDriver",
+    "replay": "hmdrt.drivers.replay:ReplayDriver",
+    "smi": "hmdrt.drivers.smi:SmiDriver",
+    "fove": "hmdrt.drivers.fove:FoveDriver",
+    "pupil": "hmdrt.drivers.pupil:PupilDriver",
+    "hid": "hmdrt.drivers.hid:HidDriver",
+    "serial": "hmdrt.drivers.serial_port:SerialDriver",
+    "lsl": "hmdrt.drivers.lsl:LslDriver",
 }
 
 __all__ = [

@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 from urllib.parse import parse_qsl, urlsplit
 
-from drivers.clocksync import ClockSync
 from hmdrt.bus.messages import Gaze, Pose, Status
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.clocksync import ClockSync
 from hmdrt.errors import ConfigError, HmdrtError
 
 Sample = Gaze | Pose

@@ -24,7 +24,7 @@ from collections import deque
 import numpy as np
 
 from hmdrt.bus.messages import ClockEstimate
-from hmdrt.jit import serial
+from hmdrt.kernels.jit import serial
 
 
 @serial

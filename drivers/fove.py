@@ -17,12 +17,12 @@ import socket
 
 import msgspec
 
-from drivers.base import DeviceLost, Driver, DriverError, DriverUrl, Sample, SequenceGaps
-from drivers.clocksync import ClockSync
-from drivers.protocols import fove
-from drivers.protocols.fove import Capability, EyeState, Result
 from hmdrt.bus.messages import Gaze, Pose, usable
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.base import DeviceLost, Driver, DriverError, DriverUrl, Sample, SequenceGaps
+from hmdrt.drivers.clocksync import ClockSync
+from hmdrt.drivers.protocols import fove
+from hmdrt.drivers.protocols.fove import Capability, EyeState, Result
 from hmdrt.errors import ConfigError
 
 GAZE_CAPS = Capability.EYE_TRACKING | Capability.GAZE_DEPTH

@@ -25,10 +25,12 @@ import math
 from collections.abc import Callable
 from typing import Protocol
 
-from drivers.base import DeviceLost, Driver, DriverUrl, Sample, SequenceGaps
-from drivers.emulators.dk2_stub import Dk2Stub, HeadMotion
-from drivers.fusion import OrientationFusion
-from drivers.protocols.dk2 import (
+from hmdrt.bus.messages import Pose
+from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.base import DeviceLost, Driver, DriverUrl, Sample, SequenceGaps
+from hmdrt.drivers.emulators.dk2_stub import Dk2Stub, HeadMotion
+from hmdrt.drivers.fusion import OrientationFusion
+from hmdrt.drivers.protocols.dk2 import (
     DK2_SENSOR_SIZE,
     PRODUCT_DK2,
     SAMPLE_COUNT_WRAP,
@@ -40,8 +42,6 @@ from drivers.protocols.dk2 import (
     decode_dk2_report,
     encode_keep_alive,
 )
-from hmdrt.bus.messages import Pose
-from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 
 KEEP_ALIVE_MARGIN_NS = 200_000_000

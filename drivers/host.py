@@ -17,12 +17,12 @@ import time
 
 import zmq
 
-from drivers import open_driver
-from drivers.base import Counters, DeviceLost, Driver
 from hmdrt.bus import INGEST
 from hmdrt.bus.messages import encode
 from hmdrt.bus.security import ClientKeys
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers import open_driver
+from hmdrt.drivers.base import Counters, DeviceLost, Driver
 from hmdrt.errors import HmdrtError
 
 log = logging.getLogger(__name__)

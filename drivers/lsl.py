@@ -5,7 +5,7 @@ set it) within `timeout` seconds; when none matches it names the streams it foun
 host tries again. It reads the stream's XDF Gaze meta-data (drivers.protocols.lsl_gaze) and fails with one error
 naming the channels when they do not say where the gaze is. A sample's timestamp is the sender's local_clock(); the
 inlet's time_correction() (liblsl's round-trip probes, refreshed in the background) maps it to this machine's
-local_clock(), which is taken for the host clock only where hmdrt.lsl.ClockMap finds them one clock; otherwise (or
+local_clock(), which is taken for the host clock only where hmdrt.bus.lsl.ClockMap finds them one clock; otherwise (or
 in virtual time) the clock sync maps it from receive times, as for the other network devices. Gaps of under a
 second in the timestamps of a stream with a nominal rate count as dropped samples (longer ones are pauses), rows
 with infinite or huge values as malformed.
@@ -19,12 +19,12 @@ import math
 import msgspec
 import numpy as np
 
-from drivers.base import DeviceLost, Driver, DriverError, DriverUrl, Sample
-from drivers.protocols.lsl_gaze import AXES, ORIGINS, GazeDecoder, MetadataError, gaze_layout, parse_info
+from hmdrt.bus.lsl import ClockMap, load_pylsl
 from hmdrt.bus.messages import ClockEstimate, Gaze, Status
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.base import DeviceLost, Driver, DriverError, DriverUrl, Sample
+from hmdrt.drivers.protocols.lsl_gaze import AXES, ORIGINS, GazeDecoder, MetadataError, gaze_layout, parse_info
 from hmdrt.errors import ConfigError
-from hmdrt.lsl import ClockMap, load_pylsl
 from hmdrt.optics import get_profile
 
 DEFAULT_PROFILE = "sim-cpu-640"  # the compositor's default display: its screens map ScreenX/Y

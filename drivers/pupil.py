@@ -28,9 +28,9 @@ import msgspec
 import numpy as np
 import zmq
 
-from drivers.base import DeviceLost, Driver, DriverError, DriverUrl, Sample
 from hmdrt.bus.messages import Gaze
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.base import DeviceLost, Driver, DriverError, DriverUrl, Sample
 from hmdrt.ranges import Finite
 from hmdrt.spatial import mean_direction
 

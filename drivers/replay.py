@@ -14,11 +14,11 @@ from __future__ import annotations
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
-from drivers.base import Driver, DriverUrl, Sample
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.base import Driver, DriverUrl, Sample
 from hmdrt.errors import ConfigError
-from replay import load_trace
-from replay.player import Player
+from hmdrt.replay import load_trace
+from hmdrt.replay.player import Player
 
 
 class ReplayDriver(Driver):

@@ -27,10 +27,10 @@ from urllib.parse import urlsplit
 
 import serial
 
-from drivers.base import DeviceLost, Driver, DriverUrl, Sample, SequenceGaps
-from drivers.protocols import hatire, razor
 from hmdrt.bus.messages import Pose
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.base import DeviceLost, Driver, DriverUrl, Sample, SequenceGaps
+from hmdrt.drivers.protocols import hatire, razor
 from hmdrt.errors import ConfigError
 
 log = logging.getLogger(__name__)

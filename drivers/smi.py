@@ -21,8 +21,10 @@ import time
 
 import numpy as np
 
-from drivers.base import DeviceLost, Driver, DriverError, DriverUrl, Sample
-from drivers.protocols.smi import (
+from hmdrt.bus.messages import Gaze
+from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.base import DeviceLost, Driver, DriverError, DriverUrl, Sample
+from hmdrt.drivers.protocols.smi import (
     GAZE_FORMAT,
     MAX_LINE_BYTES,
     RED_FORMATS,
@@ -35,8 +37,6 @@ from drivers.protocols.smi import (
     int_args,
     parse_line,
 )
-from hmdrt.bus.messages import Gaze
-from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.spatial import Pose, mean_direction
 

@@ -6,8 +6,8 @@ the host clock and in lock-step with a virtual clock when the compositor injects
 
 from __future__ import annotations
 
-from drivers.base import Driver, Sample
-from replay.synthetic import SyntheticConfig, SyntheticSource
+from hmdrt.drivers.base import Driver, Sample
+from hmdrt.replay.synthetic import SyntheticConfig, SyntheticSource
 
 
 class SyntheticDriver(Driver):

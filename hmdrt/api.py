@@ -21,14 +21,14 @@ from hmdrt.compositor.config import RunConfig, load_config
 from hmdrt.compositor.daemon import Compositor
 from hmdrt.foveation import FrameRequest, MethodChoice
 from hmdrt.optics import EyeCamera, HmdProfile, get_profile, pixel_centres
+from hmdrt.replay import load_trace
+from hmdrt.replay.trace import Sample, TraceReading, write_trace
 from hmdrt.scene import Scene, load_scene
 from hmdrt.spatial import Pose, gaze_direction
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.telemetry.view import Report
 from hmdrt.trace.gbuffer import GBuffer
 from hmdrt.trace.integrator import Whitted
-from replay import load_trace
-from replay.trace import Sample, TraceReading, write_trace
 
 __all__ = [
     "GBufferImage",

@@ -16,23 +16,24 @@ import numpy as np
 import zmq
 from tqdm import tqdm
 
-from drivers.emulators import EMULATORS
-from hmdrt import __version__, logs
-from hmdrt.atomic import check_writable, write_atomic
 from hmdrt.bus import INGEST
 from hmdrt.bus.local import find_control
 from hmdrt.bus.security import ClientKeys, is_loopback, write_keypair
+from hmdrt.console import logs
+from hmdrt.console.progress import StatusLine
+from hmdrt.drivers.emulators import EMULATORS
 from hmdrt.errors import ConfigError, HmdrtError
+from hmdrt.files.atomic import check_writable, write_atomic
+from hmdrt.files.resources import run_config
 from hmdrt.foveation import METHODS, MethodChoice
 from hmdrt.optics import get_profile
 from hmdrt.present.encode import linear_to_srgb8, write_png
-from hmdrt.progress import StatusLine
-from hmdrt.resources import run_config
+from hmdrt.replay.convert import READER_OPTIONS, convert_trace
 from hmdrt.scene import load_scene
-from hmdrt.sequence import render_frames, sequence_inputs
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
-from replay.convert import READER_OPTIONS, convert_trace
+from hmdrt.version import __version__
+from hmdrt.views import render_frames, sequence_inputs
 
 UNTIL = "stop after SEC seconds (default: until SIGINT/SIGTERM)"
 # make_emulator's keywords: the emulate command's options store their values under these names
@@ -172,7 +173,7 @@ def _duration(args: argparse.Namespace) -> float | None:
 
 def cmd_driver(args: argparse.Namespace) -> int:
     """Run a driver and publish its samples on the bus until stopped."""
-    from drivers.host import DriverHost
+    from hmdrt.drivers.host import DriverHost
 
     duration = _duration(args)
     host = DriverHost(args.url, args.bus, curve=_client_keys(args))
@@ -183,7 +184,7 @@ def cmd_driver(args: argparse.Namespace) -> int:
 
 def cmd_emulate(args: argparse.Namespace) -> int:
     """Serve an emulated tracker until stopped."""
-    from drivers.emulators import make_emulator
+    from hmdrt.drivers.emulators import make_emulator
 
     duration = _duration(args)
     emulator = make_emulator(args.device, **{name: getattr(args, name) for name in EMULATOR_OPTIONS})
@@ -196,7 +197,7 @@ def cmd_emulate(args: argparse.Namespace) -> int:
 
 def cmd_record(args: argparse.Namespace) -> int:
     """Record a device's samples from the bus into a native trace."""
-    from replay.recorder import Recorder
+    from hmdrt.replay.recorder import Recorder
 
     duration = _duration(args)
     keys, context = _client_keys(args), None

@@ -6,8 +6,8 @@ import inspect
 from pathlib import Path
 
 from hmdrt.errors import ConfigError
-from replay.formats import csv_header, eyelink, gazebase, generic_csv, pupil_player, refuse_columns
-from replay.trace import TraceReading, read_trace
+from hmdrt.replay.formats import csv_header, eyelink, gazebase, generic_csv, pupil_player, refuse_columns
+from hmdrt.replay.trace import TraceReading, read_trace
 
 SUPPORTED = (
     "native hmdrt traces (.jsonl, .jsonl.gz), EyeLink ASC (.asc), and CSV (.csv) from GazeBaseVR, "

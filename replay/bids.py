@@ -32,11 +32,11 @@ from collections.abc import Iterable
 from decimal import Decimal
 from pathlib import Path
 
-from hmdrt.atomic import write_atomic
 from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
+from hmdrt.files.atomic import write_atomic
+from hmdrt.replay.trace import Sample
 from hmdrt.spatial import gaze_angles
-from replay.trace import Sample
 
 SUFFIX = "_physio.tsv.gz"
 RECORDINGS = {"L": ("eye1", "left"), "R": ("eye2", "right"), "C": ("eye3", "cyclopean")}  # eye: (label, RecordedEye)

@@ -17,10 +17,10 @@ from pathlib import Path
 
 from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
-from replay import bids, load_trace
-from replay.formats.eyelink import Screen
-from replay.formats.generic_csv import write_generic_csv
-from replay.trace import TraceReading, write_trace
+from hmdrt.replay import bids, load_trace
+from hmdrt.replay.formats.eyelink import Screen
+from hmdrt.replay.formats.generic_csv import write_generic_csv
+from hmdrt.replay.trace import TraceReading, write_trace
 
 log = logging.getLogger(__name__)
 NATIVE, CSV, BIDS = "native", "hmdrt CSV", "BIDS eye-tracking"

@@ -17,7 +17,7 @@ from statistics import median
 import msgspec
 
 from hmdrt.errors import ConfigError
-from replay.trace import Sample
+from hmdrt.replay.trace import Sample
 
 MAX_BATCH = 4096  # samples per due() call, so a fast replay still lets its host publish status
 

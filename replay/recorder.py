@@ -21,7 +21,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from hmdrt.bus.messages import MAX_PAYLOAD_BYTES, MalformedMessage, Status, decode
 from hmdrt.errors import ConfigError
-from replay.trace import TraceWriter
+from hmdrt.replay.trace import TraceWriter
 
 POLL_MS = 50
 

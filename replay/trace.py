@@ -22,9 +22,9 @@ from typing import IO, AnyStr
 
 import msgspec
 
-from hmdrt.atomic import write_atomic
 from hmdrt.bus.messages import Gaze, Pose, numpy_scalar, usable
 from hmdrt.errors import ConfigError
+from hmdrt.files.atomic import write_atomic
 
 __all__ = [
     "Gaze",

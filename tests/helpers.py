@@ -15,18 +15,18 @@ import numpy as np
 import pytest
 from numpy.typing import ArrayLike
 
-from drivers.base import DeviceLost, Driver, Sample
-from drivers.emulators.base import Emulator
-from drivers.protocols import fove
 from hmdrt.api import render_frame
 from hmdrt.bus.messages import Gaze
 from hmdrt.clock import VirtualClock
+from hmdrt.drivers.base import DeviceLost, Driver, Sample
+from hmdrt.drivers.emulators.base import Emulator
+from hmdrt.drivers.protocols import fove
 from hmdrt.foveation import MethodChoice
 from hmdrt.optics import get_profile
+from hmdrt.replay.trace import write_trace
 from hmdrt.scene import Scene
 from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
-from replay.trace import write_trace
 
 DATA = Path(__file__).parent / "data"
 FORWARD = np.array([0.0, 0.0, -1.0])

@@ -18,9 +18,9 @@ import pytest
 from hmdrt.foveation import make_method
 from hmdrt.optics import get_profile
 from hmdrt.scene import load_scene
-from hmdrt.sequence import builtin_path, eye_cameras, frame_requests
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
+from hmdrt.views import builtin_path, eye_cameras, frame_requests
 
 LIMIT = 32 * 1024  # bytes of peak growth per frame: Python bookkeeping, no array of the image's size
 SIZE = (256, 288)

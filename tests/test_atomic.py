@@ -1,11 +1,11 @@
-"""Files written whole or not at all (hmdrt.atomic): exact modes, and never overwriting when asked not to."""
+"""Files written whole or not at all (hmdrt.files.atomic): exact modes, and never overwriting when asked not to."""
 
 import stat
 
 import pytest
 
-from hmdrt.atomic import write_atomic
 from hmdrt.errors import HmdrtError
+from hmdrt.files.atomic import write_atomic
 
 
 def test_a_file_gets_exactly_its_mode_and_is_not_overwritten_unless_asked(tmp_path):

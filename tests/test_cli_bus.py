@@ -9,12 +9,12 @@ import threading
 
 import pytest
 
-from drivers.emulators.smi_server import SmiEmulator
-from drivers.host import DriverHost
 from hmdrt.bus.messages import Gaze, Pose
+from hmdrt.drivers.emulators.smi_server import SmiEmulator
+from hmdrt.drivers.host import DriverHost
+from hmdrt.replay import load_trace
+from hmdrt.replay.recorder import Recorder
 from hmdrt.testing import free_port
-from replay import load_trace
-from replay.recorder import Recorder
 
 from .helpers import wait_for
 

@@ -14,9 +14,9 @@ import pytest
 
 from hmdrt import cli
 from hmdrt.bus.messages import Gaze, Pose
+from hmdrt.replay import load_trace
+from hmdrt.replay.convert import convert_trace
 from hmdrt.spatial import gaze_direction
-from replay import load_trace
-from replay.convert import convert_trace
 
 ROOT = Path(__file__).resolve().parent.parent
 TRACES = ROOT / "tests" / "data" / "traces"

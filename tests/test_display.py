@@ -15,9 +15,9 @@ from hmdrt.compositor.display import Display, Frame
 from hmdrt.compositor.pacer import FrameTiming
 from hmdrt.optics import get_profile
 from hmdrt.present.timewarp import timewarp
-from hmdrt.sequence import eye_cameras
 from hmdrt.spatial import Pose, quat_from_yaw_pitch
 from hmdrt.telemetry.report import FrameRecord, SampleUse
+from hmdrt.views import eye_cameras
 
 MS = 1_000_000
 PERIOD = 10 * MS

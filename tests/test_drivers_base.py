@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import zmq
 
-from drivers import REGISTRY, DriverNotFound, driver_class, open_driver, register
-from drivers.base import SequenceGaps
-from drivers.clocksync import ClockSync
-from drivers.host import DriverHost
-from drivers.synthetic import SyntheticDriver
 from hmdrt.bus.messages import Gaze, MalformedMessage, Pose, Status, decode, encode, usable
 from hmdrt.clock import VirtualClock
+from hmdrt.drivers import REGISTRY, DriverNotFound, driver_class, open_driver, register
+from hmdrt.drivers.base import SequenceGaps
+from hmdrt.drivers.clocksync import ClockSync
+from hmdrt.drivers.host import DriverHost
+from hmdrt.drivers.synthetic import SyntheticDriver
 from hmdrt.errors import ConfigError
 
 
@@ -30,7 +30,7 @@ def test_unknown_scheme_lists_the_known_ones():
 
 
 def test_register_adds_a_scheme():
-    register("synthetic2", "drivers.synthetic:SyntheticDriver")
+    register("synthetic2", "hmdrt.drivers.synthetic:SyntheticDriver")
     try:
         assert isinstance(open_driver("synthetic2://?seed=3"), SyntheticDriver)
     finally:

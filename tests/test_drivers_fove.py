@@ -10,15 +10,15 @@ import msgspec
 import numpy as np
 import pytest
 
-from drivers.base import DeviceLost
-from drivers.emulators.feed import FeedSample, GazeFeed
-from drivers.emulators.fove_server import FoveEmulator, eye_record
-from drivers.fove import FoveDriver
-from drivers.protocols import fove
 from hmdrt.bus.messages import Gaze, Pose
+from hmdrt.drivers.base import DeviceLost
+from hmdrt.drivers.emulators.feed import FeedSample, GazeFeed
+from hmdrt.drivers.emulators.fove_server import FoveEmulator, eye_record
+from hmdrt.drivers.fove import FoveDriver
+from hmdrt.drivers.protocols import fove
 from hmdrt.errors import ConfigError
+from hmdrt.replay.synthetic import SyntheticConfig, SyntheticSource
 from hmdrt.spatial import quat_from_yaw_pitch, quat_to_matrix
-from replay.synthetic import SyntheticConfig, SyntheticSource
 
 from .helpers import ScriptedFoveServer, assert_lost_when_stopped, at_least, collect, wait_for
 

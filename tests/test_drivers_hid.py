@@ -7,12 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from drivers import open_driver
-from drivers.base import DeviceLost
-from drivers.emulators.dk2_stub import Dk2Stub, HeadMotion
-from drivers.fusion import GRAVITY, OrientationFusion
-from drivers.hid import HidAdapter, HidDriver
-from drivers.protocols.dk2 import (
+from hmdrt.bus.messages import Pose
+from hmdrt.drivers import open_driver
+from hmdrt.drivers.base import DeviceLost
+from hmdrt.drivers.emulators.dk2_stub import Dk2Stub, HeadMotion
+from hmdrt.drivers.fusion import GRAVITY, OrientationFusion
+from hmdrt.drivers.hid import HidAdapter, HidDriver
+from hmdrt.drivers.protocols.dk2 import (
     DK2_SENSOR_SIZE,
     Dk2FormatError,
     Dk2SensorReport,
@@ -29,10 +30,9 @@ from drivers.protocols.dk2 import (
     encode_keep_alive,
     encode_vector,
 )
-from hmdrt.bus.messages import Pose
 from hmdrt.errors import ConfigError
+from hmdrt.replay.trace import write_trace
 from hmdrt.spatial import quat_from_yaw_pitch, quat_multiply, quat_to_matrix
-from replay.trace import write_trace
 
 from .helpers import SteppingClock
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import zmq
 
-from drivers.base import DeviceLost
-from drivers.emulators.feed import GazeFeed
-from drivers.emulators.pupil_server import EYE_CAMERA_TO_WORLD, PupilEmulator, pupil_datum
-from drivers.pupil import TIME_PROBES, MalformedDatum, PupilDriver, decode_gaze
+from hmdrt.drivers.base import DeviceLost
+from hmdrt.drivers.emulators.feed import GazeFeed
+from hmdrt.drivers.emulators.pupil_server import EYE_CAMERA_TO_WORLD, PupilEmulator, pupil_datum
+from hmdrt.drivers.pupil import TIME_PROBES, MalformedDatum, PupilDriver, decode_gaze
 from hmdrt.spatial import gaze_direction
 from hmdrt.testing import free_port
 
@@ -411,7 +411,7 @@ def test_a_rebase_by_another_client_is_measured_again(tmp_path, remote, caplog, 
         before = collect(driver, at_least(60))
         epoch_before = emulator.epoch_ns
         command = rebase(emulator.pupil_time())
-        with caplog.at_level(logging.WARNING, logger="drivers.pupil"):
+        with caplog.at_level(logging.WARNING, logger="hmdrt.drivers.pupil"):
             assert remote(emulator, command) == "Timesync successful."
             target_ns = round(float(command[2:]) * 1e9)
             epoch_after = emulator.epoch_ns
@@ -449,7 +449,7 @@ def test_a_stalled_reader_is_not_a_rebase(tmp_path, caplog):
         collect(driver, at_least(400))
         probes = driver.probes
         time.sleep(1.0)
-        with caplog.at_level(logging.WARNING, logger="drivers.pupil"):
+        with caplog.at_level(logging.WARNING, logger="hmdrt.drivers.pupil"):
             late = collect(driver, at_least(400))
         driver.close()
         epoch = emulator.epoch_ns

@@ -13,17 +13,17 @@ import numpy as np
 import pytest
 import serial
 
-from drivers import open_driver
-from drivers.base import DeviceLost
-from drivers.emulators.serial_emulator import SerialTrackerEmulator
-from drivers.protocols import hatire, razor
-from drivers.protocols.hatire import HatireFrame, HatireFramer, HatireInfo
-from drivers.protocols.razor import ErrorLine, RazorFramer, Synch, Ypr
-from drivers.serial_port import START_TIMEOUT_S, SerialDriver
 from hmdrt.bus.messages import Pose
+from hmdrt.drivers import open_driver
+from hmdrt.drivers.base import DeviceLost
+from hmdrt.drivers.emulators.serial_emulator import SerialTrackerEmulator
+from hmdrt.drivers.protocols import hatire, razor
+from hmdrt.drivers.protocols.hatire import HatireFrame, HatireFramer, HatireInfo
+from hmdrt.drivers.protocols.razor import ErrorLine, RazorFramer, Synch, Ypr
+from hmdrt.drivers.serial_port import START_TIMEOUT_S, SerialDriver
 from hmdrt.errors import ConfigError
+from hmdrt.replay.synthetic import SyntheticConfig, SyntheticSource
 from hmdrt.spatial import quat_from_yaw_pitch, quat_multiply, quat_to_matrix
-from replay.synthetic import SyntheticConfig, SyntheticSource
 
 from .helpers import assert_lost_when_stopped, at_least, collect
 
@@ -398,7 +398,7 @@ def test_a_device_that_never_answers_is_reported_after_the_start_timeout(protoco
         driver = open_driver(f"serial://{os.ttyname(slave)}?protocol={protocol}")
         driver.open()
         opened = time.monotonic()
-        with caplog.at_level(logging.WARNING, logger="drivers.serial_port"):
+        with caplog.at_level(logging.WARNING, logger="hmdrt.drivers.serial_port"):
             with pytest.raises(DeviceLost, match=f"no angle frame within {START_TIMEOUT_S:g} s of opening, after"):
                 collect(driver, timeout_s=START_TIMEOUT_S + TIMEOUT_S)
         elapsed = time.monotonic() - opened

@@ -13,11 +13,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers import open_driver
-from drivers.base import DeviceLost, DriverError
-from drivers.emulators.feed import GazeFeed
-from drivers.emulators.smi_server import SmiEmulator
-from drivers.protocols import smi
+from hmdrt.drivers import open_driver
+from hmdrt.drivers.base import DeviceLost, DriverError
+from hmdrt.drivers.emulators.feed import GazeFeed
+from hmdrt.drivers.emulators.smi_server import SmiEmulator
+from hmdrt.drivers.protocols import smi
 from hmdrt.errors import ConfigError
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.spatial import Pose, gaze_direction

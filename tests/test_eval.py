@@ -17,16 +17,16 @@ import pytest
 from hmdrt.cli import main
 from hmdrt.errors import ConfigError
 from hmdrt.evaluate.config import MethodSweep, load_eval_config
+from hmdrt.evaluate.quality import BANDS, BandScores, band_psnr, psnr, srgb_encode, ssim_map, to_space
 from hmdrt.evaluate.runner import pareto_front, summarise
 from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.foveation import MethodChoice
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.present.encode import linear_to_srgb8
-from hmdrt.quality import BANDS, BandScores, band_psnr, psnr, srgb_encode, ssim_map, to_space
 from hmdrt.scene import load_scene
-from hmdrt.sequence import FrameInput
 from hmdrt.spatial import Pose
 from hmdrt.trace.integrator import Whitted
+from hmdrt.views import FrameInput
 from tests.helpers import DATA
 
 RNG = np.random.default_rng(7)

@@ -24,9 +24,9 @@ from hmdrt.evaluate.runner import evaluate, group_id, groups  # noqa: E402
 from hmdrt.evaluate.truth import truth_rows  # noqa: E402
 from hmdrt.optics import get_profile  # noqa: E402
 from hmdrt.scene import load_scene  # noqa: E402
-from hmdrt.sequence import eye_cameras  # noqa: E402
 from hmdrt.spatial import Pose  # noqa: E402
 from hmdrt.trace.integrator import Whitted  # noqa: E402
+from hmdrt.views import eye_cameras  # noqa: E402
 
 HEAD = """
 scenes = ["whitted"]

@@ -6,17 +6,17 @@ import pytest
 from scipy import ndimage
 
 from hmdrt.errors import ConfigError
+from hmdrt.evaluate.quality import band_psnr
 from hmdrt.foveation import METHODS, FrameRequest, MethodChoice, make_method
 from hmdrt.foveation.base import EYES, pixel_keys
 from hmdrt.foveation.rrm import Rrm, RrmParams, foveal_rectangle, refresh_phase
 from hmdrt.foveation.stages.dof import MAX_BLUR_PX
 from hmdrt.optics import EyeCamera, get_profile
-from hmdrt.quality import band_psnr
 from hmdrt.scene import load_scene
-from hmdrt.sequence import FrameInput, builtin_path, render_frames
 from hmdrt.spatial import gaze_direction
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
+from hmdrt.views import FrameInput, builtin_path, render_frames
 
 FOVEATED = ["rrm", "kim21", "weier16", "weier18"]
 PROFILE = get_profile("sim-cpu").with_resolution(96, 108)

@@ -16,12 +16,12 @@ import os
 import numpy as np
 import pytest
 
+from hmdrt.evaluate.quality import psnr
 from hmdrt.foveation import make_method
 from hmdrt.optics import get_profile
-from hmdrt.quality import psnr
 from hmdrt.scene import load_scene
-from hmdrt.sequence import builtin_path, render_frames
 from hmdrt.trace.integrator import Whitted
+from hmdrt.views import builtin_path, render_frames
 from tests.helpers import DATA
 
 GOLDEN = DATA / "golden"

@@ -6,17 +6,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hmdrt.evaluate.quality import band_psnr
 from hmdrt.foveation import FrameRequest, make_method
 from hmdrt.foveation.kim21 import _resolve
+from hmdrt.kernels.schedule import dynamic
 from hmdrt.optics import get_profile
 from hmdrt.optics.projection import bilinear3
-from hmdrt.quality import band_psnr
 from hmdrt.scene import load_scene
-from hmdrt.schedule import dynamic
-from hmdrt.sequence import FrameInput, eye_cameras, frame_requests
 from hmdrt.spatial import Pose, gaze_direction, quat_multiply
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
+from hmdrt.views import FrameInput, eye_cameras, frame_requests
 
 PROFILE = get_profile("sim-cpu").with_resolution(128, 144)
 PIXEL_DEG = 0.895  # degrees per pixel at the image centre: 2 tan 45 degrees over 128 pixels

@@ -6,8 +6,8 @@ import sys
 
 import pytest
 
-from hmdrt import logs
 from hmdrt.cli import build_parser
+from hmdrt.console import logs
 
 
 @pytest.fixture
@@ -23,9 +23,9 @@ def restore_logging():
 def test_the_cli_level_decides_what_reaches_stderr(capsys, restore_logging):
     logs.configure("warning")
     logging.getLogger("hmdrt.compositor.daemon").info("quiet")
-    logging.getLogger("drivers.host").warning("driver x crashed")
+    logging.getLogger("hmdrt.drivers.host").warning("driver x crashed")
     logs.configure("info")  # again: one console handler, not two
-    logging.getLogger("replay.player").info("loud")
+    logging.getLogger("hmdrt.replay.player").info("loud")
     err = capsys.readouterr().err.splitlines()
     assert err == ["hmdrt: WARNING: drivers.host: driver x crashed", "hmdrt: INFO: replay.player: loud"]
 
@@ -56,7 +56,7 @@ def test_a_compositors_handler_publishes_the_packages_records_while_attached(res
     logging.getLogger("hmdrt.compositor.daemon").info("reloaded run.toml")
     logging.getLogger("elsewhere").warning("not ours")
     handler.detach()
-    logging.getLogger("drivers.host").warning("after detach")
+    logging.getLogger("hmdrt.drivers.host").warning("after detach")
     assert sent == [("log", {"level": "info", "message": "reloaded run.toml", "logger": "hmdrt.compositor.daemon"})]
 
 

@@ -19,22 +19,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers import open_driver
-from drivers.base import DeviceLost
-from drivers.emulators import make_emulator
-from drivers.emulators.feed import GazeFeed
-from drivers.emulators.lsl_source import CHANNEL_COUNT, DEPTH_M, LslEmulator, titta_channels
-from drivers.lsl import DEFAULT_PROFILE
-from drivers.protocols.lsl_gaze import GazeDecoder, MetadataError, gaze_layout, parse_info
 from hmdrt.bus import messages
+from hmdrt.bus.lsl import ClockMap
 from hmdrt.bus.messages import Gaze
 from hmdrt.cli import main
 from hmdrt.clock import MONOTONIC, VirtualClock
 from hmdrt.compositor.config import load_config
 from hmdrt.compositor.daemon import Compositor
 from hmdrt.compositor.lsl_outlets import SAMPLE_CHANNELS
+from hmdrt.drivers import open_driver
+from hmdrt.drivers.base import DeviceLost
+from hmdrt.drivers.emulators import make_emulator
+from hmdrt.drivers.emulators.feed import GazeFeed
+from hmdrt.drivers.emulators.lsl_source import CHANNEL_COUNT, DEPTH_M, LslEmulator, titta_channels
+from hmdrt.drivers.lsl import DEFAULT_PROFILE
+from hmdrt.drivers.protocols.lsl_gaze import GazeDecoder, MetadataError, gaze_layout, parse_info
 from hmdrt.errors import ConfigError
-from hmdrt.lsl import ClockMap
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.spatial import Pose, gaze_direction
 from hmdrt.testing import Recording, run_bounded, write_config

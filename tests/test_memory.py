@@ -1,4 +1,4 @@
-"""Persistent buffers come with their pages written (hmdrt.memory.touched): a frame that first fills one pays
+"""Persistent buffers come with their pages written (hmdrt.kernels.memory.touched): a frame that first fills one pays
 no page faults for it."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import resource
 
 import numpy as np
 
-from hmdrt.memory import touched
+from hmdrt.kernels.memory import touched
 
 
 def _faults() -> int:

@@ -13,7 +13,7 @@ import time
 import pytest
 
 from hmdrt.cli import main
-from hmdrt.progress import CLEAR_LINE, StatusLine
+from hmdrt.console.progress import CLEAR_LINE, StatusLine
 from hmdrt.testing import write_config
 
 

@@ -16,14 +16,14 @@ import msgpack
 import pytest
 import zmq
 
-from drivers.host import DriverHost
 from hmdrt.bus.messages import Gaze, encode
 from hmdrt.compositor.config import Fallback
 from hmdrt.compositor.fallback import GazeFallback, Outages
 from hmdrt.compositor.samples import MAX_DEVICES
+from hmdrt.drivers.host import DriverHost
 from hmdrt.errors import ConfigError
+from hmdrt.replay import load_trace
 from hmdrt.testing import TRACE, Background, compositor, free_port, write_config
-from replay import load_trace
 
 from .helpers import reap, wait_for
 from .test_runtime import readline, start_run
@@ -278,7 +278,7 @@ def test_a_control_request_nested_deeper_than_python_can_decode_is_answered_with
 
 
 def test_a_driver_name_that_is_not_printable_ascii_is_a_config_error():
-    from drivers import open_driver
+    from hmdrt.drivers import open_driver
 
     with pytest.raises(ConfigError, match="name= must be printable ASCII"):
         open_driver("synthetic://?name=caf%C3%A9")

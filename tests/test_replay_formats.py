@@ -14,9 +14,9 @@ import pytest
 from hmdrt import cli
 from hmdrt.bus.messages import Gaze, usable
 from hmdrt.errors import ConfigError
-from replay import load_trace
-from replay.formats.pupil_player import read_pupil_player
-from replay.trace import write_trace
+from hmdrt.replay import load_trace
+from hmdrt.replay.formats.pupil_player import read_pupil_player
+from hmdrt.replay.trace import write_trace
 
 TRACES = Path(__file__).parent / "data" / "traces"
 MONOCULAR = TRACES / "raccoons.asc"
@@ -161,7 +161,7 @@ def test_eyelink_2khz_pairs_of_whole_milliseconds_are_spaced_by_the_recorded_rat
     pair lies 0.5 ms (1 / RATE 2000.00) after the first, the gaze is the file's own, and a log line says so."""
     lines, eyes, _ = asc_file(EYELINK_2KHZ)
     assert "RATE\t2000.00" in EYELINK_2KHZ.read_text() and eyes == ("R",)
-    with caplog.at_level(logging.INFO, logger="replay.formats.eyelink"):
+    with caplog.at_level(logging.INFO, logger="hmdrt.replay.formats.eyelink"):
         reading = load_trace(EYELINK_2KHZ, screen_width_mm=400.0, screen_height_mm=300.0)
     assert reading.malformed == 0 and len(reading.samples) == len(lines) == 50
     first_of_ms = [k == 0 or fields[0] != lines[k - 1][0] for k, fields in enumerate(lines)]
@@ -196,7 +196,7 @@ def test_eyelink_times_that_do_not_repeat_or_come_below_1khz_are_kept(tmp_path, 
         kept.append(line.replace("RATE\t2000.00", "RATE\t1000.00") if change == "RATE 1000" else line)
     path = tmp_path / "kept.asc"
     path.write_text("\n".join(kept) + "\n")
-    with caplog.at_level(logging.INFO, logger="replay.formats.eyelink"):
+    with caplog.at_level(logging.INFO, logger="hmdrt.replay.formats.eyelink"):
         reading = load_trace(path)
     lines, _, _ = asc_file(path)
     assert reading.malformed == 0 and len(reading.samples) == len(lines) == (25 if change.startswith("drop") else 50)

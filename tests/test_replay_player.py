@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import zmq
 
-from drivers import open_driver
-from drivers.host import DriverHost
 from hmdrt.bus.messages import Gaze, Pose, Status, encode
 from hmdrt.clock import VirtualClock
+from hmdrt.drivers import open_driver
+from hmdrt.drivers.host import DriverHost
 from hmdrt.errors import ConfigError
-from replay.recorder import Recorder
-from replay.trace import read_trace, write_trace
+from hmdrt.replay.recorder import Recorder
+from hmdrt.replay.trace import read_trace, write_trace
 
 from .helpers import wait_for
 

@@ -1,11 +1,11 @@
-"""The default run config and its trace as installed with the package (hmdrt/resources.py)."""
+"""The default run config and its trace as installed with the package (hmdrt/files/resources.py)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from hmdrt.compositor.config import load_config
-from hmdrt.resources import INSTALLED, run_config
+from hmdrt.files.resources import INSTALLED, run_config
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 

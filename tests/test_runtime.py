@@ -33,9 +33,9 @@ from hmdrt.compositor.endpoints import request
 from hmdrt.compositor.session import READY_RENDERED
 from hmdrt.errors import ConfigError
 from hmdrt.present.encode import linear_to_srgb8
+from hmdrt.replay.synthetic import SyntheticConfig, SyntheticSource
+from hmdrt.replay.trace import write_trace
 from hmdrt.testing import Background, assert_every_vsync_shown, compositor, run_bounded, write_config
-from replay.synthetic import SyntheticConfig, SyntheticSource
-from replay.trace import write_trace
 
 from .helpers import reap, wait_for
 

@@ -1,10 +1,10 @@
-"""Blocks claimed from a shared counter (hmdrt.schedule): each exactly once, shared out by cost."""
+"""Blocks claimed from a shared counter (hmdrt.kernels.schedule): each exactly once, shared out by cost."""
 
 import numba as nb
 import numpy as np
 import pytest
 
-from hmdrt.schedule import claim, dynamic
+from hmdrt.kernels.schedule import claim, dynamic
 
 
 @nb.njit(parallel=True, nogil=True)

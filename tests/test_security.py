@@ -15,13 +15,13 @@ import pytest
 import zmq
 import zmq.auth
 
-from drivers.host import DriverHost
 from hmdrt.bus.messages import Gaze, encode
 from hmdrt.bus.security import ClientKeys, Guard, ServerKeys, is_loopback, write_keypair
 from hmdrt.cli import main
 from hmdrt.compositor.config import load_config
 from hmdrt.compositor.daemon import Compositor
 from hmdrt.compositor.endpoints import request
+from hmdrt.drivers.host import DriverHost
 from hmdrt.errors import ConfigError
 from hmdrt.testing import ANY_PORT, Background, compositor, write_config
 

@@ -8,11 +8,11 @@ import pytest
 from hmdrt.cli import main
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import METHODS
+from hmdrt.replay.trace import Gaze, read_trace, write_trace
+from hmdrt.replay.trace import Pose as PoseSample
 from hmdrt.scene import BUILTINS
-from hmdrt.sequence import builtin_path, compose_pose, from_trace
 from hmdrt.spatial import Pose, gaze_direction, quat_from_yaw_pitch, quat_rotate, quat_to_matrix, unit
-from replay.trace import Gaze, read_trace, write_trace
-from replay.trace import Pose as PoseSample
+from hmdrt.views import builtin_path, compose_pose, from_trace
 
 MS = 1_000_000
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from hmdrt.bus.messages import Gaze, Pose, usable
+from hmdrt.replay.synthetic import SyntheticConfig, SyntheticSource, minimum_jerk, saccade_duration_s
 from hmdrt.spatial import quat_to_matrix
-from replay.synthetic import SyntheticConfig, SyntheticSource, minimum_jerk, saccade_duration_s
 
 
 def gaze_of(config: SyntheticConfig, seconds: float) -> list[Gaze]:

@@ -8,6 +8,7 @@ import numba
 import numpy as np
 import pytest
 
+from hmdrt.evaluate.quality import psnr
 from hmdrt.foveation import FrameRequest, Method, make_method
 from hmdrt.foveation.stages.reproject import MeshImage
 from hmdrt.foveation.weier16 import (
@@ -26,16 +27,15 @@ from hmdrt.foveation.weier16 import (
     _post,
     _resampling_info,
 )
+from hmdrt.kernels.schedule import dynamic
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import eccentricity_map
 from hmdrt.optics.projection import camera_arrays, view_distance
-from hmdrt.quality import psnr
 from hmdrt.scene import load_scene
-from hmdrt.schedule import dynamic
-from hmdrt.sequence import builtin_path, eye_cameras, frame_requests
 from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
+from hmdrt.views import builtin_path, eye_cameras, frame_requests
 
 PROFILE = get_profile("sim-cpu").with_resolution(96, 108)
 FRAMES = 6

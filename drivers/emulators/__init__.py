@@ -5,17 +5,17 @@ from __future__ import annotations
 
 import importlib
 
-from drivers.emulators.base import Emulator
-from drivers.emulators.feed import GazeFeed
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.emulators.base import Emulator
+from hmdrt.drivers.emulators.feed import GazeFeed
 from hmdrt.errors import ConfigError
 
 # name -> (class, default port (None: found by LSL's discovery, no port), default rate Hz, default latency ms)
 EYE_TRACKERS = {
-    "smi": ("drivers.emulators.smi_server:SmiEmulator", 4444, 250.0, 0.0),
-    "fove": ("drivers.emulators.fove_server:FoveEmulator", 50050, 120.0, 20.0),
-    "pupil": ("drivers.emulators.pupil_server:PupilEmulator", 50020, 200.0, 0.0),
-    "lsl": ("drivers.emulators.lsl_source:LslEmulator", None, 120.0, 0.0),
+    "smi": ("hmdrt.drivers.emulators.smi_server:SmiEmulator", 4444, 250.0, 0.0),
+    "fove": ("hmdrt.drivers.emulators.fove_server:FoveEmulator", 50050, 120.0, 20.0),
+    "pupil": ("hmdrt.drivers.emulators.pupil_server:PupilEmulator", 50020, 200.0, 0.0),
+    "lsl": ("hmdrt.drivers.emulators.lsl_source:LslEmulator", None, 120.0, 0.0),
 }
 HEAD_TRACKERS = ("razor", "hatire")  # serial, behind a pseudo-terminal
 EMULATORS = (*EYE_TRACKERS, *HEAD_TRACKERS)
@@ -51,7 +51,7 @@ def make_emulator(
         }
         if unused := [flag for flag, value in given.items() if value is not None]:
             raise ConfigError(f"the {device} emulator is a head tracker on a pseudo-terminal; it takes no {unused[0]}")
-        from drivers.emulators.serial_emulator import SerialTrackerEmulator
+        from hmdrt.drivers.emulators.serial_emulator import SerialTrackerEmulator
 
         return SerialTrackerEmulator(device, rate_hz=rate_hz, seed=seed, clock=clock)
     if device not in EYE_TRACKERS:

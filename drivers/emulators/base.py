@@ -12,8 +12,8 @@ from abc import ABC, abstractmethod
 from collections import deque
 from typing import Self
 
-from drivers.base import DriverError
 from hmdrt.clock import Clock
+from hmdrt.drivers.base import DriverError
 
 POLL_S = 0.05  # longest wait of the emulator thread, and so about the longest stop() takes
 SENT_LOG = 65_536  # samples remembered in Emulator.sent

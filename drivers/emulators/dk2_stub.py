@@ -20,8 +20,10 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from drivers.fusion import GRAVITY
-from drivers.protocols.dk2 import (
+from hmdrt.bus.messages import Pose
+from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.fusion import GRAVITY
+from hmdrt.drivers.protocols.dk2 import (
     CONFIG_ID,
     DK2_SENSOR_ID,
     KEEP_ALIVE_ID,
@@ -40,12 +42,10 @@ from drivers.protocols.dk2 import (
     encode_config,
     encode_dk2_report,
 )
-from hmdrt.bus.messages import Pose
-from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
+from hmdrt.replay import load_trace
+from hmdrt.replay.synthetic import SyntheticConfig, SyntheticSource
 from hmdrt.spatial import quat_conjugate, quat_multiply, quat_to_matrix
-from replay import load_trace
-from replay.synthetic import SyntheticConfig, SyntheticSource
 
 STUB_QUEUE = 64
 REPORT_PERIOD_NS = 2 * SAMPLE_PERIOD_US * 1000
@@ -114,7 +114,7 @@ class HeadMotion:
 
     @classmethod
     def synthetic(cls, seed: int) -> HeadMotion:
-        """replay.synthetic's head motion (slow turns with jitter), knots at 100 Hz."""
+        """hmdrt.replay.synthetic's head motion (slow turns with jitter), knots at 100 Hz."""
         source = SyntheticSource(SyntheticConfig(seed=seed, rate_hz=100.0, head=True, blink_rate_hz=0.0))
         return cls(
             (s.t_host, np.array(s.orientation), np.array(s.position)) for s in source.samples() if isinstance(s, Pose)

@@ -16,9 +16,9 @@ import numpy as np
 from hmdrt.bus.messages import Gaze, usable
 from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
+from hmdrt.replay import load_trace
+from hmdrt.replay.synthetic import SyntheticConfig, SyntheticSource
 from hmdrt.spatial import Vec, gaze_direction
-from replay import load_trace
-from replay.synthetic import SyntheticConfig, SyntheticSource
 
 
 @dataclass(frozen=True)

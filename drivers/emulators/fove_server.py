@@ -18,9 +18,10 @@ import selectors
 import socket
 from dataclasses import dataclass, field
 
-from drivers.emulators.base import NetworkEmulator
-from drivers.emulators.feed import FeedSample, GazeFeed
-from drivers.protocols.fove import (
+from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.emulators.base import NetworkEmulator
+from hmdrt.drivers.emulators.feed import FeedSample, GazeFeed
+from hmdrt.drivers.protocols.fove import (
     API_VERSION,
     DISPLAY_RATE_HZ,
     EYE_RATE_HZ,
@@ -41,9 +42,8 @@ from drivers.protocols.fove import (
     mirror_vector,
     to_fove_quaternion,
 )
-from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.replay.synthetic import SyntheticConfig, SyntheticSource
 from hmdrt.spatial import mean_direction, quat_from_yaw_pitch
-from replay.synthetic import SyntheticConfig, SyntheticSource
 
 OFFERED = Capability.ORIENTATION | Capability.POSITION | Capability.EYE_TRACKING | Capability.GAZE_DEPTH
 POSE_CAPS = Capability.ORIENTATION | Capability.POSITION

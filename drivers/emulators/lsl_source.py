@@ -19,11 +19,11 @@ from __future__ import annotations
 import itertools
 import os
 
-from drivers.emulators.base import Emulator
-from drivers.emulators.feed import FeedSample, GazeFeed
-from drivers.lsl import DEFAULT_PROFILE
+from hmdrt.bus.lsl import ClockMap, load_pylsl
 from hmdrt.clock import MONOTONIC, Clock
-from hmdrt.lsl import ClockMap, load_pylsl
+from hmdrt.drivers.emulators.base import Emulator
+from hmdrt.drivers.emulators.feed import FeedSample, GazeFeed
+from hmdrt.drivers.lsl import DEFAULT_PROFILE
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.spatial import Pose
 

@@ -30,10 +30,10 @@ import msgspec
 import numpy as np
 import zmq
 
-from drivers.emulators.base import NetworkEmulator
-from drivers.emulators.feed import FeedSample, GazeFeed
-from drivers.pupil import MAX_ZMQ_MESSAGE, opencv_head
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.emulators.base import NetworkEmulator
+from hmdrt.drivers.emulators.feed import FeedSample, GazeFeed
+from hmdrt.drivers.pupil import MAX_ZMQ_MESSAGE, opencv_head
 from hmdrt.spatial import mean_direction
 
 VERSION = "3.5.1"

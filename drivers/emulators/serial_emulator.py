@@ -27,12 +27,12 @@ import select
 import tty
 from collections.abc import Iterator
 
-from drivers.emulators.base import Emulator
-from drivers.protocols import hatire, razor
 from hmdrt.bus.messages import Pose
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.emulators.base import Emulator
+from hmdrt.drivers.protocols import hatire, razor
 from hmdrt.errors import ConfigError
-from replay.synthetic import SyntheticConfig, SyntheticSource
+from hmdrt.replay.synthetic import SyntheticConfig, SyntheticSource
 
 MAX_COMMAND_CHUNK = 256
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-from drivers.protocols.smi import FixationEnd, FixationStart
+from hmdrt.drivers.protocols.smi import FixationEnd, FixationStart
 
 
 @dataclass

@@ -33,11 +33,12 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.base import DriverError
-from drivers.emulators.base import Address, NetworkEmulator
-from drivers.emulators.feed import FeedSample, GazeFeed
-from drivers.emulators.smi_fixations import FixationDetector
-from drivers.protocols.smi import (
+from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers.base import DriverError
+from hmdrt.drivers.emulators.base import Address, NetworkEmulator
+from hmdrt.drivers.emulators.feed import FeedSample, GazeFeed
+from hmdrt.drivers.emulators.smi_fixations import FixationDetector
+from hmdrt.drivers.protocols.smi import (
     GAZE_FORMAT,
     MAX_LINE_BYTES,
     PER_EYE,
@@ -51,7 +52,6 @@ from drivers.protocols.smi import (
     int_args,
     parse_line,
 )
-from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.errors import ConfigError
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.spatial import Pose

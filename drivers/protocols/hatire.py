@@ -22,8 +22,8 @@ import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from drivers.protocols import razor
-from drivers.protocols.framing import FrameFormatError, Framer
+from hmdrt.drivers.protocols import razor
+from hmdrt.drivers.protocols.framing import FrameFormatError, Framer
 
 BAUD = 115200
 RATE_HZ = 100.0

@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from drivers.base import DriverError
+from hmdrt.drivers.base import DriverError
 from hmdrt.optics import EyeCamera, HmdProfile
 from hmdrt.spatial import Pose, mean_direction
 

@@ -19,7 +19,7 @@ import math
 import re
 from dataclasses import dataclass
 
-from drivers.protocols.framing import FrameFormatError, Framer
+from hmdrt.drivers.protocols.framing import FrameFormatError, Framer
 
 BAUD = 57600
 RATE_HZ = 50.0

@@ -25,8 +25,8 @@ import zmq.auth
 from zmq.utils import z85
 from zmq.utils.monitor import recv_monitor_message
 
-from hmdrt.atomic import write_atomic
 from hmdrt.errors import ConfigError, HmdrtError
+from hmdrt.files.atomic import write_atomic
 
 ZAP_ENDPOINT = "inproc://zeromq.zap.01"  # where libzmq asks a context's ZAP handler (RFC 27)
 DOMAIN = b"hmdrt"  # the ZAP domain of the compositor's sockets

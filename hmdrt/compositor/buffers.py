@@ -14,7 +14,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from hmdrt.memory import touched
+from hmdrt.kernels.memory import touched
 
 MOST_POOLED = 16  # per pool: more than the display, its pending frames and the writer's queue hold at once
 

@@ -13,8 +13,8 @@ from typing import Annotated, Literal
 import msgspec
 
 from hmdrt.bus import INGEST, TELEMETRY
-from hmdrt.configfile import convert, read_toml
 from hmdrt.errors import ConfigError
+from hmdrt.files.configfile import convert, read_toml
 from hmdrt.foveation import MethodChoice
 
 Ms = Annotated[float, msgspec.Meta(ge=0.0, le=10_000.0)]

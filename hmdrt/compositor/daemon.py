@@ -29,8 +29,6 @@ import numba
 import numpy as np
 import zmq
 
-from hmdrt import __version__
-from hmdrt.background import BackgroundWriter
 from hmdrt.bus.local import bind_endpoint
 from hmdrt.bus.security import Guard, ServerKeys, check_binds
 from hmdrt.clock import MONOTONIC, Clock, VirtualClock
@@ -49,15 +47,17 @@ from hmdrt.compositor.preview import PREVIEW, PreviewPublisher
 from hmdrt.compositor.samples import GazeEstimate, PoseEstimate, SampleStore
 from hmdrt.compositor.session import Session
 from hmdrt.compositor.sources import Sources
+from hmdrt.console.logs import TelemetryHandler
 from hmdrt.errors import ConfigError, HmdrtError
+from hmdrt.files.background import BackgroundWriter
 from hmdrt.foveation import MethodChoice
-from hmdrt.logs import TelemetryHandler
 from hmdrt.optics import EyeCamera
 from hmdrt.present.output import FrameWriter, check_folder
-from hmdrt.sequence import compose_pose, eye_cameras
 from hmdrt.telemetry.frames_log import FramesHeader, FramesLog
 from hmdrt.telemetry.report import FrameRecord, RunReport, SampleUse
 from hmdrt.telemetry.stats import FrameStats
+from hmdrt.version import __version__
+from hmdrt.views import compose_pose, eye_cameras
 
 log = logging.getLogger(__name__)
 

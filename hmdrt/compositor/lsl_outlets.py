@@ -7,12 +7,12 @@ when first shown, with the gaze (each eye's unit direction in the head frame, as
 rendered for, the capture times of the samples they came from, how far each was predicted, whether it was held through
 a blink or lost tracking, and gaze- and pose-to-photon latency; its channels carry XDF meta-data (label, eye, type,
 unit). Both stamp a sample with its photon time: the VSync it was presented at, where the run report's latencies end,
-on the LSL clock (hmdrt.lsl.ClockMap: the host clock where they are one; in virtual time the virtual clock, offset to
-LSL time at the start).
+on the LSL clock (hmdrt.bus.lsl.ClockMap: the host clock where they are one; in virtual time the virtual clock,
+offset to LSL time at the start).
 
 The outlets are fed through a short queue by the display thread and pushed from a thread of their own
-(hmdrt.background): in real time a full queue drops the record and counts it, so LSL never holds up a frame; in virtual
-time the display waits, so every frame is pushed.
+(hmdrt.files.background): in real time a full queue drops the record and counts it, so LSL never holds up a frame;
+in virtual time the display waits, so every frame is pushed.
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ import json
 import os
 from typing import Literal
 
-from hmdrt.background import BackgroundWriter
+from hmdrt.bus.lsl import ClockMap, load_pylsl
 from hmdrt.clock import Clock
 from hmdrt.compositor.display import Frame
 from hmdrt.errors import HmdrtError
-from hmdrt.lsl import ClockMap, load_pylsl
+from hmdrt.files.background import BackgroundWriter
 from hmdrt.telemetry.report import FrameRecord, SampleUse
 
 QUEUE = 256  # records waiting to be pushed; in real time more are dropped and counted

@@ -22,9 +22,9 @@ from hmdrt.foveation.base import EYES, Method
 from hmdrt.optics import HmdProfile, get_profile
 from hmdrt.present.timewarp import timewarp
 from hmdrt.scene import load_scene
-from hmdrt.sequence import FrameInput, compose_pose, eye_cameras, frame_requests
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
+from hmdrt.views import FrameInput, compose_pose, eye_cameras, frame_requests
 
 AHEAD = np.array([0.0, 0.0, -1.0])
 READY_RENDERED, READY_WARPED = 3, 2  # image buffers per eye made before the first VSync (BufferPool ready)

@@ -12,11 +12,11 @@ import threading
 import time
 from collections.abc import Callable
 
-from drivers import open_driver
-from drivers.base import DeviceLost, Driver
-from drivers.host import DriverHost
 from hmdrt.bus.security import ClientKeys
 from hmdrt.clock import Clock
+from hmdrt.drivers import open_driver
+from hmdrt.drivers.base import DeviceLost, Driver
+from hmdrt.drivers.host import DriverHost
 
 MAX_READS = 64  # batches per driver per poll (a read returns at most a few thousand samples)
 

@@ -39,8 +39,8 @@ from hmdrt.evaluate.runner import (
 from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.optics import EyeCamera
 from hmdrt.scene import load_scene
-from hmdrt.sequence import FrameInput
 from hmdrt.trace.integrator import Whitted
+from hmdrt.views import FrameInput
 
 if TYPE_CHECKING:
     from distributed import Client, Future

@@ -13,11 +13,11 @@ from typing import Annotated, Literal, NamedTuple
 
 import msgspec
 
-from hmdrt.configfile import convert, read_toml
 from hmdrt.errors import ConfigError
 from hmdrt.evaluate import perceptual
+from hmdrt.evaluate.quality import ScoreSpace
+from hmdrt.files.configfile import convert, read_toml
 from hmdrt.foveation import MethodChoice
-from hmdrt.quality import ScoreSpace
 from hmdrt.spatial import parse_gaze
 
 Scalar = str | int | float | bool

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from hmdrt.atomic import write_atomic
 from hmdrt.errors import HmdrtError
 from hmdrt.evaluate import validate
 from hmdrt.evaluate.config import EvalConfig
 from hmdrt.evaluate.runner import Crops, GroupResult, group_id, group_shape, groups
+from hmdrt.files.atomic import write_atomic
 
 FOLDER = "partial"
 log = logging.getLogger(__name__)

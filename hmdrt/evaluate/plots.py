@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from hmdrt.evaluate.quality import BANDS, SPACE_NAMES
 from hmdrt.evaluate.runner import Crops
-from hmdrt.figures import PlainLogFormatter, plt, save
+from hmdrt.files.figures import PlainLogFormatter, plt, save
 from hmdrt.present.encode import linear_to_srgb8
-from hmdrt.quality import BANDS, SPACE_NAMES
 
 DIFF_GAIN = 4.0  # differences are shown this many times brighter
 MARKERS = "osD^vPXph<>"  # after each round of the colour cycle the next marker: cells look apart up to 110 of them

@@ -8,12 +8,12 @@ import io
 import json
 from pathlib import Path
 
-from hmdrt.atomic import write_atomic
 from hmdrt.evaluate import plots
 from hmdrt.evaluate.config import EvalConfig
+from hmdrt.evaluate.quality import BANDS, SPACE_NAMES
 from hmdrt.evaluate.runner import Evaluation
 from hmdrt.evaluate.tables import paper_tables
-from hmdrt.quality import BANDS, SPACE_NAMES
+from hmdrt.files.atomic import write_atomic
 
 
 def write_results(evaluation: Evaluation, config: EvalConfig, out: Path, with_plots: bool = True) -> list[Path]:

@@ -31,18 +31,18 @@ import msgspec
 import numpy as np
 from tqdm import tqdm
 
-from hmdrt import __version__
 from hmdrt.evaluate.config import EvalConfig, Trace
 from hmdrt.evaluate.perceptual import JodScorer, encode
+from hmdrt.evaluate.quality import BandScores, ScoreSpace
 from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.foveation import FrameRequest, Method, MethodChoice
 from hmdrt.optics import EyeCamera, HmdProfile, get_profile
 from hmdrt.optics.camera import eccentricity_map
-from hmdrt.quality import BandScores, ScoreSpace
 from hmdrt.scene import Scene, load_scene
-from hmdrt.sequence import FrameInput, eye_cameras, frame_requests, sequence_inputs
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
+from hmdrt.version import __version__
+from hmdrt.views import FrameInput, eye_cameras, frame_requests, sequence_inputs
 
 if TYPE_CHECKING:
     from hmdrt.evaluate.partial import PartialResults

@@ -18,7 +18,7 @@ from __future__ import annotations
 import statistics
 from collections.abc import Callable
 
-from hmdrt.quality import SPACE_NAMES
+from hmdrt.evaluate.quality import SPACE_NAMES
 
 Row = dict
 

@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from hmdrt import __version__
-from hmdrt.atomic import write_atomic
+from hmdrt.files.atomic import write_atomic
 from hmdrt.foveation import FrameRequest, make_method
 from hmdrt.optics import EyeCamera
 from hmdrt.scene.model import Scene
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
+from hmdrt.version import __version__
 
 FORMAT = 1  # bump when the cached files change meaning
 

@@ -18,8 +18,8 @@ from hmdrt.evaluate.runner import GroupKey, GroupResult, plan_group, run_group
 from hmdrt.evaluate.truth import TruthCache, scene_digest, truth_rows
 from hmdrt.optics import EyeCamera
 from hmdrt.scene import load_scene
-from hmdrt.sequence import FrameInput
 from hmdrt.trace.integrator import Whitted
+from hmdrt.views import FrameInput
 
 _held = threading.local()  # this thread's (scene name, threads) and its tracer and digest
 

@@ -42,11 +42,11 @@ from hmdrt.foveation.stages.temporal import (
     same_camera,
     view_project,
 )
-from hmdrt.jit import inline, kernel, serial
+from hmdrt.kernels.jit import inline, kernel, serial
+from hmdrt.kernels.schedule import claim, dynamic
 from hmdrt.optics.camera import EyeCamera, eccentricity_map, pixel_grid
 from hmdrt.optics.projection import FAR, bilinear3, camera_arrays, nearest_index
 from hmdrt.ranges import Deg
-from hmdrt.schedule import claim, dynamic
 from hmdrt.telemetry.stats import FrameStats, nbytes
 from hmdrt.trace.gbuffer import GBuffer
 from hmdrt.trace.integrator import Whitted
@@ -377,7 +377,7 @@ def _clear(width, hits):
 
 @kernel
 def _store(width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples, counter, threads):
-    """_store_row over the image, rows claimed (hmdrt.schedule: a row of reused pixels costs more); returns the
+    """_store_row over the image, rows claimed (hmdrt.kernels.schedule: a row of reused pixels costs more); returns the
     number of reused pixels."""
     reused = 0
     h = frame.depth.shape[0] // width

@@ -26,9 +26,9 @@ import numpy as np
 from hmdrt.foveation.base import Configurable, FrameRequest, Knob, Stage
 from hmdrt.foveation.stages.gaze import FixationFilter
 from hmdrt.foveation.stages.sampling import SMALL_R0, pixels_per_degree
-from hmdrt.jit import inline, kernel, serial
+from hmdrt.kernels.jit import inline, kernel, serial
+from hmdrt.kernels.schedule import claim, dynamic
 from hmdrt.optics.camera import EyeCamera
-from hmdrt.schedule import claim, dynamic
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
 
@@ -176,7 +176,7 @@ def _update(
     rgb: np.ndarray, samples: Samples, buffer: np.ndarray, out: np.ndarray, counter: np.ndarray, threads: int
 ) -> None:
     """The traced pixels into the persistent buffer, and the buffer into `out`, a band of rows at a time, bands
-    claimed (hmdrt.schedule: the fovea's bands write many more samples)."""
+    claimed (hmdrt.kernels.schedule: the fovea's bands write many more samples)."""
     xy, row_start = samples.xy, samples.row_start
     h, w = buffer.shape[0], buffer.shape[1]
     # flat views and unsigned indices: no negative-index checks, and the band's copy is one contiguous slice

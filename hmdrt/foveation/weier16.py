@@ -55,7 +55,9 @@ from hmdrt.foveation.stages.reproject import (
 )
 from hmdrt.foveation.stages.sampling import FOVEAL_REGION_KNOBS, Foveal, foveal_config, foveal_probability
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
-from hmdrt.jit import inline, kernel, serial
+from hmdrt.kernels.jit import inline, kernel, serial
+from hmdrt.kernels.rng import uniform
+from hmdrt.kernels.schedule import claim, dynamic
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
 from hmdrt.optics.projection import (
     FAR,
@@ -68,8 +70,6 @@ from hmdrt.optics.projection import (
     world_point,
 )
 from hmdrt.ranges import Deg, Fraction
-from hmdrt.rng import uniform
-from hmdrt.schedule import claim, dynamic
 from hmdrt.telemetry.stats import FrameStats, nbytes
 from hmdrt.trace.gbuffer import GBufferPool, LightBuffer
 from hmdrt.trace.integrator import Whitted

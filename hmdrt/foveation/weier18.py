@@ -57,7 +57,7 @@ from hmdrt.foveation.stages.sampling import (
     sampling_tables,
 )
 from hmdrt.foveation.stages.temporal import eye_point, relative_view, view_project
-from hmdrt.jit import kernel, serial
+from hmdrt.kernels.jit import kernel, serial
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
 from hmdrt.optics.projection import FAR, camera_arrays
 from hmdrt.ranges import Deg, Fraction

@@ -17,8 +17,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.jit import inline, kernel, serial
-from hmdrt.memory import touched
+from hmdrt.kernels.jit import inline, kernel, serial
+from hmdrt.kernels.memory import touched
 from hmdrt.optics.profiles import HmdProfile
 from hmdrt.spatial import Pose
 

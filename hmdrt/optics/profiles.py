@@ -14,8 +14,8 @@ from typing import Annotated
 
 import msgspec
 
-from hmdrt.configfile import parse_toml, read_limited
 from hmdrt.errors import ConfigError
+from hmdrt.files.configfile import parse_toml, read_limited
 
 Pixels = Annotated[int, msgspec.Meta(ge=1, le=16384)]
 HalfAngle = Annotated[float, msgspec.Meta(gt=-89.0, lt=89.0)]

@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hmdrt.jit import inline, serial
+from hmdrt.kernels.jit import inline, serial
 from hmdrt.optics.camera import EyeCamera
 
 FAR = 1e7  # metres: where a miss is placed so that it reprojects as a direction

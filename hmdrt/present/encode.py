@@ -17,7 +17,7 @@ import numpy as np
 from PIL import Image
 
 from hmdrt.errors import HmdrtError
-from hmdrt.jit import inline, kernel
+from hmdrt.kernels.jit import inline, kernel
 
 PREVIEW_LEVELS = 16384  # linear levels of preview_srgb8's table: steps of at most one sRGB code
 

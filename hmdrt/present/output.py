@@ -1,5 +1,5 @@
 """The shown frames on disk: every `every`th VSync as a PNG in a folder and/or a frame of a video
-(`[output] frames_dir`, `video`, `every`), written on a thread of their own (hmdrt.background).
+(`[output] frames_dir`, `video`, `every`), written on a thread of their own (hmdrt.files.background).
 
 Frames wait in a short queue; in real time one that finds it full is skipped and counted, so the display never
 waits, in virtual time the display waits for room, so every frame is written. One that cannot be written is
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hmdrt.background import BackgroundWriter
 from hmdrt.errors import ConfigError, HmdrtError
+from hmdrt.files.background import BackgroundWriter
 from hmdrt.present.encode import side_by_side_srgb8, write_png
 from hmdrt.present.video import VideoWriter
 

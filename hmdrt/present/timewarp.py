@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.jit import kernel, serial
+from hmdrt.kernels.jit import kernel, serial
 from hmdrt.optics.camera import EyeCamera
 
 ROWS_PIXELS = 8192  # pixels per block of rows: each block allocates one row's lookups

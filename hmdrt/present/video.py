@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hmdrt.atomic import check_writable
 from hmdrt.errors import ConfigError, HmdrtError
+from hmdrt.files.atomic import check_writable
 
 INSTALL = "pip install -e '.[video]'"
 

@@ -14,8 +14,8 @@ import numpy as np
 from PIL import Image as PILImage
 from PIL import UnidentifiedImageError
 
-from hmdrt.configfile import MAX_TOML_BYTES, parse_toml, read_limited
 from hmdrt.errors import SceneError
+from hmdrt.files.configfile import MAX_TOML_BYTES, parse_toml, read_limited
 from hmdrt.scene import shapes
 from hmdrt.scene.model import Checker, Colour, Finite, Image, Light, Material, Mesh, PointLight, Radiance, Scene, Vec3
 from hmdrt.spatial import Pose

@@ -5,8 +5,8 @@ import math
 import numba as nb
 import numpy as np
 
-from hmdrt.jit import inline, kernel
-from hmdrt.rng import hash32
+from hmdrt.kernels.jit import inline, kernel
+from hmdrt.kernels.rng import hash32
 
 
 @inline

@@ -2,7 +2,7 @@
 record (the `frame` telemetry: predicted and actual times, new/late/repeat, method and parameters, stage times,
 rays, the gaze and pose samples used, latencies) as one line of JSON.
 
-The log is written append-only on a thread of its own (hmdrt.background), each line with one write to the file
+The log is written append-only on a thread of its own (hmdrt.files.background), each line with one write to the file
 (no buffer in between), so a run killed with SIGKILL keeps every frame up to its last line. In real time a full
 queue drops the record and counts it; in virtual time the display waits, so every frame is logged. The reader
 is for `hmdrt export` and `hmdrt report plot`: it refuses oversized files and lines and names the file and line
@@ -18,8 +18,8 @@ from typing import Annotated
 
 import msgspec
 
-from hmdrt.background import BackgroundWriter
 from hmdrt.errors import ConfigError, HmdrtError
+from hmdrt.files.background import BackgroundWriter
 from hmdrt.telemetry.report import SHOWN, FrameRecord
 
 log = logging.getLogger(__name__)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import msgspec
 
-from hmdrt.atomic import write_atomic
+from hmdrt.files.atomic import write_atomic
 from hmdrt.telemetry.frames_log import FramesLogReading
 from hmdrt.telemetry.report import FrameRecord, SampleUse
 

@@ -1,5 +1,5 @@
 """Plots of a run: `hmdrt report plot FRAMES.jsonl|REPORT.json --out DIR` writes PNGs (matplotlib on Agg, in the
-eval's style: hmdrt.figures).
+eval's style: hmdrt.files.figures).
 
 From a frames log (`[output] frames_log`; a `.jsonl` file): `timeline.png`, each rendered frame's work against
 the period and the deadline (the period less the pacing margin), late frames and VSyncs without a new frame
@@ -17,9 +17,9 @@ from typing import Annotated
 import msgspec
 import numpy as np
 
-from hmdrt.atomic import check_writable
 from hmdrt.errors import HmdrtError
-from hmdrt.figures import plt, save
+from hmdrt.files.atomic import check_writable
+from hmdrt.files.figures import plt, save
 from hmdrt.telemetry.frames_log import MAX_MS, FramesLogReading, read_frames_log
 
 MAX_REPORT_BYTES = 64 * 1024**2

@@ -7,7 +7,7 @@ import json
 import socket
 from pathlib import Path
 
-from hmdrt.resources import INSTALLED
+from hmdrt.files.resources import INSTALLED
 
 ANY_PORT = "tcp://127.0.0.1:*"  # a loopback port the socket picks free when it binds
 TRACE = INSTALLED / "traces" / "synthetic_250hz.jsonl.gz"  # the recorded synthetic gaze and head trace hmdrt ships

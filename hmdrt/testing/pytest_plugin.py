@@ -22,7 +22,7 @@ from hmdrt.testing.config import TRACE, write_config
 if TYPE_CHECKING:
     import zmq
 
-    from drivers.emulators.base import Emulator
+    from hmdrt.drivers.emulators.base import Emulator
     from hmdrt.testing.runs import Recording
 
 
@@ -120,7 +120,7 @@ def hmdrt_emulator() -> Iterator[Callable[..., Emulator]]:
     razor, hatire on a pseudo-terminal) whose `url` goes into a config's drivers; options as
     drivers.emulators.make_emulator takes them (seed, rate_hz, offset_deg, noise_deg, latency_ms, trace). Stopped
     when the test ends. Emulators run on the host clock: they feed real-time runs."""
-    from drivers.emulators import EYE_TRACKERS, make_emulator
+    from hmdrt.drivers.emulators import EYE_TRACKERS, make_emulator
 
     started: list[Emulator] = []
 

@@ -6,7 +6,7 @@ Vectors are passed as scalar triples so the numba kernels inline these without a
 
 import math
 
-from hmdrt.jit import inline
+from hmdrt.kernels.jit import inline
 
 
 @inline

@@ -25,7 +25,7 @@ import llvmlite.binding as llvm
 import numpy as np
 from numba import types
 
-from hmdrt.jit import inline, serial
+from hmdrt.kernels.jit import inline, serial
 
 # RTCRayHit's fields in order: ray org/tnear 0-3, dir/time 4-7, tfar 8, mask 9, id 10, flags 11; hit Ng 12-14,
 # u 15, v 16, primID 17, geomID 18, instID 19, instPrimID 20 (where Embree was built with instance arrays)

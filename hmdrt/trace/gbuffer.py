@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hmdrt.jit import serial
+from hmdrt.kernels.jit import serial
 
 
 class HitAttributes(NamedTuple):

@@ -15,7 +15,7 @@ import numba as nb
 import numpy as np
 from numba import typed
 
-from hmdrt.memory import retain_freed_memory
+from hmdrt.kernels.memory import retain_freed_memory
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.scene.model import Scene
 from hmdrt.scene.pack import pack

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hmdrt.jit import inline, serial
+from hmdrt.kernels.jit import inline, serial
 from hmdrt.scene.model import Scene
 from hmdrt.scene.pack import Lights
 from hmdrt.trace.sampling import DIM_AO, DIM_AREA, cosine_hemisphere, grid_shape, stratified

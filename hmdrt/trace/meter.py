@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import types
 
-from hmdrt.jit import inline
+from hmdrt.kernels.jit import inline
 from hmdrt.telemetry.stats import FrameStats
 
 STAGES = ("raygen", "primary", "secondary", "surface", "lightgen", "shadow", "area", "ao", "shade", "gbuffer")

@@ -1,6 +1,6 @@
 """Stratified sample patterns: pixel jitter, area-light points and cosine-weighted hemisphere directions.
 
-Each sample is a pure function of (key, index, dimension) through hmdrt.rng, so a seeded render
+Each sample is a pure function of (key, index, dimension) through hmdrt.kernels.rng, so a seeded render
 reproduces bit for bit however it is batched.
 """
 
@@ -9,8 +9,8 @@ import math
 import numba as nb
 import numpy as np
 
-from hmdrt.jit import inline, kernel
-from hmdrt.rng import uniform
+from hmdrt.kernels.jit import inline, kernel
+from hmdrt.kernels.rng import uniform
 
 # RNG dimensions: distinct streams for the different decisions made for one key
 DIM_PIXEL, DIM_AREA, DIM_AO = 1, 16, 4096

@@ -11,8 +11,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hmdrt.jit import inline, serial
-from hmdrt.rng import hash32
+from hmdrt.kernels.jit import inline, serial
+from hmdrt.kernels.rng import hash32
 from hmdrt.trace.bsdf import reflect, refract, split
 
 MIN_THROUGHPUT = 1e-4  # children whose every channel would carry less than this are not traced

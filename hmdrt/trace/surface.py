@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hmdrt.jit import serial
+from hmdrt.kernels.jit import serial
 from hmdrt.trace.textures import texture_block
 
 OFFSET_REL = 2.0**-16  # ~512 float32 ulps of the triangle's coordinates

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from hmdrt.jit import serial
+from hmdrt.kernels.jit import serial
 from hmdrt.scene.noise import fbm
 from hmdrt.scene.pack import TEX_CHECKER, TEX_IMAGE, TEX_NOISE, Materials
 

@@ -11,9 +11,9 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.jit import kernel
+from hmdrt.kernels.jit import kernel
+from hmdrt.kernels.schedule import claim, dynamic
 from hmdrt.scene.pack import Geometry
-from hmdrt.schedule import claim, dynamic
 from hmdrt.trace import embree
 from hmdrt.trace.blocks import BLOCK
 
@@ -72,7 +72,7 @@ class Tracer:
         self.args = embree.coherent_args()
 
     def run(self, fn, *args) -> None:
-        """fn(*args), a parallel kernel that claims its blocks (hmdrt.schedule.dynamic: they differ in cost), on
+        """fn(*args), a parallel kernel that claims its blocks (hmdrt.kernels.schedule.dynamic: they differ in cost), on
         this tracer's threads (numba's count is per calling thread)."""
         before = nb.get_num_threads()
         nb.set_num_threads(self.threads)

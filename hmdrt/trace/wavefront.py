@@ -20,9 +20,9 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.jit import kernel, serial
+from hmdrt.kernels.jit import kernel, serial
+from hmdrt.kernels.schedule import claim
 from hmdrt.optics.camera import eye_direction
-from hmdrt.schedule import claim
 from hmdrt.trace import embree, meter
 from hmdrt.trace.gbuffer import GBuffer, store_block
 from hmdrt.trace.lighting import RayBatch, batch_empty, light_rays_block, shade_block
@@ -340,7 +340,7 @@ def _trace_kernel(
 
 def trace(scene: SceneArgs, frame: Frame, lanes, block: int, counter: np.ndarray, threads: int) -> None:
     """Radiance of every sample of `frame` into frame.out, blocks of `block` samples claimed by the threads as
-    each frees up (call it through hmdrt.schedule.dynamic); lanes: a numba typed List of one Lane per numba
+    each frees up (call it through hmdrt.kernels.schedule.dynamic); lanes: a numba typed List of one Lane per numba
     thread. A parallel kernel's arguments cannot nest tuples of arrays (numba builds its gufunc from the flat
     ones), so the namedtuples travel field by field."""
     _trace_kernel(*scene, *frame[:4], *frame.gbuffer, frame.light, frame[6:], lanes, block, counter, threads)

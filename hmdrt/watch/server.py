@@ -21,10 +21,10 @@ import msgspec
 from aiohttp import WSMsgType, web
 from aiohttp.http_exceptions import HttpProcessingError
 
-from hmdrt import __version__
 from hmdrt.bus.security import ClientKeys, is_loopback
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import METHODS
+from hmdrt.version import __version__
 from hmdrt.watch.access import Access, add_headers, host_name
 from hmdrt.watch.hub import Hub, Page
 from hmdrt.watch.link import CONTROL_TIMEOUT_S, CompositorLink

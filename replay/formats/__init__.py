@@ -19,8 +19,8 @@ from pathlib import Path
 
 from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
+from hmdrt.replay.trace import TraceReading, capped_lines, first_line, open_capped
 from hmdrt.spatial import gaze_direction
-from replay.trace import TraceReading, capped_lines, first_line, open_capped
 
 NS, MS, S = 1, 1_000_000, 1_000_000_000  # nanoseconds per unit of a time column
 MAX_TIME_NS = 2**62

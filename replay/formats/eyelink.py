@@ -36,8 +36,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from hmdrt.errors import ConfigError
-from replay.formats import MS, S, Vec3, gaze_sample, number, require_valid, text_lines, time_ns, unit
-from replay.trace import TraceReading
+from hmdrt.replay.formats import MS, S, Vec3, gaze_sample, number, require_valid, text_lines, time_ns, unit
+from hmdrt.replay.trace import TraceReading
 
 log = logging.getLogger(__name__)
 DEFAULT_COORDS = (0.0, 0.0, 1919.0, 1079.0)

@@ -13,8 +13,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from hmdrt.bus.messages import Gaze
-from replay.formats import MS, direction, gaze_sample, number, read_csv, time_ns
-from replay.trace import TraceReading
+from hmdrt.replay.formats import MS, direction, gaze_sample, number, read_csv, time_ns
+from hmdrt.replay.trace import TraceReading
 
 COLUMNS = ("n", "x", "y", "lx", "ly", "rx", "ry")
 NAME, NEEDS = "GazeBaseVR", f"[{', '.join(COLUMNS)}]"

@@ -30,11 +30,11 @@ import io
 from collections.abc import Iterable
 from pathlib import Path
 
-from hmdrt.atomic import write_atomic
 from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
-from replay.formats import MS, NS, S, csv_header, direction, gaze_sample, number, read_csv, time_ns, unit
-from replay.trace import Sample, TraceReading
+from hmdrt.files.atomic import write_atomic
+from hmdrt.replay.formats import MS, NS, S, csv_header, direction, gaze_sample, number, read_csv, time_ns, unit
+from hmdrt.replay.trace import Sample, TraceReading
 
 TIME_COLUMNS = {"t_ns": NS, "t_ms": MS, "t_s": S}
 ANGLES = ("yaw_deg", "pitch_deg")

@@ -20,8 +20,8 @@ from pathlib import Path
 
 from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
-from replay.formats import S, Vec3, csv_header, gaze_sample, number, read_csv, refuse_columns, time_ns, unit
-from replay.trace import TraceReading
+from hmdrt.replay.formats import S, Vec3, csv_header, gaze_sample, number, read_csv, refuse_columns, time_ns, unit
+from hmdrt.replay.trace import TraceReading
 
 HEADERS = {  # time column: the columns that mark an export, newest format first
     "gaze_timestamp": ("gaze_timestamp", "confidence"),

@@ -11,8 +11,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.fove import FoveDriver
-from drivers.protocols import fove
+from hmdrt.drivers.fove import FoveDriver
+from hmdrt.drivers.protocols import fove
 from tests.fuzz.common import (
     MSGPACK_VALUES,
     fuzz,

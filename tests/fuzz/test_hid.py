@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import strategies as st
 
-from drivers.hid import HidDriver
-from drivers.protocols import dk2
 from hmdrt.clock import VirtualClock
+from hmdrt.drivers.hid import HidDriver
+from hmdrt.drivers.protocols import dk2
 from tests.fuzz.common import (
     fuzz,
     publishable,

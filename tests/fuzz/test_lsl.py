@@ -8,10 +8,10 @@ import xml.etree.ElementTree as ElementTree
 import numpy as np
 from hypothesis import strategies as st
 
-from drivers.emulators.lsl_source import CHANNEL_COUNT, titta_channels
-from drivers.lsl import DEFAULT_PROFILE
-from drivers.protocols.lsl_gaze import AXES, ORIGINS, GazeDecoder, MetadataError, gaze_layout, parse_info
 from hmdrt.bus.messages import Gaze
+from hmdrt.drivers.emulators.lsl_source import CHANNEL_COUNT, titta_channels
+from hmdrt.drivers.lsl import DEFAULT_PROFILE
+from hmdrt.drivers.protocols.lsl_gaze import AXES, ORIGINS, GazeDecoder, MetadataError, gaze_layout, parse_info
 from hmdrt.optics import get_profile
 from tests.fuzz.common import fuzz, mutations, publishable
 

@@ -17,9 +17,9 @@ from hypothesis import strategies as st
 from PIL import Image as PILImage
 
 from hmdrt.errors import ConfigError, SceneError
+from hmdrt.replay import load_trace
 from hmdrt.scene.files import MAX_FILE_BYTES as MAX_MESH_BYTES
 from hmdrt.scene.files import MESH_SUFFIXES, load_image, load_mesh_file, load_scene_file
-from replay import load_trace
 from tests.fuzz.common import (
     MESHES,
     error_names_file,

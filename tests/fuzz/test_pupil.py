@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from hypothesis import strategies as st
 
-from drivers.pupil import MalformedDatum, PupilDriver, decode_gaze
 from hmdrt.bus.messages import Gaze
+from hmdrt.drivers.pupil import MalformedDatum, PupilDriver, decode_gaze
 from tests.fuzz.common import (
     MSGPACK_VALUES,
     fuzz,

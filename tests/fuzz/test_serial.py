@@ -8,10 +8,10 @@ import math
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers import open_driver
-from drivers.protocols import hatire, razor
-from drivers.protocols.hatire import HatireFrame
-from drivers.serial_port import PROTOCOLS as SERIAL_PROTOCOLS
+from hmdrt.drivers import open_driver
+from hmdrt.drivers.protocols import hatire, razor
+from hmdrt.drivers.protocols.hatire import HatireFrame
+from hmdrt.drivers.serial_port import PROTOCOLS as SERIAL_PROTOCOLS
 from tests.fuzz.common import (
     fuzz,
     mutations,

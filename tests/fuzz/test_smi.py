@@ -12,8 +12,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers import open_driver
-from drivers.protocols import smi
+from hmdrt.drivers import open_driver
+from hmdrt.drivers.protocols import smi
 from tests.fuzz.common import (
     fuzz,
     mutations,

@@ -12,9 +12,9 @@ import pytest
 from hypothesis import strategies as st
 
 from hmdrt.compositor.config import RunConfig, load_config
-from hmdrt.configfile import MAX_TOML_BYTES, read_toml
 from hmdrt.errors import ConfigError, SceneError
 from hmdrt.evaluate.config import EvalConfig, load_eval_config
+from hmdrt.files.configfile import MAX_TOML_BYTES, read_toml
 from hmdrt.optics.profiles import HmdProfile, get_profile
 from hmdrt.scene.files import SceneFile, load_scene_file
 from hmdrt.scene.model import Scene

@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 
 from hmdrt.bus.messages import Gaze, Pose
 from hmdrt.errors import ConfigError
-from replay import load_trace, trace
-from replay.trace import TraceWriter
+from hmdrt.replay import load_trace, trace
+from hmdrt.replay.trace import TraceWriter
 from tests.fuzz.common import (
     fuzz,
     publishable,

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from drivers.clocksync import ClockSync
-from drivers.fusion import GRAVITY, OrientationFusion
 from hmdrt.bus.messages import Pose
 from hmdrt.compositor.samples import SampleStore
+from hmdrt.drivers.clocksync import ClockSync
+from hmdrt.drivers.fusion import GRAVITY, OrientationFusion
 from hmdrt.foveation.stages.gaze import FixationFilter
 from hmdrt.spatial import gaze_direction, quat_from_yaw_pitch
 from tests.stability.common import (

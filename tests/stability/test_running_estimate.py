@@ -11,8 +11,8 @@ import pytest
 from hmdrt.foveation.stages.reproject import MeshImage
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
 from hmdrt.foveation.weier16 import COVERED, TRACED, CacheRule, Final, RowTaps, Samples, Selection, _update
+from hmdrt.kernels.schedule import dynamic
 from hmdrt.optics.projection import camera_arrays
-from hmdrt.schedule import dynamic
 from tests.stability.common import (
     camera,
 )

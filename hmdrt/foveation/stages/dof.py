@@ -24,8 +24,8 @@ import numpy as np
 
 from hmdrt.foveation.stages.filters import Contrast, enhance_row
 from hmdrt.foveation.stages.pyramid import PixelAxes, Pyramid, RowSamples, pixel_axes, sample_row
-from hmdrt.jit import inline, kernel, serial
-from hmdrt.schedule import claim, dynamic
+from hmdrt.kernels.jit import inline, kernel, serial
+from hmdrt.kernels.schedule import claim, dynamic
 
 IMAGE_DISTANCE_MM = 22.4  # d_i, the eye's lens-to-retina distance (Gross 2005)
 DEPTH_INACCURACY_M = 0.2  # t, the mean gaze-depth estimation error over 6 m (Weier et al. 2018)
@@ -117,7 +117,7 @@ def _row_stats(coc, y, rows):
 @kernel
 def _coc_rows(depth_m, miss, lens, coc, rows, counter, threads):
     """The CoC of every pixel (hit distances in metres; `miss` and beyond: misses, at infinity) and each row's
-    figures, rows claimed (hmdrt.schedule: a row of misses or of focused pixels costs less)."""
+    figures, rows claimed (hmdrt.kernels.schedule: a row of misses or of focused pixels costs less)."""
     d_n, d_f, f_n, f_f, k, e = lens
     h, w = coc.shape
     for _ in nb.prange(threads):
@@ -242,7 +242,8 @@ def _horizontal_row(color, ecc, coc, far, near, y, r1, radius, has_near):
 
 @kernel
 def _horizontal(color, ecc, layers, blur, counter, threads):
-    """Rows claimed (hmdrt.schedule): the near field's rows, at the bottom of the image, cost several times more."""
+    """Rows claimed (hmdrt.kernels.schedule): the near field's rows, at the bottom of the image, cost several times
+    more."""
     coc, far, near, rows = layers.coc, layers.far, layers.near, layers.rows
     r1, radius = blur.r1, blur.radius
     for _ in nb.prange(threads):
@@ -316,7 +317,7 @@ def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y,
 @kernel
 def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, dof, out, counter, threads):
     """Row by row, the depth of field then the contrast over the row while it is in cache: two simple loops
-    compile to faster code than one that does both. Rows claimed (hmdrt.schedule): their cost varies."""
+    compile to faster code than one that does both. Rows claimed (hmdrt.kernels.schedule): their cost varies."""
     for _ in nb.prange(threads):
         thread = nb.get_thread_id()
         levels, values, texels = scratch.levels[thread], scratch.values[thread], scratch.texels[thread]

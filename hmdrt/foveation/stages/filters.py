@@ -21,7 +21,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.stages.pyramid import Pyramid, pixel_texels, sample_row
-from hmdrt.jit import kernel, serial
+from hmdrt.kernels.jit import kernel, serial
 
 DEGREES_PER_LEVEL = 5.0  # the blur's pyramid level grows by one every 5 degrees beyond r0
 

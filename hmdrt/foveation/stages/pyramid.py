@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.jit import inline, kernel, serial
+from hmdrt.kernels.jit import inline, kernel, serial
 
 CHANNELS = 5  # r, g, b, weight, depth
 

@@ -14,11 +14,11 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.jit import inline, kernel, serial
+from hmdrt.kernels.jit import inline, kernel, serial
+from hmdrt.kernels.rng import uniform
+from hmdrt.kernels.schedule import claim, dynamic
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.optics.projection import FAR, NEAR, bilinear3, camera_arrays, project, project_view, world_point
-from hmdrt.rng import uniform
-from hmdrt.schedule import claim, dynamic
 
 
 @kernel

@@ -17,9 +17,9 @@ import numpy as np
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import Knob
 from hmdrt.foveation.stages.pyramid import quincunx_offset
-from hmdrt.jit import inline, kernel
+from hmdrt.kernels.jit import inline, kernel
+from hmdrt.kernels.rng import uniform
 from hmdrt.optics.camera import EyeCamera
-from hmdrt.rng import uniform
 
 # weier2016 section 4.2, RQ2: the foveal region configurations (r0, r1, p_min); full traces every pixel
 FRC_PRESETS: dict[str, tuple[float, float, float]] = {

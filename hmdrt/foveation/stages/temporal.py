@@ -14,11 +14,11 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.jit import inline, kernel, serial
-from hmdrt.memory import touched
+from hmdrt.kernels.jit import inline, kernel, serial
+from hmdrt.kernels.memory import touched
+from hmdrt.kernels.schedule import claim, dynamic
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.optics.projection import FAR, bilinear_footprint, blend_footprint, camera_arrays
-from hmdrt.schedule import claim, dynamic
 
 
 @inline
@@ -286,7 +286,7 @@ def _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out):
 @kernel
 def _smooth(frustum, depth, color, alpha, earlier, rel_depth, out, counter, threads):
     """The closed form over the image: pixel by pixel when no earlier camera moved, else row by row in the scratch
-    row of the thread that claims it (hmdrt.schedule: the sky's rows cost less)."""
+    row of the thread that claims it (hmdrt.kernels.schedule: the sky's rows cost less)."""
     h = depth.shape[0]
     if earlier.same.all():
         for y in nb.prange(h):

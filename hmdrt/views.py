@@ -17,11 +17,11 @@ from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import EYES, FrameRequest, Method
 from hmdrt.foveation.stages.gaze import vergence_depth
 from hmdrt.optics import EyeCamera, HmdProfile
+from hmdrt.replay import load_trace
+from hmdrt.replay.trace import Gaze, TraceReading, usable
+from hmdrt.replay.trace import Pose as PoseSample
 from hmdrt.spatial import Pose, gaze_direction, parse_gaze, quat_multiply, quat_rotate, unit
 from hmdrt.telemetry.stats import FrameStats
-from replay import load_trace
-from replay.trace import Gaze, TraceReading, usable
-from replay.trace import Pose as PoseSample
 
 
 @dataclass(frozen=True)

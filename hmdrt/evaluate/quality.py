@@ -14,7 +14,7 @@ import numba as nb
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from hmdrt.jit import kernel
+from hmdrt.kernels.jit import kernel
 
 # kim2021's band edges in degrees: fovea < e_f, parafovea < e_p, perifovea < e_m, near periphery < e_np
 BANDS = {

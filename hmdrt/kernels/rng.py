@@ -1,7 +1,7 @@
 """Counter-based random numbers: a hash of (key, index, dimension), so results do not depend on
 batching, threading or evaluation order (docs/architecture.md, Conventions: a seeded run reproduces bit for bit)."""
 
-from hmdrt.jit import inline
+from hmdrt.kernels.jit import inline
 
 _MASK = 0xFFFFFFFF
 

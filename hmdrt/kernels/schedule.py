@@ -29,7 +29,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from hmdrt.jit import serial
+from hmdrt.kernels.jit import serial
 
 T = TypeVar("T")
 

@@ -12,7 +12,7 @@ import logging
 from pathlib import Path
 
 log = logging.getLogger(__name__)
-INSTALLED = Path(__file__).parent / "configs"
+INSTALLED = Path(__file__).parents[1] / "configs"
 
 
 def run_config(path: str | Path) -> Path:

@@ -1,5 +1,5 @@
 """Logging: the standard `logging` module, a logger per module (`logging.getLogger(__name__)` under hmdrt,
-drivers and replay), configured once by the command line (`hmdrt -v`, `--log-level`).
+its drivers and replay included), configured once by the command line (`hmdrt -v`, `--log-level`).
 
 While a compositor runs, its process's records also go out on the telemetry `log` topic as {"level", "message",
 "logger"} (as Pupil Capture publishes its log on its IPC backbone), at INFO and above whatever the console
@@ -14,7 +14,7 @@ from collections.abc import Callable
 from typing import TextIO
 
 LEVELS = ("debug", "info", "warning", "error")
-PACKAGES = ("hmdrt", "drivers", "replay")
+PACKAGES = ("hmdrt",)
 FORMAT = "hmdrt: %(levelname)s: %(name)s: %(message)s"
 
 
