@@ -1,4 +1,4 @@
-"""How much slower the compositor's per-frame Python runs when it last ran a frame ago (issue 5, overhead).
+"""How much slower the compositor's per-frame Python runs when it last ran a frame ago (overhead).
 
     python bench/cold_start.py [--repeats 100]
 

@@ -1,4 +1,4 @@
-"""How `hmdrt eval --cluster` scales on this machine (issue 20): the wall time of one eval config on a LocalCluster of
+"""How `hmdrt eval --cluster` scales on this machine: the wall time of one eval config on a LocalCluster of
 1 worker process and of 2 (one thread each), its ground truths rendered afresh (row blocks across the workers),
 the ratio, and whether the image-derived columns (PSNR, SSIM, flicker, JOD, rays, sample fractions) of both equal
 an in-process run's bit for bit.

@@ -1,4 +1,4 @@
-"""The compositor's numbers in real time (issue 5): deadline misses, gaze-to-photon latency and compositor
+"""The compositor's numbers in real time: deadline misses, gaze-to-photon latency and compositor
 overhead for configs/default.toml (both eyes at sim-cpu-640, 640x720 per eye, 30 Hz); misses with the budget
 controller off and on where the method alone cannot hold the rate; and graceful degradation at rift_s, where
 nothing can. Each row states the display it ran and the image buffers the run allocated (a pool of a few

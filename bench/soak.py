@@ -1,5 +1,5 @@
 """Soak: the compositor for a long run while its gaze driver is killed and restarted and a fuzzing publisher
-floods its ingest with garbage (issue 7).
+floods its ingest with garbage.
 
     python bench/soak.py [--duration 600] [--kill-every 20] [--down 2] [--fuzz-rate 200] [--json OUT]
 

@@ -9,7 +9,7 @@ size of a foveated method's batches, e.g. 4000 at sim-cpu):
   tracer    hmdrt.trace.tracer.Tracer.intersect (Embree called from a numba kernel on the tracer's threads)
   primary   ray generation from the camera + Tracer.intersect (the project's whole primary path)
 Repeats are interleaved and the median is reported, since these machines are shared and noisy.
-The target (issue 2) is tracer / bare >= 0.85. On small batches bare-N shows what handing work to other
+The target is tracer / bare >= 0.85. On small batches bare-N shows what handing work to other
 threads costs.
 """
 

@@ -1,4 +1,4 @@
-"""hmdrt eval (issue 6): band metrics, the ground-truth cache, the Pareto front and the command end to end."""
+"""hmdrt eval: band metrics, the ground-truth cache, the Pareto front and the command end to end."""
 
 from __future__ import annotations
 
@@ -545,7 +545,7 @@ def test_methods_declare_the_history_they_need():
 
 
 def _cluster_rows(labels: list[str], ms: list[float]) -> list[dict]:
-    """Rows of one group whose cells lie close together, as issue 16's full and weier16 small and large did."""
+    """Rows of one group whose cells lie close together, as full and weier16 small and large did in one measured run."""
     group = {"scene": "s", "profile": "p", "trace": "t", "score_space": "srgb"}
     return [
         {

@@ -1,4 +1,4 @@
-"""hmdrt eval on Dask distributed (issue 20): the same image-derived columns as the serial run, ground truths in row
+"""hmdrt eval on Dask distributed: the same image-derived columns as the serial run, ground truths in row
 blocks bit for bit the whole image's, no finished cell lost when a worker is killed, --resume, and one-line errors
 for a scheduler that cannot be reached or a missing extra."""
 
@@ -18,9 +18,10 @@ distributed = pytest.importorskip("distributed")
 
 from hmdrt.cli import main  # noqa: E402
 from hmdrt.evaluate.config import load_eval_config  # noqa: E402
+from hmdrt.evaluate.groups import group_id, groups  # noqa: E402
 from hmdrt.evaluate.partial import PartialResults  # noqa: E402
 from hmdrt.evaluate.results import image_columns  # noqa: E402
-from hmdrt.evaluate.runner import evaluate, group_id, groups  # noqa: E402
+from hmdrt.evaluate.runner import evaluate  # noqa: E402
 from hmdrt.evaluate.truth import truth_rows  # noqa: E402
 from hmdrt.optics import get_profile  # noqa: E402
 from hmdrt.scene import load_scene  # noqa: E402

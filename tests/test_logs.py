@@ -27,7 +27,7 @@ def test_the_cli_level_decides_what_reaches_stderr(capsys, restore_logging):
     logs.configure("info")  # again: one console handler, not two
     logging.getLogger("hmdrt.replay.player").info("loud")
     err = capsys.readouterr().err.splitlines()
-    assert err == ["hmdrt: WARNING: drivers.host: driver x crashed", "hmdrt: INFO: replay.player: loud"]
+    assert err == ["hmdrt: WARNING: hmdrt.drivers.host: driver x crashed", "hmdrt: INFO: hmdrt.replay.player: loud"]
 
 
 def test_the_console_writes_to_stderr_as_it_is_when_a_record_comes(restore_logging, monkeypatch):

@@ -24,18 +24,9 @@ from tqdm import tqdm
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.evaluate import validate, worker
 from hmdrt.evaluate.config import EvalConfig, default_cache_dir
+from hmdrt.evaluate.groups import GroupKey, group_id, group_shape, groups
 from hmdrt.evaluate.partial import PartialResults
-from hmdrt.evaluate.runner import (
-    Evaluation,
-    GroupKey,
-    collect,
-    group_id,
-    group_shape,
-    groups,
-    plan_group,
-    trace_frames,
-    truth_cameras,
-)
+from hmdrt.evaluate.runner import Evaluation, collect, plan_group, trace_frames, truth_cameras
 from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.optics import EyeCamera
 from hmdrt.scene import load_scene

@@ -15,7 +15,7 @@ import numpy as np
 from hmdrt.errors import HmdrtError
 from hmdrt.evaluate import validate
 from hmdrt.evaluate.config import EvalConfig
-from hmdrt.evaluate.runner import Crops, GroupResult, group_id, group_shape, groups
+from hmdrt.evaluate.groups import Crops, GroupResult, group_id, group_shape, groups
 from hmdrt.files.atomic import write_atomic
 
 FOLDER = "partial"

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from hmdrt.evaluate.groups import Crops
 from hmdrt.evaluate.quality import BANDS, SPACE_NAMES
-from hmdrt.evaluate.runner import Crops
 from hmdrt.files.figures import PlainLogFormatter, plt, save
 from hmdrt.present.encode import linear_to_srgb8
 

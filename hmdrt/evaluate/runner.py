@@ -14,7 +14,6 @@ speed-up and foveal PSNR delta.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import itertools
 import logging
 import math
@@ -25,27 +24,24 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
-from typing import TYPE_CHECKING, NamedTuple
 
 import msgspec
 import numpy as np
 from tqdm import tqdm
 
-from hmdrt.evaluate.config import EvalConfig, Trace
+from hmdrt.evaluate.config import EvalConfig
+from hmdrt.evaluate.groups import Crops, GroupKey, GroupResult, group_id, group_shape, groups, profile_of
+from hmdrt.evaluate.partial import PartialResults
 from hmdrt.evaluate.perceptual import JodScorer, encode
 from hmdrt.evaluate.quality import BandScores, ScoreSpace
 from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.foveation import FrameRequest, Method, MethodChoice
-from hmdrt.optics import EyeCamera, HmdProfile, get_profile
+from hmdrt.optics import EyeCamera, HmdProfile
 from hmdrt.optics.camera import eccentricity_map
 from hmdrt.scene import Scene, load_scene
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
-from hmdrt.version import __version__
 from hmdrt.views import FrameInput, eye_cameras, frame_requests, sequence_inputs
-
-if TYPE_CHECKING:
-    from hmdrt.evaluate.partial import PartialResults
 
 REFERENCES = ("full", "regular")  # not foveated: never the "best foveated" cell of the summary
 log = logging.getLogger(__name__)
@@ -65,18 +61,6 @@ class _Cell:
     frames: list[np.ndarray] = field(default_factory=list)  # the scored frames, display-encoded (with jod only)
     rays_by_kind: dict[str, int] = field(default_factory=lambda: dict.fromkeys(RAY_KINDS, 0))  # summed likewise
     last: np.ndarray | None = None
-
-
-@dataclass
-class Crops:
-    """The last scored frame of one scene, profile and trace: the truth, each method's image, the gaze pixel."""
-
-    scene: str
-    profile: str
-    trace: str
-    truth: np.ndarray
-    images: dict[str, np.ndarray]
-    gaze_xy: tuple[float, float]
 
 
 @dataclass
@@ -106,19 +90,6 @@ class Evaluation:
         }
 
 
-def _profile(name: str, resolution: str) -> HmdProfile:
-    profile = get_profile(name)
-    return profile.with_resolution_text(resolution, "resolution") if resolution else profile
-
-
-class GroupKey(NamedTuple):
-    """A scene, profile and trace of the config that some method cell runs on: the unit of the eval's work."""
-
-    scene: str
-    profile: str  # as the config names it
-    trace: Trace
-
-
 @dataclass
 class Group:
     """A group ready to render: its cells' methods built, its warm-up and its frames (warm-up first)."""
@@ -129,53 +100,6 @@ class Group:
     cells: list[_Cell]
     warmup: int
     inputs: list[FrameInput]
-
-
-@dataclass
-class GroupResult:
-    """What a group yields: one row per cell (with the worker that rendered it and the group's wall time) and the
-    crops of its last scored frame."""
-
-    rows: list[dict]
-    crops: Crops
-
-
-def groups(config: EvalConfig) -> list[GroupKey]:
-    """Every scene, profile and trace that some cell runs on, in the order of the results."""
-    return [
-        GroupKey(scene, profile, trace)
-        for scene in config.scenes
-        for profile, trace in itertools.product(config.profiles, config.traces)
-        if config.cells(scene, trace)
-    ]
-
-
-def group_id(config: EvalConfig, key: GroupKey) -> str:
-    """A digest of everything that decides a group's rows: its names, its cells and the config's settings that
-    reach its images, so that a finished group of an edited config is reused only where it is the same."""
-    settings = ("resolution", "eye", "frames", "warmup_frames", "truth_spp", "seed", "score_space", "jod")
-    what = {
-        "version": __version__,
-        "group": [key.scene, key.profile, msgspec.to_builtins(key.trace)],
-        "cells": [[str(c.choice), c.label, c.compare_to] for c in config.cells(key.scene, key.trace)],
-        "settings": {name: getattr(config, name) for name in settings},
-    }
-    return hashlib.sha256(msgspec.json.encode(what)).hexdigest()[:24]
-
-
-class GroupShape(NamedTuple):
-    """What a group's result holds: the columns that name it in every row, its cells' labels in the order of its
-    rows, and its images' (height, width)."""
-
-    ids: dict[str, str]
-    labels: list[str]
-    shape: tuple[int, int]
-
-
-def group_shape(config: EvalConfig, key: GroupKey) -> GroupShape:
-    profile = _profile(key.profile, config.resolution)
-    ids = {"scene": key.scene, "profile": profile.name, "trace": key.trace.label}
-    return GroupShape(ids, [c.label for c in config.cells(key.scene, key.trace)], (profile.height, profile.width))
 
 
 def evaluate(config: EvalConfig, progress: bool = True, saved: PartialResults | None = None) -> Evaluation:
@@ -214,14 +138,14 @@ def collect(
 
 def trace_frames(config: EvalConfig, scene: Scene, key: GroupKey) -> list[FrameInput]:
     """A group's frames of its trace, read here (where the group renders elsewhere, it is sent them)."""
-    profile = _profile(key.profile, config.resolution)
+    profile = profile_of(key.profile, config.resolution)
     source, gaze = key.trace.source, key.trace.gaze or "0,0"
     return sequence_inputs(scene.start, profile.period_ns, config.frames, source, gaze, config.seed)[0]
 
 
 def plan_group(config: EvalConfig, tracer: Whitted, key: GroupKey, frames: list[FrameInput]) -> Group:
     """A group's methods built on `tracer` (of its scene), its warm-up, and its trace's `frames` after it."""
-    profile = _profile(key.profile, config.resolution)
+    profile = profile_of(key.profile, config.resolution)
     ids = group_shape(config, key).ids
     cells = [
         _Cell(*cell, cell.choice.make(tracer), BandScores(config.score_space))
@@ -392,7 +316,7 @@ def pareto_front(points: list[tuple[float, float | None]]) -> list[bool]:
 def summarise(rows: list[dict]) -> list[dict]:
     """Per scene, profile, trace and baseline (a cell others are compared with: full unless a compare_to names
     another): the baseline's time and foveal PSNR, and the fastest foveated cell compared with it whose foveal
-    PSNR is at least the baseline's (issue 6's criterion against full), with its speed-up and PSNR delta."""
+    PSNR is at least the baseline's (the speed-up criterion: at least full's PSNR), with its speed-up and PSNR delta."""
     out = []
     groups: dict[tuple, list[dict]] = {}
     for r in rows:

@@ -9,8 +9,8 @@ import math
 import numpy as np
 
 from hmdrt.errors import HmdrtError
+from hmdrt.evaluate.groups import Crops, GroupResult, GroupShape
 from hmdrt.evaluate.quality import BANDS
-from hmdrt.evaluate.runner import Crops, GroupResult, GroupShape
 
 SCALARS = (type(None), bool, int, float, str)
 NUMBER = (int, float)

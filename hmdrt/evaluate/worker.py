@@ -14,7 +14,8 @@ import numpy as np
 
 from hmdrt.errors import HmdrtError
 from hmdrt.evaluate.config import EvalConfig
-from hmdrt.evaluate.runner import GroupKey, GroupResult, plan_group, run_group
+from hmdrt.evaluate.groups import GroupKey, GroupResult
+from hmdrt.evaluate.runner import plan_group, run_group
 from hmdrt.evaluate.truth import TruthCache, scene_digest, truth_rows
 from hmdrt.optics import EyeCamera
 from hmdrt.scene import load_scene

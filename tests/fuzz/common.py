@@ -1,4 +1,4 @@
-"""Helpers shared by the fuzz tests (issue 7) in this folder: strategies, scratch files, seeds."""
+"""Helpers shared by the fuzz tests in this folder: strategies, scratch files, seeds."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Fuzzing bytes and text from outside (issue 7), the bus (hmdrt.bus.messages.decode):
+"""Fuzzing bytes and text from outside, the bus (hmdrt.bus.messages.decode):
 bad input never gets in, never crashes."""
 
 from __future__ import annotations

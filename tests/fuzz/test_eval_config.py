@@ -1,4 +1,4 @@
-"""Fuzzing the eval config's method entries (issue 16): labels, compare_to and scenes in any combination load
+"""Fuzzing the eval config's method entries: labels, compare_to and scenes in any combination load
 into a config whose every baseline names one cell, or fail as one ConfigError line."""
 
 from __future__ import annotations

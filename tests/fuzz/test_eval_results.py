@@ -1,4 +1,4 @@
-"""Fuzzing what comes back from a Dask worker (issue 20): a group result of any shape is either accepted, and then
+"""Fuzzing what comes back from a Dask worker: a group result of any shape is either accepted, and then
 the results, tables and summary take it, or refused as one HmdrtError line naming the task; never a traceback."""
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ from hypothesis import strategies as st
 
 from hmdrt.errors import HmdrtError
 from hmdrt.evaluate import validate
+from hmdrt.evaluate.groups import Crops, GroupResult, GroupShape
 from hmdrt.evaluate.results import flat, table
-from hmdrt.evaluate.runner import Crops, Evaluation, GroupResult, GroupShape, summarise
+from hmdrt.evaluate.runner import Evaluation, summarise
 from tests.fuzz.common import MSGPACK_VALUES, fuzz
 
 TASK = "group-0123abcd-run"

@@ -1,4 +1,4 @@
-"""Fuzzing bytes and text from outside (issue 7), FOVE frames (drivers.protocols.fove, fove://):
+"""Fuzzing bytes and text from outside, FOVE frames (drivers.protocols.fove, fove://):
 bad input never gets in, never crashes."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Fuzzing bytes and text from outside (issue 7), HID reports (drivers.protocols.dk2, hid://):
+"""Fuzzing bytes and text from outside, HID reports (drivers.protocols.dk2, hid://):
 bad input never gets in, never crashes."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Fuzzing bytes and text from outside (issue 7), LSL stream meta-data and samples (drivers.protocols.lsl_gaze,
+"""Fuzzing bytes and text from outside, LSL stream meta-data and samples (drivers.protocols.lsl_gaze,
 lsl://): bad input never gets in, never crashes. Needs no liblsl: the stream info is XML as liblsl writes it."""
 
 from __future__ import annotations

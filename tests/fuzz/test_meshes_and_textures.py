@@ -1,4 +1,4 @@
-"""Fuzzing bytes and text from outside (issue 7), meshes and textures (hmdrt.scene.files):
+"""Fuzzing bytes and text from outside, meshes and textures (hmdrt.scene.files):
 bad input never gets in, never crashes."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Fuzzing bytes and text from outside (issue 7), Pupil Core datums (drivers.pupil):
+"""Fuzzing bytes and text from outside, Pupil Core datums (drivers.pupil):
 bad input never gets in, never crashes."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Fuzzing bytes and text from outside (issue 7), serial lines and frames (Razor, HATIRE, framing, serial://):
+"""Fuzzing bytes and text from outside, serial lines and frames (Razor, HATIRE, framing, serial://):
 bad input never gets in, never crashes."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Fuzzing bytes and text from outside (issue 7), SMI iView X lines (drivers.protocols.smi, smi://):
+"""Fuzzing bytes and text from outside, SMI iView X lines (drivers.protocols.smi, smi://):
 bad input never gets in, never crashes."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Fuzzing bytes and text from outside (issue 7), TOML configs, profiles and scene descriptions:
+"""Fuzzing bytes and text from outside, TOML configs, profiles and scene descriptions:
 bad input never gets in, never crashes."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Fuzzing bytes and text from outside (issue 7), trace files (replay.trace JSONL; EyeLink ASC, CSV, Pupil
+"""Fuzzing bytes and text from outside, trace files (replay.trace JSONL; EyeLink ASC, CSV, Pupil
 Player, GazeBaseVR): bad input never gets in, never crashes."""
 
 from __future__ import annotations

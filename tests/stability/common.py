@@ -1,4 +1,4 @@
-"""Helpers shared by the numerical stability tests (issue 6) in this folder."""
+"""Helpers shared by the numerical stability tests in this folder."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Numerical stability at the edges (issue 6): weier2018 equation (3), thin-lens circles of confusion."""
+"""Numerical stability at the edges: weier2018 equation (3), thin-lens circles of confusion."""
 
 from __future__ import annotations
 

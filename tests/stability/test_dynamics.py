@@ -1,4 +1,4 @@
-"""Numerical stability at the edges (issue 6), stiff dynamics: head-pose fusion, gaze and pose prediction,
+"""Numerical stability at the edges, stiff dynamics: head-pose fusion, gaze and pose prediction,
 fixation smoothing, clock sync."""
 
 from __future__ import annotations

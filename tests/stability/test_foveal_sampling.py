@@ -1,4 +1,4 @@
-"""Numerical stability at the edges (issue 6): weier2016's foveal function p(e) and weier2018's sampling tables."""
+"""Numerical stability at the edges: weier2016's foveal function p(e) and weier2018's sampling tables."""
 
 from __future__ import annotations
 

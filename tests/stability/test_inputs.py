@@ -1,4 +1,4 @@
-"""Numerical stability at the edges (issue 6): inputs: bad gaze, blinks, disorder, rates, sizes, empty scenes."""
+"""Numerical stability at the edges: inputs: bad gaze, blinks, disorder, rates, sizes, empty scenes."""
 
 from __future__ import annotations
 

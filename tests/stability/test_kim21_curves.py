@@ -1,4 +1,4 @@
-"""Numerical stability at the edges (issue 6): kim2021's tau_fov Bezier segments and the temporal smoothing weights."""
+"""Numerical stability at the edges: kim2021's tau_fov Bezier segments and the temporal smoothing weights."""
 
 from __future__ import annotations
 

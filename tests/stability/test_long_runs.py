@@ -1,4 +1,4 @@
-"""The long runs of the numerical stability suite (issue 6), marked slow; the other files in this folder run
+"""The long runs of the numerical stability suite, marked slow; the other files in this folder run
 each of them 100 times shorter by default."""
 
 import pytest

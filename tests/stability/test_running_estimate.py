@@ -1,4 +1,4 @@
-"""Numerical stability at the edges (issue 6): weier2016 section 3.4, the running estimate (alpha, rho) and k(dt)."""
+"""Numerical stability at the edges: weier2016 section 3.4, the running estimate (alpha, rho) and k(dt)."""
 
 from __future__ import annotations
 

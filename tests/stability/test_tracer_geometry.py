@@ -1,4 +1,4 @@
-"""Numerical stability at the edges (issue 6): geometry through the real Embree tracer and the Whitted integrator."""
+"""Numerical stability at the edges: geometry through the real Embree tracer and the Whitted integrator."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Numerical stability at the edges (issue 6): weier2018 equation (1), the transition radius of the sampling tables."""
+"""Numerical stability at the edges: weier2018 equation (1), the transition radius of the sampling tables."""
 
 from __future__ import annotations
 
