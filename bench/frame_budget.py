@@ -4,7 +4,7 @@
 
 Renders both eyes per frame (as the compositor will), reports the median over frames after two
 warm-up frames, and the share of the profile's VSync period it uses. This is the measurement
-behind the README's statement of what the sim-cpu profile holds on this machine.
+behind docs/performance.md's statement of what the sim-cpu profile holds on this machine.
 """
 
 from __future__ import annotations

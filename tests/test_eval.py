@@ -257,7 +257,7 @@ def test_full_and_regular_skip_the_warm_up_frames(tmp_path, render_calls):
 
 @pytest.mark.parametrize("path", sorted((DATA.parents[1] / "configs" / "eval").glob("*.toml")), ids=lambda p: p.name)
 def test_every_shipped_eval_config_loads(path):
-    """Every method spec, baseline and trace name of the configs the README runs is valid, and traces exist."""
+    """Every method spec, baseline and trace name of the shipped eval configs is valid, and traces exist."""
     config = load_eval_config(path)
     assert all(Path(t.path).is_file() for t in config.traces if t.path)
     assert all(config.cells(scene) for scene in config.scenes)

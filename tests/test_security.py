@@ -1,4 +1,4 @@
-"""Access to the bus (README "Access"), over real sockets on loopback: CURVE keys written by `hmdrt keys`, a
+"""Access to the bus (docs/runtime.md, Access), over real sockets on loopback: CURVE keys written by `hmdrt keys`, a
 compositor with [security] that answers and hears only clients whose keys it lists and counts the others, and
 the refusal to bind beyond loopback without it. Waits poll; none sleeps a fixed time."""
 

@@ -1,4 +1,4 @@
-"""Where the control socket binds by default (README "Access"): a Unix socket in a runtime folder that only its
+"""Where the control socket binds by default (docs/runtime.md, Access): a Unix socket in a runtime folder that only its
 user may enter, as Monado's $XDG_RUNTIME_DIR/monado_comp_ipc, so control without keys is control by that user.
 
 The folder is $XDG_RUNTIME_DIR/hmdrt, or /tmp/hmdrt-UID without XDG_RUNTIME_DIR, created 0700; one that exists

@@ -1,4 +1,4 @@
-"""Who may use the bus (README "Access"): loopback by default, ZeroMQ CURVE with an allow-list otherwise.
+"""Who may use the bus (docs/runtime.md, Access): loopback by default, ZeroMQ CURVE with an allow-list otherwise.
 
 A compositor whose sockets all bind loopback trusts every local client. One that binds another
 address (`*`, 0.0.0.0, a host name, an interface) must be given a [security] section: its three
@@ -61,7 +61,7 @@ def check_binds(endpoints: dict[str, str], secured: bool) -> None:
         if not is_loopback(endpoint):
             raise ConfigError(
                 f"{name} = {endpoint} is not loopback: binding it needs CURVE, a [security] section with "
-                f'server_key and allowed_clients (keys from "hmdrt keys NAME"; README "Access")'
+                f'server_key and allowed_clients (keys from "hmdrt keys NAME"; docs/runtime.md, Access)'
             )
 
 
