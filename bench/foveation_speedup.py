@@ -1,7 +1,7 @@
 """Each method's speed-up over full, with its error against the 36-spp ground truth, in one run.
 
     python bench/foveation_speedup.py [--scene whitted] [--profile rift_s] [--frames 14] [--gaze 0,0]
-                                      [--trace builtin] [--methods full rrm kim21 weier16 weier18?dof=none weier18]
+                                      [--trace builtin] [--methods SPEC ...]
 
 A still view with a fixed gaze (or, with --trace builtin, the built-in head path: head sway, fixations and
 saccades) is rendered for --frames frames by every method, frames interleaved across methods so that load
@@ -11,7 +11,8 @@ over the method's tracer alone (the median of its tracer's own stages, meter.STA
 the speed-up it would reach if all its other work took no time, which its rays bound. PSNR (dB) is of the last
 frame against regular with 36 stratified samples per pixel (the ground truth of kim2021) of that frame's
 view, in the foveal band (eccentricity < 3.3 deg) and over the whole image. RRM needs N = 12 frames to
-refresh its whole periphery, hence 14 frames by default.
+refresh its whole periphery, hence 14 frames by default. The methods are by default every registered one the benches
+time (default_methods: base.Checks.bench), with its variants.
 """
 
 from __future__ import annotations
@@ -25,11 +26,18 @@ from references import left_eye_requests, tracer_ms
 
 from hmdrt.evaluate.quality import band_psnr
 from hmdrt.foveation import make_method
+from hmdrt.foveation.registry import bench_methods
 from hmdrt.optics import get_profile
 from hmdrt.optics.camera import eccentricity_map
 from hmdrt.scene import load_scene
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
+
+
+def default_methods() -> list[str]:
+    """The specs timed without --methods: full, rrm, kim21, weier16, weier18 and weier18?dof=none, and any method
+    registered since (registry.bench_methods)."""
+    return bench_methods()
 
 
 def main() -> None:
@@ -39,7 +47,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=14)
     ap.add_argument("--gaze", default="0,0")
     ap.add_argument("--trace", choices=["builtin"], default=None, help="the built-in head path (default: still)")
-    ap.add_argument("--methods", nargs="+", default=["full", "rrm", "kim21", "weier16", "weier18?dof=none", "weier18"])
+    ap.add_argument("--methods", nargs="+", default=default_methods())
     args = ap.parse_args()
 
     scene = load_scene(args.scene)

@@ -2,7 +2,7 @@
 
     python bench/stage_budget.py [--scene whitted] [--profile rift_s] [--frames 8] [--warmup 2]
                                  [--trace builtin] [--gaze 0,0]
-                                 [--methods full rrm weier16 weier18?dof=none weier18 kim21]
+                                 [--methods SPEC ...]
 
 Two references are timed on this machine in this run, once in every round of frames, right after it: bare
 embreex on the scene's rays of each kind from the first frame's view (references.BareRays: EmbreeScene.run on
@@ -12,16 +12,17 @@ frames interleaved across methods (the first --warmup rounds not counted), on a 
 path, and each round's figures are set against the references of the same round, since these machines slow down
 and speed up by 1.5-2x for minutes at a time; each ratio printed is the median of those rounds' ratios. For each
 method the bench prints its median ms per frame, rays per frame, bare embreex's time for as many primary rays
-and its overhead factor (ms per frame over that time; issue 14's target is <= 1.5). Beside it, the mix floor:
+and its overhead factor (ms per frame over that time; the target is at most 1.5). Beside it, the mix floor:
 the same rays at bare embreex's rate on rays of their own kind (the mirror and glass spheres' secondary rays
 trace several times slower than primary rays, bare or not), and the frame's time over that floor, which is what
 is left to our own work. Last, the tracer: the ms of its own stages (meter.STAGES, wherever a method nests them)
 over the bare time, the factor the method would reach if everything else it does took no time; above the target,
 the method's rays bound it whatever its image work. With full among the methods, each one's ray ceiling: full's
 mix floor over the method's, the most it could gain over full were both at bare embreex's rates and all else
-free (what issue 14's speed-ups over full can reach on these rays). Then each method's rays by kind, and every
+free (what the speed-ups over full can reach on these rays). Then each method's rays by kind, and every
 stage's median ms and, where the stage says how many bytes it must touch (FrameStats.stage(..., touches=)), those
-bytes and what a copy of them costs: a stage far above its copy time is where the next speed-up is.
+bytes and what a copy of them costs: a stage far above its copy time is where the next speed-up is. The methods
+are by default every registered one the benches time (default_methods: base.Checks.bench), with its variants.
 """
 
 from __future__ import annotations
@@ -36,13 +37,19 @@ import numpy as np
 from references import BareRays, ImageCopy, floor_ms, left_eye_requests, tracer_ms
 
 from hmdrt.foveation import make_method
+from hmdrt.foveation.registry import bench_methods
 from hmdrt.optics import get_profile
 from hmdrt.scene import load_scene
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
 
 TARGET = 1.5
-METHODS = ["full", "rrm", "weier16", "weier18?dof=none", "weier18", "kim21"]
+
+
+def default_methods() -> list[str]:
+    """The specs timed without --methods: full, rrm, kim21, weier16, weier18 and weier18?dof=none, and any method
+    registered since (registry.bench_methods)."""
+    return bench_methods()
 
 
 def main() -> None:
@@ -53,7 +60,7 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--trace", choices=["builtin"], default=None, help="the built-in head path (default: still)")
     ap.add_argument("--gaze", default="0,0")
-    ap.add_argument("--methods", nargs="+", default=METHODS)
+    ap.add_argument("--methods", nargs="+", default=default_methods())
     args = ap.parse_args()
     if args.frames <= args.warmup:
         ap.error("--frames must exceed --warmup")

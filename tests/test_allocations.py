@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from hmdrt.foveation import make_method
+from hmdrt.foveation.registry import allocation_cases
 from hmdrt.optics import get_profile
 from hmdrt.scene import load_scene
 from hmdrt.telemetry.stats import FrameStats
@@ -50,16 +51,7 @@ def frame_peaks(scene: str, spec: str, frames: range = range(3, 11)) -> list[int
     return peaks
 
 
-CASES = [
-    ("whitted", "full"),
-    ("whitted", "rrm"),
-    ("whitted", "weier16"),
-    ("interior", "weier16"),
-    ("whitted", "weier18"),
-    ("whitted", "weier18?dof=none"),
-    ("whitted", "kim21"),
-    ("interior", "kim21"),
-]
+CASES = allocation_cases()  # the registered methods' golden cases (base.Checks.golden)
 
 
 @pytest.mark.parametrize(("scene", "spec"), CASES)

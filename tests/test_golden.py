@@ -6,7 +6,11 @@ Each case renders 8 frames of the left eye at 96x108 (sim-cpu optics, seed 0) al
 7 with the stored ones. Tolerance: PSNR >= 40 dB over the image (peak 1) and at least 99% of pixels within
 1e-3 in every channel; a kernel that reorders float arithmetic stays well inside it, a changed sample set,
 filter or blend does not. `HMDRT_UPDATE_GOLDEN=1 pytest tests/test_golden.py` rewrites the files after a
-change that is meant to alter the images (say why in the commit).
+change that is meant to alter the images (say why in the commit), and writes those of a new case.
+
+The cases are the registered methods' own (registry.golden_cases, from each method's Checks): a method registered
+without its golden images fails here with "no golden image for method ...", and an image no method declares with
+"... belongs to no registered method".
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import pytest
 
 from hmdrt.evaluate.quality import psnr
 from hmdrt.foveation import make_method
+from hmdrt.foveation.registry import golden_cases
 from hmdrt.optics import get_profile
 from hmdrt.scene import load_scene
 from hmdrt.trace.integrator import Whitted
@@ -26,16 +31,7 @@ from tests.helpers import DATA
 
 GOLDEN = DATA / "golden"
 FRAMES, KEPT = 8, (3, 7)
-CASES = [
-    ("whitted", "full"),
-    ("whitted", "rrm"),
-    ("whitted", "weier16"),
-    ("whitted", "weier18"),
-    ("whitted", "weier18?dof=none"),
-    ("whitted", "kim21"),
-    ("interior", "weier16"),
-    ("interior", "kim21"),
-]
+CASES = golden_cases()
 
 
 def golden_frames(scene: str, spec: str) -> list[np.ndarray]:
@@ -53,11 +49,36 @@ def case_file(scene: str, spec: str):
     return GOLDEN / f"{scene}_{spec.replace('?', '_').replace('=', '-')}.npz"
 
 
+def missing_golden() -> list[str]:
+    """What the registered methods' golden cases lack, one line each: an image not pinned, or one no case is for."""
+    cases = golden_cases()
+    missing = [
+        f"no golden image for method {spec} on {scene} (tests/data/golden/{case_file(scene, spec).name}): pin it with "
+        f"HMDRT_UPDATE_GOLDEN=1 pytest 'tests/test_golden.py::test_method_matches_its_golden_frames[{scene}-{spec}]'"
+        for scene, spec in cases
+        if not case_file(scene, spec).exists()
+    ]
+    pinned = {case_file(scene, spec).name for scene, spec in cases}
+    stale = [
+        f"golden image {path.name} belongs to no registered method (registry.golden_cases)"
+        for path in sorted(GOLDEN.glob("*.npz"))
+        if path.name not in pinned
+    ]
+    return missing + stale
+
+
+def test_every_registered_method_has_its_golden_images() -> None:
+    assert not missing_golden(), "\n".join(missing_golden())
+
+
 @pytest.mark.parametrize(("scene", "spec"), CASES, ids=[f"{s}-{m}" for s, m in CASES])
 def test_method_matches_its_golden_frames(scene: str, spec: str) -> None:
-    frames = golden_frames(scene, spec)
     path = case_file(scene, spec)
-    if os.environ.get("HMDRT_UPDATE_GOLDEN"):
+    updating = bool(os.environ.get("HMDRT_UPDATE_GOLDEN"))
+    if not (updating or path.exists()):
+        pytest.fail(f"no golden image for method {spec} on {scene}: {path} (HMDRT_UPDATE_GOLDEN=1 writes it)")
+    frames = golden_frames(scene, spec)
+    if updating:
         GOLDEN.mkdir(exist_ok=True)
         np.savez_compressed(path, **{f"frame_{k}": f for k, f in zip(KEPT, frames, strict=True)})
     stored = np.load(path)

@@ -8,7 +8,7 @@ import pytest
 
 from hmdrt.evaluate.quality import band_psnr
 from hmdrt.foveation import FrameRequest, make_method
-from hmdrt.foveation.kim21 import _resolve
+from hmdrt.foveation.kim21.supersample import _resolve
 from hmdrt.kernels.schedule import dynamic
 from hmdrt.optics import get_profile
 from hmdrt.optics.projection import bilinear3

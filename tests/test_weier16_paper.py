@@ -11,22 +11,10 @@ import pytest
 from hmdrt.evaluate.quality import psnr
 from hmdrt.foveation import FrameRequest, Method, make_method
 from hmdrt.foveation.stages.reproject import MeshImage
-from hmdrt.foveation.weier16 import (
-    COVERED,
-    FOVEA,
-    FRESH,
-    RESAMPLE,
-    TRACED,
-    Final,
-    InfoRule,
-    InfoScratch,
-    PostRule,
-    Samples,
-    Selection,
-    Surfaces,
-    _post,
-    _resampling_info,
-)
+from hmdrt.foveation.weier16.buffers import Final, InfoRule, InfoScratch, PostRule, Samples, Selection, Surfaces
+from hmdrt.foveation.weier16.params import COVERED, FOVEA, FRESH, RESAMPLE, TRACED
+from hmdrt.foveation.weier16.post import _post
+from hmdrt.foveation.weier16.resample import _resampling_info
 from hmdrt.kernels.schedule import dynamic
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import eccentricity_map

@@ -1,8 +1,10 @@
 """Rendering methods by name. Each composes the shared tracer (trace.integrator.Whitted) and the
-shared stages (foveation.stages); "name?key=value&..." selects a method with options."""
+shared stages (foveation.stages) and registers itself (registry.register); "name?key=value&..." selects a
+method with options."""
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 from urllib.parse import parse_qsl
 
@@ -10,14 +12,13 @@ import msgspec
 
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import FrameRequest, Method
-from hmdrt.foveation.kim21 import Kim21
-from hmdrt.foveation.reference import Full, Regular
-from hmdrt.foveation.rrm import Rrm
-from hmdrt.foveation.weier16 import Weier16
-from hmdrt.foveation.weier18 import Weier18
+from hmdrt.foveation.registry import METHODS
 from hmdrt.trace.integrator import Whitted
 
-METHODS: dict[str, type] = {m.name: m for m in (Full, Regular, Rrm, Kim21, Weier16, Weier18)}
+# the method modules, each registering its classes as it loads; METHODS keeps this order, which the CLI's help and
+# the live page's list of methods show
+for _module in ("reference", "rrm", "kim21", "weier16", "weier18"):
+    importlib.import_module(f"{__name__}.{_module}")
 
 __all__ = ["METHODS", "FrameRequest", "Method", "MethodChoice", "make_method"]
 

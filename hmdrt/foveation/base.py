@@ -1,8 +1,9 @@
 """What every rendering method receives and returns, and how a method plans which stages to run.
 
-Methods are found by name in foveation.METHODS. Each declares its stages and what each needs; the
+Methods register by name (registry.register). Each declares its stages and what each needs; the
 plan of a frame keeps only the stages whose needs the scene, the configuration and the method's own
-state (a previous frame to reproject) meet, so stages that cannot change the image never run.
+state (a previous frame to reproject) meet, so stages that cannot change the image never run. Each also
+declares its Checks: what the golden, allocation and method tests and the benches run of it.
 
 Parameters can change between frames (Method.set_params): a method derives everything that depends on
 its parameters in one _configure(params), which its constructor calls too, and keeps its temporal state
@@ -54,10 +55,32 @@ class FrameRequest:
 
 @dataclass(frozen=True)
 class Stage:
-    """A named step of a method and the features it needs to be able to change the image."""
+    """A named step of a method and the features it needs to be able to change the image. A stage that `touches`
+    is an image-space pass that reports the bytes it must read and write (FrameStats.stage(touches=)), which
+    bench/stage_budget.py sets against a copy of as many bytes; tests/test_foveation.py checks that it does."""
 
     name: str
     needs: frozenset[str] = frozenset()
+    touches: bool = False
+
+
+@dataclass(frozen=True)
+class Checks:
+    """What the project's checklists run of a method, so that none keeps a list of methods by hand: registry.py
+    derives the golden, allocation, method-test and bench lists from the registered classes' Checks. The defaults
+    check a new method as fully as the others until it declares less (hmdrt/foveation/README.md)."""
+
+    golden: tuple[str, ...] = ("whitted",)  # scenes its golden images are pinned on (tests/test_golden.py); the
+    # steady-state allocation test (tests/test_allocations.py) runs the same cases
+    variants: tuple[str, ...] = ("",)  # the option strings its golden, allocation and bench cases run: "" is the
+    # defaults, "dof=none" is "name?dof=none"
+    bench: bool = True  # timed by bench/stage_budget.py and bench/foveation_speedup.py
+    temporal: bool = True  # keeps history across frames: tests/test_foveation.py checks that a still view converges
+    # and that a sequence reproduces bit for bit (how many frames it needs is Method.warmup_frames)
+
+    def specs(self, name: str) -> list[str]:
+        """The method's specs as the lists run them, "name" or "name?options" per variant."""
+        return [f"{name}?{v}" if v else name for v in self.variants]
 
 
 # features a stage may need
@@ -101,6 +124,7 @@ class Method(Protocol):
     Params: ClassVar[type[msgspec.Struct]]
     stages: ClassVar[tuple[Stage, ...]]
     knobs: ClassVar[tuple[Knob, ...]]  # the cost knobs the budget controller may move; () for none
+    checks: ClassVar[Checks]  # what the checklists run of it
     params: msgspec.Struct  # the parameters the next frame is rendered with
 
     @classmethod
@@ -134,6 +158,7 @@ class Configurable(ABC):
     name: ClassVar[str]
     Params: ClassVar[type[msgspec.Struct]]
     knobs: ClassVar[tuple[Knob, ...]] = ()
+    checks: ClassVar[Checks] = Checks()
     params: msgspec.Struct
 
     @classmethod

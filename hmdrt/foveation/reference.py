@@ -11,7 +11,8 @@ from typing import Annotated
 import msgspec
 import numpy as np
 
-from hmdrt.foveation.base import Configurable, FrameRequest, NoParams, Stage, sample_keys
+from hmdrt.foveation.base import Checks, Configurable, FrameRequest, NoParams, Stage, sample_keys
+from hmdrt.foveation.registry import register
 from hmdrt.optics.camera import pixel_grid
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
@@ -20,12 +21,14 @@ from hmdrt.trace.sampling import jittered_pixels
 MAX_SPP = 1024
 
 
+@register
 class Full(Configurable):
     """One primary ray through every pixel centre."""
 
     name = "full"
     Params = NoParams
     stages = (Stage("trace"),)
+    checks = Checks(temporal=False)
     warmup_frames = 0  # no history: every frame is rendered afresh
 
     def __init__(self, tracer: Whitted, params: NoParams):
@@ -52,12 +55,15 @@ class RegularParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     spp: Annotated[int, msgspec.Meta(ge=1, le=MAX_SPP)] = 36
 
 
+@register
 class Regular(Configurable):
     """spp stratified jittered samples per pixel, averaged (a box filter over the pixel)."""
 
     name = "regular"
     Params = RegularParams
     stages = (Stage("trace"), Stage("resolve"))
+    checks = Checks(golden=(), bench=False, temporal=False)  # the ground truth: the eval and the benches score
+    # against it (bench/foveation_speedup.py renders it beside the methods), no steady state to hold
     warmup_frames = 0  # no history: every frame is rendered afresh
 
     def __init__(self, tracer: Whitted, params: RegularParams):

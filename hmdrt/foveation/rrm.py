@@ -23,7 +23,8 @@ import msgspec
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.base import Configurable, FrameRequest, Knob, Stage
+from hmdrt.foveation.base import Checks, Configurable, FrameRequest, Knob, Stage
+from hmdrt.foveation.registry import register
 from hmdrt.foveation.stages.gaze import FixationFilter
 from hmdrt.foveation.stages.sampling import SMALL_R0, pixels_per_degree
 from hmdrt.kernels.jit import inline, kernel, serial
@@ -213,6 +214,7 @@ def most_samples(camera: EyeCamera, params: RrmParams) -> int:
     return min(w * h, periphery + fovea_w * fovea_h)
 
 
+@register
 class Rrm(Configurable):
     """Refresh Rate Modulation over a persistent pixel buffer per eye."""
 
@@ -224,7 +226,8 @@ class Rrm(Configurable):
         Knob("fovea_deg", SMALL_R0, foveal=True),
         Knob("group_w", lambda v: MAX_CYCLE // v["group_h"], cheaper="higher"),
     )
-    stages = (Stage("fixation_filter"), Stage("schedule"), Stage("trace"), Stage("update"))
+    stages = (Stage("fixation_filter"), Stage("schedule"), Stage("trace"), Stage("update", touches=True))
+    checks = Checks(golden=("whitted",))
 
     def __init__(self, tracer: Whitted, params: RrmParams):
         self.tracer = tracer

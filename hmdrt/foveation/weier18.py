@@ -23,7 +23,8 @@ import msgspec
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.base import HISTORY, Configurable, FrameRequest, Stage, plan
+from hmdrt.foveation.base import HISTORY, Checks, Configurable, FrameRequest, Stage, plan
+from hmdrt.foveation.registry import register
 from hmdrt.foveation.stages.dof import (
     DEPTH_INACCURACY_M,
     DOF_PRESETS,
@@ -237,6 +238,7 @@ class _EyeState:
     layers: Layers | None = None  # the depth of field's buffers
 
 
+@register
 class Weier18(Configurable):
     """Table-driven foveated sampling, TAA, pull-push reconstruction and gaze-contingent depth of field."""
 
@@ -246,13 +248,14 @@ class Weier18(Configurable):
     stages = (
         Stage("sample"),
         Stage("trace"),
-        Stage("taa", frozenset({HISTORY})),
-        Stage("ppi"),
+        Stage("taa", frozenset({HISTORY}), touches=True),
+        Stage("ppi", touches=True),
         Stage("gaze_depth", frozenset({DOF})),
-        Stage("coc", frozenset({DOF})),
-        Stage("dof_filter", frozenset({DOF})),
-        Stage("combine"),
+        Stage("coc", frozenset({DOF}), touches=True),
+        Stage("dof_filter", frozenset({DOF}), touches=True),
+        Stage("combine", touches=True),
     )
+    checks = Checks(golden=("whitted",), variants=("", "dof=none"))  # and without depth of field
 
     def __init__(self, tracer: Whitted, params: Weier18Params):
         self.tracer = tracer

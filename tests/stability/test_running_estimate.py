@@ -10,7 +10,9 @@ import pytest
 
 from hmdrt.foveation.stages.reproject import MeshImage
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
-from hmdrt.foveation.weier16 import COVERED, TRACED, CacheRule, Final, RowTaps, Samples, Selection, _update
+from hmdrt.foveation.weier16.buffers import CacheRule, Final, RowTaps, Samples, Selection
+from hmdrt.foveation.weier16.cache import _update
+from hmdrt.foveation.weier16.params import COVERED, TRACED
 from hmdrt.kernels.schedule import dynamic
 from hmdrt.optics.projection import camera_arrays
 from tests.stability.common import (

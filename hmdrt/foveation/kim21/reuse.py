@@ -1,0 +1,113 @@
+"""kim21's pixel reusability test (kim2021 section 4.4): each central pixel presampled (section 4.3) is
+back-projected into the previous frame and copies that frame's rendered colour where it meets the same surface,
+agrees in Table 1's primary attributes and passes the contrast test, at most n_reuse_max times in a row."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numba as nb
+import numpy as np
+
+from hmdrt.foveation.kim21.disparity import _discordant_threshold, _geometry, _pair_contrast_fails
+from hmdrt.foveation.stages.temporal import eye_point, view_project
+from hmdrt.kernels.jit import kernel, serial
+from hmdrt.kernels.schedule import claim
+from hmdrt.optics.projection import FAR, nearest_index
+
+
+class Kept(NamedTuple):
+    """A frame's buffers that the next frame reads: presampled colour, hit distance, reuse count, rendered colour,
+    and what the rendered colour is worth to a later reuse: its class and where it was sampled."""
+
+    ref: np.ndarray  # (n, 3) float32 the presampled colour at the pixel centres
+    depth: np.ndarray  # (n,) float32 the history's depth slot: distance of the first hit, inf on a miss
+    flags: np.ndarray  # (n,) int32 times in a row the pixel was reused; 0 where rendered
+    rendered: np.ndarray  # (n, 3) float32 the history's colour slot, before smoothing
+    level: np.ndarray  # (n,) uint8 samples per problematic subpixel the colour was rendered with; 0 outside e_np
+    drift: np.ndarray  # (n, 2) float32 where the colour was rendered, in pixels from the pixel centre
+
+
+@serial
+def _store_row(y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples):
+    """Row y of `frame`, rendered as presampled (color, hits) at its band's class `samples`; with `reuse`, kim2021
+    section 4.4's test per central pixel with a hit: back-projected into the previous frame (through its relative_view
+    `view`; onto itself when `same`) it must meet a hit within rel_depth of its distance, reused fewer than n_reuse_max
+    times in a row and rendered at no lower class than the pixel needs now, that agrees in the primary attributes and
+    passes the contrast test at tau_sel x tau_reuse, with the drift of where its colour was sampled staying within
+    reuse_px; it takes that pixel's rendered colour, class and drift then. Returns the row's reused pixels."""
+    ref, depth, flags, rendered, level, drift = frame
+    prev_ref, prev_depth, prev_flags, prev_rendered, prev_level, prev_drift = prev
+    hit_depth, geometry, prev_geometry = hits.depth, _geometry(hits), _geometry(prev_hits)
+    obj, prev_obj = geometry[0], prev_geometry[0]
+    thresholds, normal_cos, tau_reuse, n_max, rel_depth, reuse_px = tests
+    height = depth.shape[0] // width
+    reused = 0
+    for x in range(width):
+        i = y * width + x
+        d = hit_depth[i]
+        depth[i] = d
+        for c in range(3):
+            ref[i, c] = color[i, c]
+            rendered[i, c] = color[i, c]
+        flags[i], level[i] = 0, samples[i]
+        drift[i, 0] = drift[i, 1] = 0.0
+        if not reuse or samples[i] == 0 or math.isinf(d) or obj[i] < 0:
+            continue
+        j, dist, ox, oy = i, min(np.float64(d), FAR), 0.0, 0.0
+        if not same:
+            px, py, pz = eye_point(frustum, x + 0.5, y + 0.5, d)
+            qx, qy, dist = view_project(view, px, py, pz)
+            j = nearest_index(qx, qy, width, height)
+            ox, oy = qx - (j % width + 0.5), qy - (j // width + 0.5)
+        if j < 0 or prev_flags[j] >= n_max or prev_level[j] < samples[i]:
+            continue
+        if math.isinf(prev_depth[j]) or prev_obj[j] < 0 or abs(prev_depth[j] - dist) > rel_depth * dist:
+            continue
+        dx, dy = prev_drift[j, 0] - ox, prev_drift[j, 1] - oy
+        if dx * dx + dy * dy > reuse_px * reuse_px:
+            continue
+        tau = _discordant_threshold(geometry, i, prev_geometry, j, thresholds, 1, normal_cos)
+        tau = thresholds[0] if tau == math.inf else tau
+        if _pair_contrast_fails(color, i, prev_ref, j, tau * tau_reuse):
+            continue
+        flags[i], level[i] = prev_flags[j] + 1, prev_level[j]
+        drift[i, 0], drift[i, 1] = dx, dy
+        for c in range(3):
+            rendered[i, c] = prev_rendered[j, c]
+        reused += 1
+    return reused
+
+
+@serial
+def _clear_row(y, width, hits):
+    obj, ns, shadow, tex = _geometry(hits)
+    for i in range(y * width, (y + 1) * width):
+        obj[i] = -1
+        ns[i, 0] = ns[i, 1] = ns[i, 2] = 0.0
+        shadow[i] = 0
+        tex[i] = False
+
+
+@kernel
+def _clear(width, hits):
+    """Every hit a miss in the attributes the tests read (the tracer fills the secondary hits it finds)."""
+    for y in nb.prange(hits.object_id.shape[0] // width):
+        _clear_row(y, width, hits)
+
+
+@kernel
+def _store(width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples, counter, threads):
+    """_store_row over the image, rows claimed (hmdrt.kernels.schedule: a row of reused pixels costs more); returns the
+    number of reused pixels."""
+    reused = 0
+    h = frame.depth.shape[0] // width
+    for _ in nb.prange(threads):
+        y = claim(counter)
+        while y < h:
+            reused += _store_row(
+                y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples
+            )
+            y = claim(counter)
+    return reused

@@ -1,0 +1,135 @@
+"""weier16's cache update (weier2016 sections 3.2 and 3.4) in one pass: the previous frame gathered through the
+coarse mesh with its footprint filter, each new sample merged into the cache with the running estimate or
+replacing it, and the pixels left without colour merged from the support image."""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from hmdrt.foveation.stages.reproject import ROWS, gaussian_taps, nearest_texel, row_footprints
+from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
+from hmdrt.foveation.weier16.params import COVERED, FRESH, INFO, TRACED
+from hmdrt.kernels.jit import inline, kernel, serial
+from hmdrt.kernels.schedule import claim
+from hmdrt.optics.projection import FAR, bilinear3, bilinear_footprint, blend_footprint, view_distance
+
+
+@inline
+def _moved(depth, dist, eps_cache):
+    """Section 3.4: the sample's surface is not the cached one: one of them a miss and the other not, or
+    their distances from the eye apart by more than eps_cache of the sample's."""
+    far_sample, far_cache = depth >= FAR or math.isinf(depth), dist >= 0.5 * FAR
+    return far_sample != far_cache or (not far_sample and abs(dist - depth) > eps_cache * depth)
+
+
+@serial
+def _support_light(light, base, sw, sh, x, y, c):
+    """Channel c of the support image's light buffer (sample rows base + j * sw + i) at continuous support
+    coordinates (x, y), bilinear and clamped at the border like the merge's colour (bilinear3)."""
+    fx, fy = x - 0.5, y - 0.5
+    x0, y0 = math.floor(fx), math.floor(fy)
+    ax, ay = fx - x0, fy - y0
+    i0, j0 = min(max(int(x0), 0), sw - 1), min(max(int(y0), 0), sh - 1)
+    i1, j1 = min(max(int(x0) + 1, 0), sw - 1), min(max(int(y0) + 1, 0), sh - 1)
+    top = (1.0 - ax) * light[base + j0 * sw + i0, c] + ax * light[base + j0 * sw + i1, c]
+    bottom = (1.0 - ax) * light[base + j1 * sw + i0, c] + ax * light[base + j1 * sw + i1, c]
+    return (1.0 - ay) * top + ay * bottom
+
+
+@serial
+def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule, taps, final, image):
+    flags, row_start = selection.flags, selection.row_start
+    prev, zinv = mesh.prev, mesh.zinv
+    prev_color, prev_info, prev_light = previous.color, previous.info, previous.light
+    rgb, sample_depth, sample_light = samples.rgb, samples.depth, samples.light
+    color, info, light = final.color, final.info, final.light
+    h, w = flags.shape
+    sh, sw = support.shape[0], support.shape[1]
+    t = nb.get_thread_id()
+    spread_row, across, down = taps.spread[t], taps.weights[t, 0], taps.weights[t, 1]
+    corner, step_x, step_y = taps.index[t, 0], taps.index[t, 1], taps.index[t, 2]
+    flat = prev_color.reshape(-1)
+    history = zinv.shape[0] == h  # else no pixel is covered, and the mesh buffers may be empty
+    for y in range(y0, y1):
+        if history:
+            row_footprints(prev, flags, COVERED, y, spread_row)
+            px, py = prev[0, y], prev[1, y]
+            for x in range(w):
+                across[x], down[x], corner[x], step_x[x], step_y[x] = bilinear_footprint(px[x], py[x], w, h)
+        s = row_start[y]
+        merged = 0
+        for x in range(w):
+            f = flags[y, x]
+            covered, traced = (f & COVERED) != 0, (f & TRACED) != 0
+            new = traced and (
+                (f & FRESH) != 0
+                or not covered
+                or _moved(
+                    sample_depth[s], np.float32(view_distance(cur, x + 0.5, y + 0.5, 1.0 / zinv[y, x])), rule.eps_cache
+                )
+            )
+            r = g = b = 0.0
+            jy = jx = 0
+            if covered and not new:  # the previous frame seen through the mesh
+                qx, qy, spread = prev[0, y, x], prev[1, y, x], spread_row[x]
+                if spread <= 1.5 or rule.footprint_samples <= 1:
+                    r, g, b = blend_footprint(flat, corner[x], step_x[x], step_y[x], across[x], down[x])
+                else:
+                    key = (y * w + x) * 64 + rule.seed
+                    r, g, b = gaussian_taps(prev_color, qx, qy, 0.5 * spread, rule.footprint_samples, key)
+                r, g, b = np.float32(r), np.float32(g), np.float32(b)  # the reprojected image is float32
+                jy, jx = nearest_texel(qx, qy, w, h)  # cache info is not blended: the nearest texel
+            if traced:
+                alpha, rho = 1.0, 1.0
+                if not new:
+                    k = k_of_age(rule.frame - prev_info[jy, jx, 2], rule.k_min, rule.k_max, rule.t_max)
+                    # rho 0: merged from the support image, no sample of this pixel; the new one replaces it
+                    alpha, rho = running_estimate(prev_info[jy, jx, 1], k)
+                color[y, x, 0] = alpha * rgb[s, 0] + (1.0 - alpha) * r
+                color[y, x, 1] = alpha * rgb[s, 1] + (1.0 - alpha) * g
+                color[y, x, 2] = alpha * rgb[s, 2] + (1.0 - alpha) * b
+                info[y, x, 0], info[y, x, 1], info[y, x, 2] = alpha, rho, rule.frame
+                if rule.stochastic:
+                    for c in range(3):
+                        kept = 0.0 if new else prev_light[jy, jx, c]
+                        light[y, x, c] = alpha * sample_light[s, c] + (1.0 - alpha) * kept
+                s += 1
+            elif covered:
+                color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
+                for c in range(INFO):
+                    info[y, x, c] = prev_info[jy, jx, c]
+                if rule.stochastic:
+                    for c in range(3):
+                        light[y, x, c] = prev_light[jy, jx, c]
+            else:  # the merge: the bilinearly upsampled support image, colour and light buffer
+                lx, ly = (x + 0.5) * sw / w, (y + 0.5) * sh / h
+                r, g, b = bilinear3(support, lx, ly)
+                color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
+                for c in range(INFO):
+                    info[y, x, c] = 0.0
+                if rule.stochastic:
+                    for c in range(3):
+                        light[y, x, c] = _support_light(sample_light, row_start[h], sw, sh, lx, ly, c)
+                merged += 1
+            for c in range(3):
+                image[y, x, c] = color[y, x, c]
+        selection.merged[y] = merged
+
+
+@kernel
+def _update(selection, mesh, cur, previous, samples, support, rule, taps, final, image, counter, threads):
+    """Sections 3.2 and 3.4 in one pass: each pixel's previous colour and cache info gathered through the
+    mesh, its sample merged into them with the running estimate (or replacing them: fovea, resampled,
+    uncovered or moved), and pixels left without colour taken from the support image; into the final
+    colour, cache info and the caller's image."""
+    h = selection.flags.shape[0]
+    blocks = (h + ROWS - 1) // ROWS
+    for _ in nb.prange(threads):
+        b = claim(counter)
+        while b < blocks:
+            y0, y1 = b * ROWS, min(h, (b + 1) * ROWS)
+            _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule, taps, final, image)
+            b = claim(counter)
