@@ -1,0 +1,293 @@
+"""The shared reconstruction stages against hand-computed values: mesh and back-projection, pull-push, the
+pyramid's taps, contrast windows, the light buffer and weier18's TAA (the sampling and filter formulas:
+test_stages.py)."""
+
+import numpy as np
+import pytest
+
+from hmdrt.foveation.stages.dof import (
+    Blur,
+    combine,
+)
+from hmdrt.foveation.stages.filters import FINE_LEVELS, Contrast, contrast_levels, enhance_windows, prefilter
+from hmdrt.foveation.stages.pyramid import (
+    Pyramid,
+    RowSamples,
+    _axis,
+    _pull_level,
+    pixel_axes,
+    pull_push,
+    push_columns,
+    sample_row,
+)
+from hmdrt.foveation.stages.reproject import CoarseMesh, backproject
+from hmdrt.optics import EyeCamera, get_profile
+from hmdrt.optics.camera import pixel_centres
+from hmdrt.optics.projection import FAR
+from hmdrt.scene import Scene
+from hmdrt.scene.model import AreaLight, Material
+from hmdrt.scene.shapes import quad, sphere
+from hmdrt.spatial import Pose, gaze_direction
+from hmdrt.telemetry.stats import FrameStats
+from hmdrt.trace.gbuffer import LightBuffer
+from hmdrt.trace.integrator import Whitted
+
+
+def camera(profile="rift_s", pose=None, width=None, height=None):
+    p = get_profile(profile)
+    if width:
+        p = p.with_resolution(width, height)
+    return EyeCamera.for_eye(p, pose or Pose.looking((0.0, 1.6, 0.0)))
+
+
+# -- weier2016 section 3.4: running estimate and k(dt) --
+# -- reprojection and reconstruction --
+
+
+def test_mesh_reprojection_is_exact_for_an_unmoved_camera():
+    cam = camera("sim-cpu", width=96, height=108)
+    sw, sh = 24, 27
+    gx, gy = (np.arange(sw) + 0.5) * 96 / sw, (np.arange(sh) + 0.5) * 108 / sh
+    depth = 2.0 + np.random.default_rng(0).random((sh, sw))
+    mesh, zinv = CoarseMesh().reproject(cam, gx, gy, depth, cam, 96, 108)
+    inner = np.zeros((108, 96), bool)
+    inner[4:-4, 2:-2] = True
+    covered = (zinv > 0) & inner
+    assert covered.sum() > 0.95 * inner.sum()
+    ys, xs = np.nonzero(covered)
+    np.testing.assert_allclose(mesh[0, ys, xs], xs + 0.5, atol=1e-3)
+    np.testing.assert_allclose(mesh[1, ys, xs], ys + 0.5, atol=1e-3)
+
+
+def test_mesh_and_back_projection_agree_after_a_head_turn():
+    before = camera("sim-cpu", Pose.looking((0.0, 1.6, 0.0), 0.0, 0.0), 96, 108)
+    after = camera("sim-cpu", Pose.looking((0.05, 1.6, 0.0), 4.0, 1.0), 96, 108)
+    sw, sh = 48, 54
+    gx, gy = (np.arange(sw) + 0.5) * 2, (np.arange(sh) + 0.5) * 2
+    depth = np.full((sh, sw), 3.0)  # a sphere of radius 3 around the first eye
+    mesh, zinv = CoarseMesh().reproject(before, gx, gy, depth, after, 96, 108)
+    # the surface seen at a pixel lies on its view ray at view depth 1 / zinv: back-projected from the new camera
+    # into the old one, it lands where it came from
+    tx = after.tan_left + (np.arange(96) + 0.5) * (after.tan_right - after.tan_left) / 96
+    ty = after.tan_up - (np.arange(108) + 0.5) * (after.tan_up - after.tan_down) / 108
+    with np.errstate(divide="ignore"):
+        dist = np.sqrt(tx[None, :] ** 2 + ty[:, None] ** 2 + 1.0) / zinv
+    xy, dist_before = backproject(after, np.where(zinv > 0, dist, np.inf).astype(np.float32), before)
+    ok = (zinv > 0) & np.isfinite(xy[..., 0])
+    assert ok.sum() > 5000
+    np.testing.assert_allclose(xy[ok], np.moveaxis(mesh, 0, -1)[ok], atol=2e-2)
+    np.testing.assert_allclose(dist_before[ok], 3.0, rtol=2e-3)  # on the chords of the sphere of radius 3
+
+
+def test_pull_push_keeps_samples_and_fills_holes():
+    rng = np.random.default_rng(1)
+    h, w = 37, 50
+    truth = np.stack(np.meshgrid(np.linspace(0, 1, w), np.linspace(0, 1, h)), -1).mean(-1)
+    pyr = Pyramid.empty(w, h)
+    level0 = pyr.data[: w * h]
+    chosen = np.flatnonzero(rng.random(w * h) < 0.15)
+    level0[chosen, :3] = truth.reshape(-1)[chosen, None]
+    level0[chosen, 3] = 1.0
+    level0[chosen, 4] = 2.0
+    pull_push(pyr)
+    dense = pyr.level(0)
+    np.testing.assert_allclose(dense[..., 0].reshape(-1)[chosen], truth.reshape(-1)[chosen], atol=1e-6)
+    assert np.all(dense[..., 3] == 1.0)
+    assert np.abs(dense[..., 0] - truth).max() < 0.15  # a smooth ramp is reconstructed closely
+    np.testing.assert_allclose(dense[..., 4], 2.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_pull_averages_the_valid_children_and_ignores_what_zero_weights_hold(masked):
+    """Each texel of level 1 is the weighted mean of its valid children (fractional weights, or a mask's 1 and 0;
+    odd sizes, so the last row and column have fewer children), its weight their sum capped at 1; a child of
+    weight 0 counts for nothing, not even the NaN it may hold."""
+    rng = np.random.default_rng(3)
+    w, h = 37, 23
+    pyr = Pyramid.empty(w, h)
+    fine = pyr.level(0)
+    fine[...] = rng.random(fine.shape, np.float32)
+    weights = np.where(rng.random((h, w)) < 0.5, 0.0, rng.random((h, w))).astype(np.float32)
+    mask = weights > 0
+    if masked:
+        weights = mask.astype(np.float32)
+        fine[..., 3] = np.nan  # the weight channel is not read
+    else:
+        fine[..., 3] = weights
+    fine[~mask, :3], fine[~mask, 4] = np.nan, np.nan
+    _pull_level(pyr, 1, mask.reshape(-1) if masked else None)
+    coarse = pyr.level(1)
+    for y in range(coarse.shape[0]):
+        for x in range(coarse.shape[1]):
+            block = fine[2 * y : 2 * y + 2, 2 * x : 2 * x + 2].reshape(-1, 5)
+            wts = weights[2 * y : 2 * y + 2, 2 * x : 2 * x + 2].reshape(-1)
+            valid = wts > 0
+            total = float(wts[valid].sum())
+            assert coarse[y, x, 3] == pytest.approx(min(1.0, total))
+            if total > 0:
+                expected = (wts[valid, None] * block[valid][:, [0, 1, 2, 4]]).sum(0) / total
+                np.testing.assert_allclose(coarse[y, x, [0, 1, 2, 4]], expected, rtol=1e-5)
+
+
+def test_pull_push_with_kept_columns_matches_and_refuses_short_ones():
+    rng = np.random.default_rng(2)
+    a, b = Pyramid.empty(50, 37), Pyramid.empty(50, 37)
+    chosen = np.flatnonzero(rng.random(50 * 37) < 0.2)
+    colours = rng.random((len(chosen), 3), dtype=np.float32)
+    for pyr in (a, b):
+        pyr.data[chosen, :3], pyr.data[chosen, 3] = colours, 1.0
+    pull_push(a)
+    pull_push(b, columns=push_columns(64))  # wider scratch than level 0: only its first 50 entries are used
+    np.testing.assert_array_equal(a.data, b.data)
+    with pytest.raises(ValueError, match="columns hold 49 texels, level 0 has 50"):
+        pull_push(b, columns=push_columns(49))
+
+
+def test_pixel_axes_hold_each_pixel_centres_taps_on_every_level():
+    """The tables sample_pixel reads agree with the per-pixel computation (_axis) they replace, on a size whose
+    levels halve unevenly."""
+    w, h = 37, 23
+    pyr = Pyramid.empty(w, h)
+    axes = pixel_axes(pyr)
+    for k in range(len(pyr.offsets)):
+        first, width = int(pyr.offsets[k]), int(pyr.widths[k])
+        for x in range(w):
+            i0, i1, a = _axis((x + 0.5) * pyr.scale_x[k], pyr.widths[k])
+            assert (axes.col0[k, x], axes.col1[k, x], axes.col_weight[k, x]) == (i0, i1, a)
+        for y in range(h):
+            j0, j1, b = _axis((y + 0.5) * pyr.scale_y[k], pyr.heights[k])
+            assert (axes.row0[k, y], axes.row1[k, y]) == (first + j0 * width, first + j1 * width)
+            assert axes.row_weight[k, y] == b
+
+
+def _trilinear(pyr, level, x, y):
+    """Colour at pixel (x, y)'s centre on a fractional level, from the per-pixel _axis."""
+
+    def tap(k):
+        i0, i1, a = _axis((x + 0.5) * pyr.scale_x[k], pyr.widths[k])
+        j0, j1, b = _axis((y + 0.5) * pyr.scale_y[k], pyr.heights[k])
+        texel = pyr.level(k)[:, :, :3].astype(np.float64)
+        a, b = float(a), float(b)
+        top = (1 - a) * texel[int(j0), int(i0)] + a * texel[int(j0), int(i1)]
+        bottom = (1 - a) * texel[int(j1), int(i0)] + a * texel[int(j1), int(i1)]
+        return (1 - b) * top + b * bottom
+
+    top = len(pyr.offsets) - 1
+    level = min(level, top)
+    k = int(level)
+    return tap(k) if k == top else tap(k) + (level - k) * (tap(k + 1) - tap(k))
+
+
+def test_sample_row_reads_every_pixels_own_level_and_leaves_the_unselected():
+    """One pass per level over a row holding levels 0, fractional, integer, the top and beyond it; pixels
+    with a negative level keep what their values held."""
+    w, h = 37, 23
+    pyr = Pyramid.empty(w, h)
+    pyr.data[:] = np.random.default_rng(5).random(pyr.data.shape, np.float32)
+    top = len(pyr.offsets) - 1
+    levels = np.array([0.0, 0.25, 1.0, 1.5, 2.75, -1.0, top, top + 3.0, 0.9] * 5)[:w]
+    scratch = RowSamples.empty(w)
+    values = scratch.values[0]
+    values[:] = 7.0
+    y = 9
+    sample_row(pyr.data, pyr.widths, pixel_axes(pyr), y, levels, values, scratch.texels[0])
+    for x, level in enumerate(levels):
+        expected = np.full(3, 7.0) if level < 0 else _trilinear(pyr, level, x, y)
+        np.testing.assert_allclose(values[x], expected, rtol=1e-5, atol=1e-6, err_msg=f"x={x} level={level}")
+
+
+def test_enhance_windows_cover_every_texel_the_contrast_reads():
+    """The contrast enhancement over a pyramid prefiltered only inside enhance_windows (NaN elsewhere) equals
+    the one over the whole prefiltered pyramid, with the gaze off-centre; the finest level's window is a small
+    part of that level."""
+    cam = camera(width=256, height=288)
+    ecc = np.asarray(cam.eccentricity(gaze_direction(12, -6)), np.float32)
+    pyr = Pyramid.empty(256, 288)
+    pyr.data[:] = np.random.default_rng(2).random(pyr.data.shape, np.float32)
+    levels = contrast_levels(ecc, 10.0, np.empty(ecc.shape, np.float32))
+    contrast = Contrast(0.2, 10.0, 20.0, levels)
+    windows = enhance_windows(ecc, contrast, pyr, np.empty((288, FINE_LEVELS, 2), np.int64))
+    whole, windowed = Pyramid.empty(256, 288), Pyramid.empty(256, 288)
+    windowed.data[:] = np.nan
+    prefilter(pyr, whole)
+    prefilter(pyr, windowed, windows)
+    axes, color = pixel_axes(pyr), pyr.level(0)[..., :3]
+    images = [
+        combine(
+            color,
+            ecc,
+            None,
+            Blur(10.0, 20.0),
+            pyr,
+            contrast,
+            blurred,
+            axes,
+            RowSamples.empty(256),
+            np.empty_like(color),
+        )
+        for blurred in (whole, windowed)
+    ]
+    assert np.isfinite(images[1]).all()
+    np.testing.assert_array_equal(images[0], images[1])
+    x0, x1, y0, y1 = windows[0]
+    assert 0 < (x1 - x0) * (y1 - y0) < 0.25 * 256 * 288
+    assert (windows[2:, 0] == 0).all() and (windows[2:, 1] == pyr.widths[2:]).all()
+
+
+# -- the light buffer behind weier2016's post-process --
+
+
+def test_light_buffer_is_the_stochastic_part_of_the_colour():
+    mats = {"m": Material(diffuse=(0.6, 0.5, 0.4))}
+    scene = Scene(
+        "box",
+        [quad("floor", (-3, 0, 3), (6, 0, 0), (0, 0, -6), "m"), sphere("s", (0, 0.5, -2), 0.5, "m")],
+        mats,
+        [AreaLight(corner=(-0.5, 2.5, -2.5), edge_u=(0, 0, 1), edge_v=(1, 0, 0), radiance=(4, 4, 4))],
+        ambient=(0.3, 0.3, 0.3),
+        ao_samples=4,
+        max_depth=0,
+        start=Pose.looking((0, 1.5, 1.0), 0, -30),
+    )
+    cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(32, 32), scene.start)
+    with Whitted(scene) as tracer:
+        xy = pixel_centres(32, 32)
+        light = LightBuffer.empty(len(xy))
+        rgb = tracer.trace_samples(cam, xy, np.arange(len(xy)), FrameStats(), light=light)
+    np.testing.assert_allclose(rgb, light.albedo * light.irradiance, atol=1e-5)  # no emission, no specular
+    assert light.irradiance.max() > 0
+
+
+@pytest.mark.parametrize("previous_depth", [2.0, FAR])
+def test_weier18_taa_blends_each_sample_only_with_taps_that_see_its_surface(previous_depth):
+    """weier2018 section 3.1's TAA on a still view: a sample on a surface blends with the previous frame's taps at
+    its distance, a miss only with taps that missed too; all five taps seen, the new sample keeps alpha_min."""
+    from hmdrt.foveation.stages.pyramid import quincunx_offset
+    from hmdrt.foveation.stages.temporal import relative_view
+    from hmdrt.foveation.weier18 import Blend, Reprojected, Traced, _taa
+    from hmdrt.optics.projection import camera_arrays
+
+    w, h = 16, 12
+    cam = camera("sim-cpu", width=w, height=h)
+    previous, current = Pyramid.empty(w, h), Pyramid.empty(w, h)
+    previous.data[:, :3] = (1.0, 0.0, 0.0)
+    previous.data[:, 3], previous.data[:, 4] = 1.0, previous_depth
+    surface, miss = 5 * w + 5, 6 * w + 9
+    traced = Traced(
+        np.array([surface, miss]),
+        np.array([[5.5, 5.5], [9.5, 6.5]], np.float32),
+        np.zeros(2),
+        np.full(2, quincunx_offset(0.0)),
+        np.array([2.0, np.inf], np.float32),
+        np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], np.float32),
+    )
+    alpha_min = 0.2
+    blend = Blend(alpha_min, 0.05)
+    _taa(
+        traced, camera_arrays(cam).frustum, relative_view(cam, cam), blend, previous, True, current, Reprojected.empty()
+    )
+    blended = alpha_min * np.array([0.0, 0.0, 1.0]) + (1 - alpha_min) * np.array([1.0, 0.0, 0.0])
+    seen = {surface: previous_depth == 2.0, miss: previous_depth == FAR}
+    for pixel, hit in seen.items():
+        np.testing.assert_allclose(current.data[pixel, :3], blended if hit else (0.0, 0.0, 1.0), rtol=1e-6)
+        assert current.data[pixel, 3] == 1.0
