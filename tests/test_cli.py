@@ -68,7 +68,8 @@ def test_regular_takes_spp_and_both_eyes_go_side_by_side(tmp_path):
         (["--profile", "oculus_quest_9"], "unknown profile"),
         (["--method", "magic"], "unknown method 'magic'"),
         (["--method", "regular?spp=zero"], "Expected `int`"),
-        (["--frames", "0"], "--frames must be at least 1"),
+        (["--frames", "0"], "argument --frames: must be at least 1, got 0"),
+        (["--threads", "x"], "argument --threads: not a whole number: 'x'"),
         (["--frames", "2", "--trace", "missing.jsonl"], "trace not found"),
         (["--gaze", "nan,0"], "gaze angles must be finite"),
         (["--spp", "4"], "--spp applies to method regular"),
@@ -112,3 +113,14 @@ def test_mesh_file_scene_from_the_command_line(tmp_path):
         str(tmp_path / "t.png"),
     )
     assert r.returncode == 0, r.stderr
+
+
+def test_the_console_script_and_python_m_hmdrt_reach_the_same_main():
+    from importlib.metadata import entry_points
+
+    from hmdrt import cli
+
+    (script,) = [e for e in entry_points(group="console_scripts") if e.name == "hmdrt"]
+    assert script.value == "hmdrt.cli:main" and script.load() is cli.main
+    r = hmdrt("--version")
+    assert r.returncode == 0 and r.stdout.startswith("hmdrt "), r.stderr

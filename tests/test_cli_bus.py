@@ -104,7 +104,8 @@ def test_host_reconnects_to_a_restarted_tracker(tmp_path):
     [
         (["driver", "bogus://x"], "no driver for bogus://"),
         (["driver", "synthetic://?rate=0"], "outside"),
-        (["driver", "synthetic://", "--duration", "-1"], "--duration must be positive"),
+        (["driver", "synthetic://", "--duration", "-1"], "argument --duration: must be positive, got -1"),
+        (["record", "--out", "x.jsonl", "--duration", "nan"], "argument --duration: must be positive, got nan"),
         (["emulate", "razor", "--trace", "x.jsonl"], "takes no --trace"),
         (["emulate", "smi", "--port", "70000"], "--port must be within"),
         (["emulate", "smi", "--trace", "missing.jsonl"], "trace not found"),

@@ -1,4 +1,4 @@
-"""Who may control a compositor without keys (README "Access", issue 18), over real sockets: the default control
+"""Who may control a compositor without keys (README "Access"), over real sockets: the default control
 socket is ipc:// in a runtime folder of this user's only, which `hmdrt status` finds; a folder that others could
 use is refused; tcp:// without [security] only reads; and a snapshot lands in [output] snapshot_dir by file name,
 never elsewhere and never over a file, its refusals counted."""
@@ -196,12 +196,11 @@ def test_snapshots_land_in_the_snapshot_folder_by_name_only_and_refusals_are_cou
             "x.png\n",
             "",
             42,
-            None,
+            "x" * 200 + ".png",
         ]
         for name in bad_names:
             reply = snapshot(name)
             assert not reply["ok"] and reply["error"].startswith('snapshot takes "path": a file name'), (name, reply)
-            assert str(folder) in reply["error"]
         for name in ("shown.png", "taken.png", "link.png"):
             reply = snapshot(name)
             assert not reply["ok"] and f"{folder / name} exists; a snapshot never replaces a file" in reply["error"]

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from hmdrt.bus.security import LOCAL_TRANSPORTS
-from hmdrt.watch.link import CompositorLink
+from hmdrt.watch.link import STATUS, CompositorLink
 from hmdrt.watch.protocol import MAX_FRAMES_PER_BATCH, BadMessage, frame_point, preview_message
 
 log = logging.getLogger(__name__)
@@ -143,7 +143,7 @@ class Hub:
 
     async def _poll(self) -> None:
         while True:
-            reply = await self.link.request({"cmd": "status"})
+            reply = await self.link.request(STATUS)
             self.status = reply
             self._broadcast(self._status_message())
             await asyncio.sleep(STATUS_S)

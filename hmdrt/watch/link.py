@@ -18,10 +18,13 @@ import zmq
 import zmq.asyncio
 
 from hmdrt.bus.security import ClientKeys
+from hmdrt.compositor.commands import Status, to_request
 from hmdrt.compositor.preview import PREVIEW
 from hmdrt.errors import ConfigError
 
 log = logging.getLogger(__name__)
+
+STATUS = to_request(Status())  # the request the watch polls the compositor with
 
 TOPICS = (b"frame", b"stats", b"log")
 MAX_TELEMETRY_BYTES = 4 * 1024 * 1024  # a stats report or a preview fits many times over
@@ -55,7 +58,7 @@ class CompositorLink:
         """Subscribe to `telemetry`, or ("") to the endpoint the compositor's status names; ConfigError when it
         has to be asked and does not answer."""
         if not telemetry:
-            reply = await self.request({"cmd": "status"})
+            reply = await self.request(STATUS)
             telemetry = reply.get("endpoints", {}).get("telemetry") if reply.get("ok") else None
             if not isinstance(telemetry, str):
                 raise ConfigError(f"no telemetry endpoint from the compositor: {reply.get('error')} (give --telemetry)")

@@ -1,9 +1,10 @@
 """What travels between the watch server and its page over the websocket (and POST /api/command).
 
-The page sends commands as JSON objects of at most MAX_MESSAGE_BYTES: {"cmd": "set", "method": "rrm?fovea_deg=5"}
-or {"cmd": "set", "params": {"fovea_deg": 5}}, {"cmd": "snapshot"} (optionally "path": a file name), {"cmd":
-"shutdown"}, each with an optional numeric "id" that the reply repeats. Anything else is refused with BadMessage,
-checked here before anything reaches the compositor, which checks the values again.
+The page sends a control command (hmdrt.compositor.commands declares them) as a JSON object of at most
+MAX_MESSAGE_BYTES, with an optional numeric "id" that the reply repeats: {"cmd": "set", "method": "rrm?fovea_deg=5"},
+{"cmd": "set", "params": {"fovea_deg": 5}}, {"cmd": "snapshot"}, {"cmd": "shutdown"}. It is checked here by the
+same declaration the control socket checks it by, so a bad one is refused with the control socket's message
+before anything reaches the compositor.
 
 The server sends JSON text messages with a "type" (hello, frames, stats, status, log, reply) and each preview as
 one binary message: a 4-byte big-endian header length, the JSON header (vsync, method, size, each eye's gaze point
@@ -13,60 +14,45 @@ and foveal radii in preview pixels), then the JPEG.
 from __future__ import annotations
 
 import struct
-from typing import Annotated
+from typing import NamedTuple
 
 import msgspec
 
+from hmdrt.compositor import commands
+
 MAX_MESSAGE_BYTES = 4096
 MAX_FRAMES_PER_BATCH = 256  # frame points per "frames" message; more arriving between flushes are counted, not sent
-
-Name = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
-Value = Annotated[str, msgspec.Meta(max_length=200)] | int | float | bool
+MAX_ID = 2**53  # a page's message id: any integer JavaScript holds exactly
 
 
 class BadMessage(ValueError):
     """A page message that is not a command this server forwards; its text says why."""
 
 
-class _Command(msgspec.Struct, frozen=True, forbid_unknown_fields=True, tag_field="cmd"):
-    id: Annotated[int, msgspec.Meta(ge=0, le=2**53)] = 0
+class PageCommand(NamedTuple):
+    """A command from a page and the id its reply repeats."""
+
+    id: int
+    command: commands.Command
 
 
-class Set(_Command, tag="set"):
-    method: Annotated[str, msgspec.Meta(min_length=1, max_length=200)] | None = None
-    params: Annotated[dict[Name, Value], msgspec.Meta(max_length=32)] | None = None
-
-
-class Snapshot(_Command, tag="snapshot"):
-    path: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,63}\.png$")] | None = None
-
-
-class Shutdown(_Command, tag="shutdown"):
-    pass
-
-
-Command = Set | Snapshot | Shutdown
-_decoder = msgspec.json.Decoder(Command)
-
-
-def parse_command(data: str | bytes) -> Command:
+def parse_command(data: str | bytes) -> PageCommand:
     """The command of one page message; BadMessage when it is too long, not JSON, or not a command."""
     if len(data) > MAX_MESSAGE_BYTES:
         raise BadMessage(f"a message is at most {MAX_MESSAGE_BYTES} bytes")
     try:
-        command = _decoder.decode(data)
-    except (msgspec.DecodeError, RecursionError) as exc:  # ValidationError is a DecodeError
-        raise BadMessage(f"not a command: {exc}") from None
-    if isinstance(command, Set) and command.method is None and not command.params:
-        raise BadMessage('set takes "method": "name?key=value" and/or "params": {key: value}')
-    return command
-
-
-def control_request(command: Command) -> dict:
-    """The control socket's request for a command: its fields but the page's id, those not given left out."""
-    fields = msgspec.structs.asdict(command)
-    del fields["id"]
-    return {"cmd": command.__struct_config__.tag, **{k: v for k, v in fields.items() if v is not None}}
+        message = msgspec.json.decode(data)
+    except (msgspec.DecodeError, RecursionError) as exc:
+        raise BadMessage(f"not JSON: {exc}") from None
+    number = 0
+    if isinstance(message, dict) and "id" in message:
+        number = message.pop("id")
+        if type(number) is not int or not 0 <= number <= MAX_ID:
+            raise BadMessage(f'"id" is a whole number from 0 to 2**53 that the reply repeats, got {number!r:.40}')
+    try:
+        return PageCommand(number, commands.parse(message))
+    except commands.BadCommand as exc:
+        raise BadMessage(str(exc)) from None
 
 
 def frame_point(record: dict) -> dict:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import signal
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,13 +21,14 @@ from aiohttp import WSMsgType, web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from hmdrt.bus.security import ClientKeys, is_loopback
+from hmdrt.compositor.commands import Command, to_request
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import METHODS
 from hmdrt.version import __version__
 from hmdrt.watch.access import Access, add_headers, host_name
 from hmdrt.watch.hub import Hub, Page
 from hmdrt.watch.link import CONTROL_TIMEOUT_S, CompositorLink
-from hmdrt.watch.protocol import MAX_MESSAGE_BYTES, BadMessage, Command, Snapshot, control_request, parse_command
+from hmdrt.watch.protocol import MAX_MESSAGE_BYTES, BadMessage, parse_command
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ class WatchServer:
 
     async def _command(self, request: web.Request) -> web.Response:
         try:
-            command = parse_command(await request.read())
+            _, command = parse_command(await request.read())
         except BadMessage as exc:
             self.access.count("message", request, str(exc))
             return web.json_response({"ok": False, "error": str(exc)}, status=400)
@@ -200,23 +200,18 @@ class WatchServer:
 
     async def _page_command(self, data: str, page: Page, request: web.Request) -> dict:
         try:
-            command = parse_command(data)
+            number, command = parse_command(data)
         except BadMessage as exc:
             self.access.count("message", request, str(exc))
             return {"type": "reply", "ok": False, "error": str(exc)}
-        if not page.privileged:
-            self.access.count("token", request, f"{control_request(command)['cmd']} from a page without the token")
-            return {"type": "reply", "id": command.id, "ok": False, "error": "read-only: open the URL with ?token="}
-        return {"type": "reply", "id": command.id, **await self._execute(command)}
+        if command.mutating and not page.privileged:
+            self.access.count("token", request, f"{command.name()} from a page without the token")
+            return {"type": "reply", "id": number, "ok": False, "error": "read-only: open the URL with ?token="}
+        return {"type": "reply", "id": number, **await self._execute(command)}
 
     async def _execute(self, command: Command) -> dict:
-        """Forward a command to the control socket; a snapshot without a name gets one of the time."""
-        request = control_request(command)
-        if isinstance(command, Snapshot) and command.path is None:
-            now = time.time()
-            request["path"] = (
-                f"watch-{time.strftime('%Y%m%d-%H%M%S', time.localtime(now))}-{int(now * 1e3) % 1000:03d}.png"
-            )
+        """Forward a command to the control socket."""
+        request = to_request(command)
         reply = await self.link.request(request)
         log.info("%s: %s", request["cmd"], reply)
         return reply

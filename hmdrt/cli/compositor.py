@@ -1,0 +1,239 @@
+"""The compositor and its clients: `hmdrt run` (the daemon), `hmdrt status`, `hmdrt ctl` (any control command),
+`hmdrt watch` (the live page) and `hmdrt keys` (CURVE keypairs for [security] and its clients)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import textwrap
+import threading
+from itertools import chain
+from pathlib import Path
+
+from hmdrt.cli.common import (
+    UNTIL,
+    client_keys,
+    control_endpoint,
+    control_options,
+    count,
+    key_options,
+    seconds,
+    stop_on_signals,
+    write_json,
+)
+from hmdrt.compositor.commands import COMMANDS, Stats, Status, from_words, to_request
+from hmdrt.console.progress import StatusLine
+from hmdrt.errors import HmdrtError
+from hmdrt.files.atomic import check_writable
+from hmdrt.files.resources import run_config
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Run the compositor daemon until stopped, the frame count or the duration; write the run report."""
+    import msgspec
+
+    from hmdrt.compositor.config import load_config
+    from hmdrt.compositor.daemon import Compositor
+
+    config = load_config(
+        run_config(args.config),
+        frames=args.frames,
+        duration_s=args.duration,
+        virtual_time=True if args.virtual_time else None,
+    )
+    if args.frames_log:
+        output = msgspec.structs.replace(config.output, frames_log=args.frames_log)
+        config = msgspec.structs.replace(config, output=output)
+    report_path = args.report or config.output.report
+    if report_path:
+        check_writable(Path(report_path).parent)
+    stop = stop_on_signals()  # before the start-up, so a SIGTERM during it still ends with a report
+    reloads = threading.Event()
+    signal.signal(signal.SIGHUP, lambda *_: reloads.set())
+    with StatusLine(
+        lambda s: f"starting: compiling kernels (about a minute on a first run), connecting drivers: {s:.0f} s"
+    ):
+        compositor = Compositor(config)
+    if reloads.is_set():
+        compositor.reload()
+    stop_relay = threading.Thread(target=lambda: (stop.wait(), compositor.stop.set()), daemon=True)
+    stop_relay.start()
+    signal.signal(signal.SIGHUP, lambda *_: compositor.reload())
+    endpoints = compositor.status()["endpoints"]
+    print(
+        f"hmdrt run {args.config}: {compositor.session.spec} on {config.scene} at {compositor.session.profile.name} "
+        f"({compositor.session.profile.refresh_hz:g} Hz{', virtual time' if config.run.virtual_time else ''}); "
+        f"control {endpoints['control']}",
+        flush=True,
+    )
+    try:
+        with StatusLine(lambda _: _run_status(compositor.summary())):
+            report = compositor.run()
+    finally:
+        compositor.close()
+    if report_path:
+        write_json(report_path, report)
+    gaze, levels = report["latency_ms"]["gaze_to_photon"], report["controller_level"]
+    print(
+        f"{report['vsyncs']} VSyncs: {report['presented']} frames shown ({report['late']} late), "
+        f"{report['re_presented']} repeated, {report['dropped']} dropped; miss rate {report['miss_rate']:.1%}; "
+        f"frame p99 {report['frame_ms']['p99']} ms; gaze-to-photon p99 {gaze['p99']} ms"
+        + (f"; controller level p50 {levels['p50']}" if levels and "controller" in report else "")
+        + (f"; report {report_path}" if report_path else "")
+    )
+    return 0
+
+
+def _run_status(report: dict) -> str:
+    """One line of a run so far, for the terminal."""
+    gaze = report["latency_ms"]["gaze_to_photon"]
+    return (
+        f"{report['vsyncs']} VSyncs, {report['achieved_hz']:g} Hz, misses {report['miss_rate']:.1%}, "
+        f"repeats {report['repeat_rate']:.1%}, gaze-to-photon p99 {gaze['p99']} ms"
+    )
+
+
+def _ask(args: argparse.Namespace, request: dict, refused: str = "") -> dict:
+    """A running compositor's reply to one control request, without its "ok"; HmdrtError with its refusal."""
+    from hmdrt.compositor.endpoints import request as send
+
+    reply = send(control_endpoint(args), request, args.timeout, client_keys(args))
+    if not reply.get("ok"):
+        raise HmdrtError(f"{refused}{reply.get('error')}")
+    reply.pop("ok")
+    return reply
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """Ask a running compositor for its status."""
+    reply = _ask(args, to_request(Stats() if args.report else Status()), refused="the compositor refused: ")
+    if args.json or args.report:
+        print(json.dumps(reply.get("report", reply), indent=2))
+        return 0
+    shown = reply["shown"]
+    pacing = reply["pacing"]
+    print(
+        f"{reply['method']} on {reply['scene']} at {reply['profile']} ({reply['vsync_hz']:g} Hz): "
+        f"{shown['new']} on time, {shown['late']} late, {shown['repeat']} repeated; "
+        f"devices {', '.join(sorted(set(chain(*reply['devices'].values())))) or 'none'}; pacing {json.dumps(pacing)}"
+        + _access(reply)
+    )
+    return 0
+
+
+def _access(status: dict) -> str:
+    """Who may reach the compositor, from its status: CURVE clients, this user (ipc://) or any local user (tcp://)."""
+    security = status.get("security", {})
+    if security.get("curve"):
+        return f"; access: CURVE, {security['admitted']} handshakes admitted, {security['refused']} refused"
+    if status["endpoints"]["control"].startswith("tcp://"):
+        return "; access: loopback, control read-only"
+    return "; access: this user"
+
+
+def cmd_ctl(args: argparse.Namespace) -> int:
+    """Send one control command; a bad one is refused here with the control socket's own message."""
+    command = from_words(args.command, args.args)
+    reply = _ask(args, to_request(command))
+    print(json.dumps(reply, indent=2) if reply else "ok")
+    return 0
+
+
+CTL_EXAMPLES = ("status", "set params.fovea_deg=5", "set 'method=weier16?frc=small'", "snapshot path=shown.png")
+
+
+def ctl_epilog(width: int = 78) -> str:
+    """`hmdrt ctl --help`'s list of commands, from their declarations (hmdrt.compositor.commands)."""
+    lines = ["commands (* changes the compositor: ipc:// or CURVE clients only):"]
+    for name, command in COMMANDS.items():
+        text = " ".join((command.__doc__ or "").split())
+        if command.takes:
+            text += f" Takes {command.takes}."
+        head = f"  {name}{'*' if command.mutating else ''}"
+        lines.append(textwrap.fill(text, width, initial_indent=f"{head:<14}", subsequent_indent=" " * 14))
+    words = (
+        "ARG=VALUE: a string argument takes VALUE as it is, any other reads it as JSON; ARG.KEY=VALUE sets one "
+        'entry of a table (VALUE JSON, else a string). The reply is printed as JSON ("ok" when it is empty).'
+    )
+    lines += ["", textwrap.fill(words, width), "", "examples:"]
+    lines += [f"  hmdrt ctl {example}" for example in CTL_EXAMPLES]
+    return "\n".join(lines)
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    """Serve a live view of a running compositor (frames, plots, drivers, controls) until stopped."""
+    from hmdrt.watch.server import WatchOptions, serve
+
+    options = WatchOptions(
+        control=control_endpoint(args),
+        telemetry=args.telemetry or "",
+        bind=args.bind,
+        port=args.port,
+        allow_hosts=tuple(args.allow_host),
+        keys=client_keys(args),
+    )
+    serve(
+        options, lambda server: print(f"hmdrt watch: {server.url(token=True)} (read-only: {server.url()})", flush=True)
+    )
+    return 0
+
+
+def cmd_keys(args: argparse.Namespace) -> int:
+    """Write a CURVE keypair for the [security] section or a client's --server-key / --client-key."""
+    from hmdrt.bus.security import write_keypair
+
+    public, secret = write_keypair(args.dir, args.name, args.force)
+    print(f"{public}: public key (share it); {secret}: secret key (mode 0600, keep it)")
+    return 0
+
+
+def add_commands(sub: argparse._SubParsersAction) -> None:
+    run = sub.add_parser("run", help="run the compositor daemon on a config")
+    run.add_argument("config", help="run config (.toml), e.g. configs/default.toml")
+    limit = run.add_mutually_exclusive_group()
+    limit.add_argument("--frames", type=count, help="stop after N VSyncs")
+    limit.add_argument("--duration", type=seconds, help=UNTIL)
+    run.add_argument("--virtual-time", action="store_true", help="a simulated clock, one period per frame")
+    run.add_argument("--report", help="write the run report JSON here (overrides the config's)")
+    run.add_argument("--frames-log", help="write every frame record here as JSON Lines (overrides the config's)")
+    run.set_defaults(run=cmd_run)
+
+    status = sub.add_parser("status", help="ask a running compositor daemon")
+    status.add_argument("--json", action="store_true", help="print the status as JSON")
+    status.add_argument("--report", action="store_true", help="print the run report so far (JSON)")
+    control_options(status)
+    status.set_defaults(run=cmd_status)
+
+    ctl = sub.add_parser(
+        "ctl",
+        help="send a command to a running compositor's control socket",
+        description="Send one command to a running compositor's control socket and print its reply.",
+        epilog=ctl_epilog(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ctl.add_argument("command", metavar="COMMAND", help=f"one of {', '.join(COMMANDS)}")
+    ctl.add_argument("args", nargs="*", metavar="ARG=VALUE", help="the command's arguments")
+    control_options(ctl)
+    ctl.set_defaults(run=cmd_ctl)
+
+    watch = sub.add_parser("watch", help="serve a live view of a running compositor in the browser")
+    watch.add_argument("--telemetry", help="its telemetry endpoint (default: the one its control socket names)")
+    watch.add_argument(
+        "--control", help="its control endpoint (default: this user's one running compositor, as for status)"
+    )
+    watch.add_argument("--port", type=int, default=8765, help="port to serve the page on (default 8765; 0: any free)")
+    watch.add_argument(
+        "--bind", default="127.0.0.1", help="address to serve on (default 127.0.0.1; others need the CURVE keys)"
+    )
+    watch.add_argument(
+        "--allow-host", action="append", default=[], metavar="NAME", help="another Host name the page is opened by"
+    )
+    key_options(watch)
+    watch.set_defaults(run=cmd_watch)
+
+    keys = sub.add_parser("keys", help="write a CURVE keypair: NAME.key (public) and NAME.key_secret (secret)")
+    keys.add_argument("name", help="the key's name, e.g. compositor or the client's")
+    keys.add_argument("--dir", default=".", help="folder to write the two files to (default: here)")
+    keys.add_argument("--force", action="store_true", help="replace an existing keypair of that name")
+    keys.set_defaults(run=cmd_keys)
