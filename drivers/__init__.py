@@ -33,6 +33,7 @@ __all__ = [
     "Driver",
     "DriverError",
     "DriverNotFound",
+    "DriverUrl",
     "driver_class",
     "open_driver",
     "register",

@@ -12,8 +12,9 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import ClassVar
-from urllib.parse import parse_qsl, urlsplit
+from urllib.parse import parse_qsl, quote, unquote, urlencode, urlsplit
 
 from hmdrt.bus.messages import Gaze, Pose, Status
 from hmdrt.clock import MONOTONIC, Clock
@@ -21,6 +22,7 @@ from hmdrt.drivers.clocksync import ClockSync
 from hmdrt.errors import ConfigError, HmdrtError
 
 Sample = Gaze | Pose
+PATH_SAFE = "/:@!$&'()*+,;=~"  # what a URL's path may hold unquoted (RFC 3986 pchar): a location keeps them
 
 
 class DriverError(HmdrtError):
@@ -48,7 +50,11 @@ class DriverUrl:
 
     @classmethod
     def parse(cls, text: str) -> DriverUrl:
-        parts = urlsplit(text)
+        """The one parser of driver URLs; a ConfigError says what is wrong with one."""
+        try:
+            parts = urlsplit(text)
+        except ValueError as exc:  # a netloc with an unbalanced [ or ]
+            raise ConfigError(f"driver URL {text!r}: {exc}") from None
         if not parts.scheme:
             raise ConfigError(f"driver URL needs a scheme (e.g. synthetic://?seed=1), got {text!r}")
         try:
@@ -56,6 +62,20 @@ class DriverUrl:
         except ValueError as exc:
             raise ConfigError(f"driver URL {text!r}: {exc}") from None
         return cls(text, parts.scheme, parts.hostname or "", parts.netloc, parts.path, options)
+
+    @property
+    def location(self) -> str:
+        """What comes between scheme:// and ?, unquoted and as written: replay://traces/a.jsonl gives
+        traces/a.jsonl (a URL parser would take "traces" for a host name, which the host field lower-cases)."""
+        return unquote(self.netloc + self.path)
+
+    def replace(self, location: str | None = None, **options: str) -> DriverUrl:
+        """This URL with another location and the given options set (both quoted here), the rest as it was."""
+        where = self.netloc + self.path if location is None else quote(location, safe=PATH_SAFE)
+        query = urlsplit(self.text).query
+        if options:
+            query = urlencode({**self.options, **options}, safe="/:,", quote_via=quote)
+        return DriverUrl.parse(f"{self.scheme}://{where}" + (f"?{query}" if query else ""))
 
     @property
     def port(self) -> int | None:
@@ -92,11 +112,15 @@ class Driver(ABC):
     (name -> (type, default, low, high)); options arrive parsed and range-checked in self.opt. Every
     driver also takes name= (the bus device name) and device_latency= (ms: the device's fixed delay
     from capture to sending, which one-way timestamps cannot reveal; the clock sync takes it out).
+    A driver whose URL names files declares where (`location_is_path`, `path_options`), so that a run
+    config's paths are taken relative to the config file (with_paths_under).
     """
 
     scheme: ClassVar[str]
     grammar: ClassVar[str]
     options: ClassVar[dict[str, tuple[type, object, float | None, float | None]]] = {}
+    location_is_path: ClassVar[bool] = False  # the URL's location is a file (replay://PATH)
+    path_options: ClassVar[tuple[str, ...]] = ()  # options whose values are files (hid://stub?trace=PATH)
     device_latency_ms: ClassVar[float] = 0.0
     clock_wrap_ns: ClassVar[int | None] = None  # the period of a device clock that wraps
 
@@ -118,6 +142,15 @@ class Driver(ABC):
             raise ConfigError(f"{self.scheme}:// name= must be printable ASCII (a bus topic), got {self.device!r}")
         self.sync = ClockSync(wrap_ns=self.clock_wrap_ns, floor_ns=round(self.opt["device_latency"] * 1e6))
         self.state = "closed"
+
+    @classmethod
+    def with_paths_under(cls, url: DriverUrl, base: Path) -> DriverUrl:
+        """`url` with the relative file paths this driver declares in it made absolute against `base`."""
+        location = url.location if cls.location_is_path and _relative(url.location) else None
+        options = {name: str(base / url.options[name]) for name in cls.path_options if _relative(url.options.get(name))}
+        if location is None and not options:
+            return url
+        return url.replace(None if location is None else str(base / location), **options)
 
     def _option(self, name: str, kind: type, default, lo, hi):
         text = self.url.options.get(name)
@@ -173,6 +206,10 @@ class Driver(ABC):
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _relative(path: str | None) -> bool:
+    return bool(path) and not Path(path).is_absolute()
 
 
 @dataclass

@@ -146,6 +146,7 @@ class HidDriver(Driver):
         "mag": (bool, True, None, None),
     }
     STUB_ONLY = ("trace", "seed", "start_us", "bias", "noise")
+    path_options = ("trace",)
     clock_wrap_ns = TIMESTAMP_WRAP_US * 1000
 
     def __init__(self, url: DriverUrl | str, clock: Clock = MONOTONIC):

@@ -3,9 +3,10 @@
 The host connects a PUB socket (an XPUB, to see the ingest's subscription arrive before the first
 message) to the compositor's ingest SUB, opens the driver, and publishes each
 normalised sample as gaze.<device> / pose.<device>, plus status.<device> on every state change and
-once a second. When the device goes away (DeviceLost) it closes the driver and reopens it with
-exponential backoff, counting reconnects; a driver that crashes (an unexpected error in its own code) is
-restarted the same way and counted; configuration errors are not retried. A full send queue
+once a second. When the device goes away (DeviceLost) or the driver crashes (an unexpected error in its own
+code), it closes the driver and opens it again as the reconnect policy says (drivers.reconnect: at once after a
+working device went away, else with exponential backoff), counting reconnects and crashes; configuration errors
+are not retried. A full send queue
 (the compositor not keeping up) drops the newest sample and counts it, rather than blocking the device.
 """
 
@@ -23,6 +24,7 @@ from hmdrt.bus.security import ClientKeys
 from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.drivers import open_driver
 from hmdrt.drivers.base import Counters, DeviceLost, Driver
+from hmdrt.drivers.reconnect import Reconnect
 from hmdrt.errors import HmdrtError
 
 log = logging.getLogger(__name__)
@@ -44,7 +46,7 @@ class DriverHost:
         self.driver: Driver = open_driver(url, clock)
         self.clock = clock
         self.status_period_ns = int(status_period_s * 1e9)
-        self.backoff_s = backoff_s
+        self.reconnect = Reconnect(*backoff_s, announce=lambda driver: self._status(force=True))
         self._context = context or zmq.Context.instance()
         self._socket = self._context.socket(zmq.XPUB)
         self._socket.setsockopt(zmq.SNDHWM, queue)
@@ -53,8 +55,6 @@ class DriverHost:
             curve.apply(self._socket)
         self._socket.connect(bus)
         self._last_status = 0
-        self._delay = backoff_s[0]  # the current backoff: doubles after each failed open or crash
-        self._opened_at: float | None = None
         self._await_subscriber(subscriber_wait_s)
 
     def _await_subscriber(self, timeout_s: float) -> None:
@@ -80,57 +80,33 @@ class DriverHost:
             self._last_status = now
 
     def _open(self, stop: threading.Event) -> bool:
-        """Open the driver, retrying with growing backoff while the device is away; False if stopped first."""
+        """Open the driver, retrying as the reconnect policy says while the device is away; False if stopped first."""
         while not stop.is_set():
             self.driver.state = "connecting"
             self._status(force=True)
             try:
                 self.driver.open()
-                self.driver.state = "connected"
-                self._opened_at = time.monotonic()
+                self.reconnect.opened(self.driver, time.monotonic_ns())
                 self._status(force=True)
                 return True
             except DeviceLost:
-                self._lost()
+                wait_s = self.reconnect.lost(self.driver, working=False)
             except HmdrtError:
                 raise  # a configuration error: retrying cannot help
             except Exception as exc:  # noqa: BLE001 - a bug in the driver: restart it rather than die
-                self._crashed(exc)
-            if self._backoff(stop):
+                wait_s = self._crashed(exc)
+            if stop.wait(wait_s):
                 break
         return False
 
-    def _lost(self) -> None:
-        self.driver.state = "lost"
-        self._status(force=True)
-        self.driver.close()
-        self.driver.counters.reconnects += 1
-
-    def _crashed(self, exc: Exception) -> None:
-        """Count a crash and log what it was (the status says "crashed"). The backoff starts afresh
-        when the driver had run longer than the longest backoff; a driver that crashes again at once waits longer
-        each time."""
-        self.driver.counters.crashes += 1
-        self.driver.state = "crashed"
-        self._status(force=True)
+    def _crashed(self, exc: Exception) -> float:
+        """Log a crash and count it (the status says "crashed"); the seconds to wait before the restart."""
         log.warning("driver %s crashed (%s: %s); restarting", self.driver.device, type(exc).__name__, exc)
-        if self._opened_at is not None and time.monotonic() - self._opened_at > self.backoff_s[1]:
-            self._delay = self.backoff_s[0]
-        try:
-            self.driver.close()
-        except Exception:  # noqa: BLE001 - the driver is already broken; its close must not stop the restart
-            pass
-
-    def _backoff(self, stop: threading.Event) -> bool:
-        """Wait the current backoff and double it for next time; whether stop was set meanwhile."""
-        stopped = stop.wait(self._delay)
-        self._delay = min(2 * self._delay, self.backoff_s[1])
-        return stopped
+        return self.reconnect.crashed(self.driver, time.monotonic_ns())
 
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> Counters:
         """Publish until `stop` is set or duration_s passes; returns the driver's counters. A driver that
-        loses its device is reopened at once, then with backoff; one that crashes is restarted after the
-        backoff."""
+        loses its device or crashes is opened again as the reconnect policy says."""
         stop = stop or threading.Event()
         timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
         if timer:
@@ -145,12 +121,11 @@ class DriverHost:
                                 self.driver.counters.dropped += 1
                         self._status()
                 except DeviceLost:
-                    self._lost()
-                    self._delay = self.backoff_s[0]  # it had worked: reconnect at once, then back off afresh
+                    if stop.wait(self.reconnect.lost(self.driver, working=True)):
+                        break
                     continue
                 except Exception as exc:  # noqa: BLE001 - see _open
-                    self._crashed(exc)
-                    if self._backoff(stop):
+                    if stop.wait(self._crashed(exc)):
                         break
                     continue
                 break

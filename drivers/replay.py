@@ -12,7 +12,6 @@ of a trace without loop, read() returns no samples (after waiting out its timeou
 from __future__ import annotations
 
 from pathlib import Path
-from urllib.parse import unquote, urlsplit
 
 from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.drivers.base import Driver, DriverUrl, Sample
@@ -38,15 +37,13 @@ class ReplayDriver(Driver):
         "min_confidence": (float, None, 0.0, 1.0),
     }
     FORMAT_OPTIONS = ("screen_width_mm", "screen_height_mm", "distance_mm", "min_confidence")
+    location_is_path = True
 
     def __init__(self, url: DriverUrl | str, clock: Clock = MONOTONIC):
         super().__init__(url, clock)
-        # urlsplit puts the first part of a relative path in the netloc (replay://a/b.jsonl: "a" + "/b.jsonl")
-        # and DriverUrl lower-cases it as a host name, so the path is rebuilt from the raw text.
-        parts = urlsplit(self.url.text)
-        if not parts.netloc + parts.path:
+        if not self.url.location:
             raise ConfigError(f"replay:// needs a trace file; expected {self.grammar}")
-        self.path = Path(unquote(parts.netloc + parts.path))
+        self.path = Path(self.url.location)
         self._player: Player | None = None
 
     def open(self) -> None:

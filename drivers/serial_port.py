@@ -23,7 +23,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from urllib.parse import urlsplit
 
 import serial
 
@@ -68,7 +67,7 @@ class SerialDriver(Driver):
         protocol = self.opt["protocol"]
         if protocol not in PROTOCOLS:
             raise ConfigError(f"serial:// needs protocol=razor or protocol=hatire, got {protocol!r}; {self.grammar}")
-        if urlsplit(self.url.text).netloc:
+        if self.url.netloc:
             raise ConfigError(f"serial:// takes the device as the URL path (serial:///dev/ttyUSB0); {self.grammar}")
         if bool(self.url.path) == bool(self.opt["port"]):
             raise ConfigError(f"serial:// needs a device path or port=, not both or neither; {self.grammar}")

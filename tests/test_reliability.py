@@ -1,4 +1,4 @@
-"""Faults and overload (issue 7): a silent gaze tracker, a killed driver process, a crashing driver, a killed
+"""Faults and overload: a silent gaze tracker, a killed driver process, a crashing driver, a killed
 recorder, a gaze flood and a busy CPU; the compositor keeps presenting in order and counts what happened."""
 
 from __future__ import annotations

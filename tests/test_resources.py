@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from hmdrt.compositor.config import load_config
+from hmdrt.drivers.base import DriverUrl
 from hmdrt.files.resources import INSTALLED, run_config
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -15,7 +16,7 @@ def test_the_readme_config_runs_from_the_package_where_no_such_file_is_here(tmp_
     installed = run_config("configs/default.toml")
     assert installed == INSTALLED / "default.toml"
     assert installed.read_bytes() == (CONFIGS / "default.toml").read_bytes()
-    trace = Path(load_config(installed).drivers[0].url.removeprefix("replay://").split("?")[0])
+    trace = Path(DriverUrl.parse(load_config(installed).drivers[0].url).location)
     assert trace.is_file() and trace.read_bytes() == (CONFIGS / "traces" / "synthetic_250hz.jsonl.gz").read_bytes()
 
 

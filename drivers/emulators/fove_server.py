@@ -19,7 +19,7 @@ import socket
 from dataclasses import dataclass, field
 
 from hmdrt.clock import MONOTONIC, Clock
-from hmdrt.drivers.emulators.base import NetworkEmulator
+from hmdrt.drivers.emulators.base import Emulated, EmulatorOptions, NetworkEmulator
 from hmdrt.drivers.emulators.feed import FeedSample, GazeFeed
 from hmdrt.drivers.protocols.fove import (
     API_VERSION,
@@ -47,6 +47,8 @@ from hmdrt.spatial import mean_direction, quat_from_yaw_pitch
 
 OFFERED = Capability.ORIENTATION | Capability.POSITION | Capability.EYE_TRACKING | Capability.GAZE_DEPTH
 POSE_CAPS = Capability.ORIENTATION | Capability.POSITION
+PORT = 50050  # where `hmdrt emulate fove` serves by default
+LATENCY_MS = 20.0  # the emulated capture-to-send latency by default
 MAX_CLIENTS = 16
 MAX_OUTBOX_BYTES = 256 * 1024  # several seconds of frames for a client that stopped reading
 POSE_PERIOD_NS = 1e9 / DISPLAY_RATE_HZ
@@ -87,13 +89,14 @@ class FoveEmulator(NetworkEmulator):
     """Serves emulated FOVE eye and pose frames on host:port (0 = any free port; see `address`)."""
 
     name = "fove"
+    emulates = (Emulated("fove", rate_hz=EYE_RATE_HZ, port=PORT, latency_ms=LATENCY_MS),)
 
     def __init__(
         self,
         host: str = "127.0.0.1",
         port: int = 0,
         feed: GazeFeed | None = None,
-        latency_ms: float = 20.0,
+        latency_ms: float = LATENCY_MS,
         clock: Clock = MONOTONIC,
         head: bool = True,
         seed: int = 0,
@@ -106,6 +109,12 @@ class FoveEmulator(NetworkEmulator):
         self.malformed = 0  # client frames that did not parse, or were oversize
         self.dropped = 0  # frames not queued for a client that stopped reading
         self._clients: dict[socket.socket, _Client] = {}
+
+    @classmethod
+    def emulate(cls, device: Emulated, options: EmulatorOptions) -> FoveEmulator:
+        """At the device's port unless another is asked for, gaze from options.feed, head motion of the seed."""
+        port = options.port_for(device)
+        return cls(options.host, port, feed=options.feed(device), clock=options.clock, seed=options.seed)
 
     @property
     def clients(self) -> int:

@@ -21,13 +21,14 @@ import os
 
 from hmdrt.bus.lsl import ClockMap, load_pylsl
 from hmdrt.clock import MONOTONIC, Clock
-from hmdrt.drivers.emulators.base import Emulator
+from hmdrt.drivers.emulators.base import Emulated, Emulator, EmulatorOptions
 from hmdrt.drivers.emulators.feed import FeedSample, GazeFeed
 from hmdrt.drivers.lsl import DEFAULT_PROFILE
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.spatial import Pose
 
 NAME = "Tobii_gaze"  # TittaLSL's stream name for the gaze stream
+RATE_HZ = 120.0  # the emulated gaze rate by default
 DEPTH_M = 0.65  # how far the gaze point lies when the feed gives no depth: a typical eye to screen distance
 PUPIL_MM = 4.0
 NAN = float("nan")
@@ -63,8 +64,9 @@ class LslEmulator(Emulator):
     """An LSL outlet of emulated Tobii gaze (TittaLSL's layout), found by LSL's discovery under `source_id`."""
 
     name = "lsl"
+    emulates = (Emulated("lsl", rate_hz=RATE_HZ, latency_ms=0.0, reached="is found by LSL's discovery, not at a port"),)
 
-    def __init__(self, feed: GazeFeed | None = None, rate_hz: float = 120.0, clock: Clock = MONOTONIC):
+    def __init__(self, feed: GazeFeed | None = None, rate_hz: float = RATE_HZ, clock: Clock = MONOTONIC):
         """feed: the gaze source (default: synthetic gaze at rate_hz; a given feed brings its own rate)."""
         super().__init__(clock)
         self.feed = feed if feed is not None else GazeFeed(rate_hz, clock=clock)
@@ -72,6 +74,10 @@ class LslEmulator(Emulator):
         profile = get_profile(DEFAULT_PROFILE)
         self._cameras = [EyeCamera.for_eye(profile, Pose(), eye) for eye in ("left", "right")]
         self._outlet = None
+
+    @classmethod
+    def emulate(cls, device: Emulated, options: EmulatorOptions) -> LslEmulator:
+        return cls(feed=options.feed(device), clock=options.clock)
 
     @property
     def url(self) -> str:

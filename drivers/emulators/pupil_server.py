@@ -31,12 +31,13 @@ import numpy as np
 import zmq
 
 from hmdrt.clock import MONOTONIC, Clock
-from hmdrt.drivers.emulators.base import NetworkEmulator
+from hmdrt.drivers.emulators.base import Emulated, NetworkEmulator
 from hmdrt.drivers.emulators.feed import FeedSample, GazeFeed
-from hmdrt.drivers.pupil import MAX_ZMQ_MESSAGE, opencv_head
+from hmdrt.drivers.pupil import DEFAULT_PORT, MAX_ZMQ_MESSAGE, opencv_head
 from hmdrt.spatial import mean_direction
 
 VERSION = "3.5.1"
+RATE_HZ = 200.0  # the emulated gaze rate by default
 GAZE_TOPIC = "gaze.3d.01."
 CONFIDENCE = 0.95  # of a tracked sample
 IPD_MM = 63.5
@@ -132,13 +133,14 @@ class PupilEmulator(NetworkEmulator):
     """Pupil Remote on host:port (0 = any free port; see `address`) and its backbone."""
 
     name = "pupil"
+    emulates = (Emulated("pupil", rate_hz=RATE_HZ, port=DEFAULT_PORT, latency_ms=0.0),)  # Pupil Remote's port
 
     def __init__(
         self,
         host: str = "127.0.0.1",
         port: int = 0,
         feed: GazeFeed | None = None,
-        rate_hz: float = 200.0,
+        rate_hz: float = RATE_HZ,
         clock: Clock = MONOTONIC,
     ):
         """feed: the gaze source (default: synthetic gaze at rate_hz; a given feed brings its own rate)."""

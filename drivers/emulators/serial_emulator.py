@@ -29,7 +29,7 @@ from collections.abc import Iterator
 
 from hmdrt.bus.messages import Pose
 from hmdrt.clock import MONOTONIC, Clock
-from hmdrt.drivers.emulators.base import Emulator
+from hmdrt.drivers.emulators.base import Emulated, Emulator, EmulatorOptions
 from hmdrt.drivers.protocols import hatire, razor
 from hmdrt.errors import ConfigError
 from hmdrt.replay.synthetic import SyntheticConfig, SyntheticSource
@@ -115,6 +115,10 @@ class SerialTrackerEmulator(Emulator):
     """A Razor AHRS ("razor") or HATIRE ("hatire") tracker behind the pty named by device_path."""
 
     DEVICES = {"razor": (_Razor, razor.RATE_HZ), "hatire": (_Hatire, hatire.RATE_HZ)}
+    emulates = tuple(
+        Emulated(protocol, rate_hz=rate_hz, reached="is a head tracker on a pseudo-terminal")
+        for protocol, (_, rate_hz) in DEVICES.items()
+    )
 
     def __init__(
         self,
@@ -145,6 +149,11 @@ class SerialTrackerEmulator(Emulator):
         self.device_path: str | None = None
         self.frames_sent = 0
         self.overflows = 0
+
+    @classmethod
+    def emulate(cls, device: Emulated, options: EmulatorOptions) -> SerialTrackerEmulator:
+        """The device's board at its rate unless another is asked for, with the synthetic head motion of the seed."""
+        return cls(device.name, rate_hz=options.rate_for(device), seed=options.seed, clock=options.clock)
 
     @property
     def url(self) -> str:

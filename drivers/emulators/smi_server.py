@@ -35,7 +35,7 @@ import numpy as np
 
 from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.drivers.base import DriverError
-from hmdrt.drivers.emulators.base import Address, NetworkEmulator
+from hmdrt.drivers.emulators.base import Address, Emulated, NetworkEmulator
 from hmdrt.drivers.emulators.feed import FeedSample, GazeFeed
 from hmdrt.drivers.emulators.smi_fixations import FixationDetector
 from hmdrt.drivers.protocols.smi import (
@@ -52,10 +52,12 @@ from hmdrt.drivers.protocols.smi import (
     int_args,
     parse_line,
 )
+from hmdrt.drivers.smi import DEFAULT_PORT
 from hmdrt.errors import ConfigError
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.spatial import Pose
 
+RATE_HZ = 250  # the emulated tracker's default sample rate
 MAX_AREA_PX = 16384
 MAX_FIXATION_MS = 1000  # bounds the candidate window a fixation detector scans per sample
 CALIBRATION_SIZES = (2, 5, 9, 13)
@@ -97,13 +99,14 @@ class SmiEmulator(NetworkEmulator):
 
     name = "smi"
     driver_options = "?listen=0"  # the emulator answers the sender, so the driver may take any free port
+    emulates = (Emulated("smi", rate_hz=RATE_HZ, port=DEFAULT_PORT, latency_ms=0.0),)
 
     def __init__(
         self,
         host: str = "127.0.0.1",
         port: int = 0,
         feed: GazeFeed | None = None,
-        rate_hz: int = 250,
+        rate_hz: int = RATE_HZ,
         profile: str = "dk2",
         clock: Clock = MONOTONIC,
     ):

@@ -13,6 +13,7 @@ from typing import Annotated, Literal
 import msgspec
 
 from hmdrt.bus import INGEST, TELEMETRY
+from hmdrt.drivers import DriverUrl, driver_class
 from hmdrt.errors import ConfigError
 from hmdrt.files.configfile import convert, read_toml
 from hmdrt.foveation import MethodChoice
@@ -157,16 +158,10 @@ def reload_plan(old: RunConfig, new: RunConfig) -> tuple[RunConfig, list[str]]:
 
 
 def _relative(url: str, base: Path) -> str:
-    """A driver URL with its file paths (replay://PATH, trace=PATH) made absolute against base."""
-    scheme, sep, rest = url.partition("://")
-    location, mark, query = rest.partition("?")
-    if scheme == "replay" and location and not location.startswith("/"):
-        location = str(base / location)
-    items = [item.partition("=") for item in query.split("&")] if query else []
-    query = "&".join(
-        f"{k}={base / v}" if k == "trace" and v and not v.startswith("/") else f"{k}{eq}{v}" for k, eq, v in items
-    )
-    return f"{scheme}{sep}{location}{mark}{query}"
+    """A driver URL with the file paths its driver declares (replay://PATH, hid://stub?trace=PATH) made absolute
+    against base; a URL that does not parse, or names no driver, is a ConfigError or DriverNotFound."""
+    parsed = DriverUrl.parse(url)
+    return driver_class(parsed.scheme).with_paths_under(parsed, base).text
 
 
 def load_config(path: str | Path | None = None, **overrides) -> RunConfig:

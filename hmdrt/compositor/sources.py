@@ -3,7 +3,8 @@
 In real time each runs under its own DriverHost thread and publishes to the compositor's ingest,
 exactly as `hmdrt driver URL` would from another process. In virtual time the frame loop polls each
 driver against the virtual clock instead, so every sample due by a frame's wake-up is in before the
-frame samples gaze and pose: the run is a pure function of config, trace and seed.
+frame samples gaze and pose: the run is a pure function of config, trace and seed. Either way a driver whose
+device goes away is opened again as drivers.reconnect says; in virtual time its waits are on the virtual clock.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from hmdrt.clock import Clock
 from hmdrt.drivers import open_driver
 from hmdrt.drivers.base import DeviceLost, Driver
 from hmdrt.drivers.host import DriverHost
+from hmdrt.drivers.reconnect import Reconnect
 
 MAX_READS = 64  # batches per driver per poll (a read returns at most a few thousand samples)
 
@@ -36,11 +38,15 @@ class Sources:
         self._stop = threading.Event()
         self.hosts: list[DriverHost] = []
         self.polled: list[Driver] = []
+        self._reconnects: dict[Driver, Reconnect] = {}  # of the polled drivers
+        self._reopen_ns: dict[Driver, int] = {}  # when a polled driver whose device went away opens again
         self._threads: list[threading.Thread] = []
         for url in urls:
             if virtual:
                 driver = open_driver(url, clock)
                 driver.open()
+                self._reconnects[driver] = Reconnect()
+                self._reconnects[driver].opened(driver, clock.now_ns())
                 self.polled.append(driver)
             else:
                 self.hosts.append(DriverHost(url, ingest, subscriber_wait_s=0.5, curve=keys))
@@ -64,18 +70,39 @@ class Sources:
         """Virtual time: hand the compositor every sample due by now."""
         now = self._clock.now_ns()
         for driver in self.polled:
+            if not self._ready(driver, now):
+                continue
             for _ in range(MAX_READS):
                 try:
                     samples = driver.read(0.0)
                 except DeviceLost:
-                    driver.close()
-                    driver.counters.reconnects += 1
-                    driver.open()
+                    self._lost(driver, now, working=True)
+                    self._ready(driver, now)  # a device that was working opens again at once
                     break
                 if not samples:
                     break
                 for sample in samples:
                     self._sink(driver.device, sample, now)
+
+    def _lost(self, driver: Driver, now_ns: int, working: bool) -> None:
+        """Close a polled driver whose device went away, and note when its reconnect policy opens it again."""
+        self._reopen_ns[driver] = now_ns + round(self._reconnects[driver].lost(driver, working) * 1e9)
+
+    def _ready(self, driver: Driver, now_ns: int) -> bool:
+        """Whether a polled driver is open: it was, or it was due to open again by now_ns and did."""
+        due_ns = self._reopen_ns.get(driver)
+        if due_ns is None:
+            return True
+        if now_ns < due_ns:
+            return False
+        try:
+            driver.open()
+        except DeviceLost:
+            self._lost(driver, now_ns, working=False)
+            return False
+        del self._reopen_ns[driver]
+        self._reconnects[driver].opened(driver, now_ns)
+        return True
 
     def counters(self) -> dict[str, dict]:
         """{device: {samples, dropped, invalid, malformed, reconnects}} of the drivers started here."""

@@ -120,12 +120,12 @@ def hmdrt_emulator() -> Iterator[Callable[..., Emulator]]:
     razor, hatire on a pseudo-terminal) whose `url` goes into a config's drivers; options as
     drivers.emulators.make_emulator takes them (seed, rate_hz, offset_deg, noise_deg, latency_ms, trace). Stopped
     when the test ends. Emulators run on the host clock: they feed real-time runs."""
-    from hmdrt.drivers.emulators import EYE_TRACKERS, make_emulator
+    from hmdrt.drivers.emulators import REGISTRY, make_emulator
 
     started: list[Emulator] = []
 
     def start(device: str, **options: Any) -> Emulator:
-        if device in EYE_TRACKERS:
+        if device in REGISTRY and REGISTRY[device].device.port is not None:  # a free port where it takes one
             options.setdefault("port", 0)
         emulator = make_emulator(device, **options).start()
         started.append(emulator)
