@@ -10,23 +10,39 @@ over an existing file: a refused one is counted.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from hmdrt.compositor import commands
 from hmdrt.compositor.commands import BadCommand, Command, Set, Shutdown, Snapshot, Stats, Status
+from hmdrt.compositor.config import RunConfig
+from hmdrt.compositor.session import Session
 from hmdrt.errors import HmdrtError
 from hmdrt.foveation import MethodChoice
 from hmdrt.present.encode import side_by_side_srgb8, write_png
 
-if TYPE_CHECKING:
-    from hmdrt.compositor.daemon import Compositor
-
 log = logging.getLogger(__name__)
 
 MUTATING = commands.MUTATING  # what the control socket refuses to a client that may only read
+
+
+class Compositor(Protocol):
+    """What the commands read and change of a running compositor (hmdrt.compositor.daemon.Compositor)."""
+
+    config: RunConfig
+    session: Session
+    shown_images: list | None
+    snapshots_refused: int
+    stop: threading.Event
+
+    def status(self) -> dict: ...
+
+    def summary(self) -> dict: ...
+
+    def request_method(self, choice: MethodChoice) -> None: ...
 
 
 def _status(comp: Compositor, command: Status) -> dict:

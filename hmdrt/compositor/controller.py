@@ -35,6 +35,7 @@ from typing import NamedTuple
 
 import msgspec
 
+from hmdrt.compositor.config import RunConfig
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import Method
 
@@ -262,6 +263,23 @@ class BudgetController:
             "widen_deg": self.widen_deg,
             "reason": reason,
         }
+
+
+def make_controller(config: RunConfig, method: Method) -> BudgetController | None:
+    """The [controller] section's controller of `method`; with kind "none", one that only widens the fovea while the
+    gaze tracker is silent (when [fallback] widens at all), else none."""
+    c = config.controller
+    if c.kind == "none":
+        if not config.fallback.widen_deg_per_s:
+            return None
+        return BudgetController(method, ControllerConfig(adjust_level=False))
+    settings = ControllerConfig(
+        target_miss_rate=c.target_miss_rate,
+        headroom=c.headroom,
+        widen_latency_ms=c.widen_latency_ms,
+        accuracy_deg=c.accuracy_deg,
+    )
+    return BudgetController(method, settings)
 
 
 def _mean(values) -> float:

@@ -29,9 +29,9 @@ class GazeFallback:
 
 @dataclass
 class Outages:
-    """Outages of the gaze device, judged once per frame."""
+    """Outages of the gaze device, judged once per frame by the [fallback] section (a reload replaces it)."""
 
-    config: Fallback
+    config: Fallback = field(default_factory=Fallback)
     count: int = 0
     recovered: int = 0
     widened_frames: int = 0

@@ -23,7 +23,7 @@ from typing import Literal
 
 from hmdrt.bus.lsl import ClockMap, load_pylsl
 from hmdrt.clock import Clock
-from hmdrt.compositor.display import Frame
+from hmdrt.compositor.sinks import Shown, Sink
 from hmdrt.errors import HmdrtError
 from hmdrt.files.background import BackgroundWriter
 from hmdrt.telemetry.report import FrameRecord, SampleUse
@@ -52,8 +52,10 @@ SAMPLE_CHANNELS = (
 Item = tuple[FrameRecord, dict | None, tuple | None]
 
 
-class LslOutlets(BackgroundWriter[Item]):
-    """The configured outlets, created at once (ConfigError without pylsl), and the thread that pushes to them."""
+class LslOutlets(BackgroundWriter[Item], Sink):
+    """The configured outlets, created at once (ConfigError without pylsl), and the thread that pushes to them: a
+    sink of the compositor (hmdrt.compositor.sinks) whose outlets outlast the run, since inlets may still be reading
+    what they sent, until the compositor closes."""
 
     def __init__(self, outlets: list[Outlet], clock: Clock, block: bool = False):
         super().__init__("lsl-outlets", QUEUE, block)
@@ -78,9 +80,12 @@ class LslOutlets(BackgroundWriter[Item]):
                     channel.append_child_value(key, value)
             self._samples = lsl.StreamOutlet(info)
 
-    def offer(self, record: FrameRecord, frame: Frame) -> None:
+    def offer(self, shown: Shown) -> None:
         """Queue a shown VSync's record with the gaze and head pose its frame was rendered for (display thread)."""
-        self._put((record, frame.gaze_dirs, frame.head_pose))
+        self._put((shown.record, shown.frame.gaze_dirs, shown.frame.head_pose))
+
+    def report(self) -> dict:
+        return {"lsl_not_pushed": self.lost}
 
     def _write(self, item: Item) -> None:
         record, gaze, pose = item

@@ -15,9 +15,14 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from hmdrt.clock import VirtualClock
 from hmdrt.compositor.clock import VsyncClock
+from hmdrt.errors import ConfigError
+
+if TYPE_CHECKING:
+    from hmdrt.compositor.config import Pacing
 
 ALPHA = 0.8  # IIR weight on the old render estimate (u_pacing_app.c, anchors: "IIR alpha 0.8")
 MISS_THRESHOLD_NS = 500_000  # later than this past the desired present is a miss (u_pacing_compositor.c)
@@ -269,6 +274,20 @@ class Pacer:
                 f"or older than the last {HISTORY} frames)"
             )
         return frame
+
+
+def pacing_settings(pacing: Pacing, period_ns: int) -> dict:
+    """A Pacer's settings from the [pacing] section, checked against the display period (ConfigError)."""
+    period_ms = period_ns / 1e6
+    if pacing.margin_ms >= period_ms:
+        raise ConfigError(f"pacing.margin_ms = {pacing.margin_ms} must be shorter than the period {period_ms:.2f} ms")
+    offset = pacing.present_to_display_ms
+    return {
+        "margin_ns": int(pacing.margin_ms * 1e6),
+        "present_to_display_ns": None if offset < 0 else int(offset * 1e6),
+        "tail_quantile": pacing.tail_quantile or None,
+        "tail_window": pacing.tail_window,
+    }
 
 
 def replay_frame(pacer: Pacer, clock: VirtualClock, render_ns: int) -> tuple[FrameTiming, int, bool]:

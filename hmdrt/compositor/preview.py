@@ -24,6 +24,7 @@ from PIL import Image
 
 from hmdrt.compositor.endpoints import Telemetry
 from hmdrt.compositor.session import AHEAD
+from hmdrt.compositor.sinks import Shown, Sink
 from hmdrt.foveation import METHODS
 from hmdrt.foveation.stages.sampling import pixels_per_degree
 from hmdrt.optics import EyeCamera
@@ -56,8 +57,9 @@ def foveal_radius_deg(method: str, params: dict) -> float | None:
     return None if value is None else float(value)
 
 
-class PreviewPublisher:
-    """Publishes `preview` messages of the frames offered to it, at most max_hz, while a client subscribes."""
+class PreviewPublisher(Sink):
+    """Publishes `preview` messages of the frames offered to it, at most max_hz, while a client subscribes: a sink of
+    the compositor (hmdrt.compositor.sinks) whose worker runs from its making to close()."""
 
     def __init__(self, telemetry: Telemetry, max_hz: float = MAX_HZ, max_width: int = MAX_WIDTH):
         self._telemetry = telemetry
@@ -76,21 +78,16 @@ class PreviewPublisher:
         self._thread = threading.Thread(target=self._run, name="preview", daemon=True)
         self._thread.start()
 
-    def offer(
-        self,
-        record: FrameRecord,
-        images: list[np.ndarray],
-        cameras: dict[str, EyeCamera],
-        gaze_dirs: dict[str, np.ndarray] | None,
-    ) -> None:
+    def offer(self, shown: Shown) -> None:
         """Hand over the frame shown at a VSync (display thread): references only, no work on the images."""
         now = time.monotonic()
         if now < self._next_s or not self._telemetry.subscribed(PREVIEW):
             return
         self._next_s = now + self._interval_s
+        frame = shown.frame
         with self._lock:
             self.replaced += self._slot is not None
-            self._slot = _Shown(record, images, cameras, gaze_dirs)
+            self._slot = _Shown(shown.record, shown.images, frame.cameras, frame.gaze_dirs)
         self._ready.set()
 
     def _run(self) -> None:

@@ -16,12 +16,14 @@ import numpy as np
 
 from hmdrt.compositor.buffers import BufferPool
 from hmdrt.compositor.config import RunConfig
+from hmdrt.compositor.samples import PoseEstimate
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import MethodChoice
 from hmdrt.foveation.base import EYES, Method
-from hmdrt.optics import HmdProfile, get_profile
+from hmdrt.optics import EyeCamera, HmdProfile, get_profile
 from hmdrt.present.timewarp import timewarp
 from hmdrt.scene import load_scene
+from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
 from hmdrt.views import FrameInput, compose_pose, eye_cameras, frame_requests
@@ -77,11 +79,12 @@ class Session:
         return str(self.choice)
 
     def set_method(self, choice: MethodChoice) -> None:
-        """Use `choice` from the next frame: the method retuned in place when only its parameters change."""
-        if choice.name == self.method.name:
-            self.method.set_params(choice.params)
-        else:
+        """Use `choice` from the next frame: the method retuned in place when only its parameters change, left as it
+        is when it renders with these parameters already (a start, or a reload that keeps the method)."""
+        if choice.name != self.method.name:
             self.method = choice.make(self.tracer)
+        elif choice != self.current():
+            self.method.set_params(choice.params)
         self.choice = choice
 
     def params(self) -> dict:
@@ -97,13 +100,12 @@ class Session:
         """The eyes' images for a gaze and head-pose estimate (None: straight ahead, the scene's
         start pose), the eye cameras they were rendered with, and the nanoseconds the method's render took
         (with delay_ns of sleep added: a slower renderer, for tests and benchmarks)."""
-        head = self.scene.start if pose is None else compose_pose(self.scene.start, pose)
         if gaze is None:
             directions, depth = {"left": AHEAD, "right": AHEAD}, None
         else:
             directions, depth = {"left": gaze.left, "right": gaze.right}, gaze.depth_m
-        frame = FrameInput(frame_id, 0, head, directions, depth)
-        cameras = eye_cameras(self.profile, frame.pose, self.eyes)
+        frame = FrameInput(frame_id, 0, self.head(pose), directions, depth)
+        cameras = self.cameras_for(pose)
         images, start = [], time.perf_counter_ns()
         for request in frame_requests(frame, cameras, seed):
             images.append(self.method.render(request, stats, self.pools[request.eye].take()))
@@ -112,6 +114,16 @@ class Session:
                 time.sleep(delay_ns / 1e9)
         took = time.perf_counter_ns() - start
         return images, cameras, took
+
+    def head(self, pose: PoseEstimate | None) -> Pose:
+        """The head in the scene at a pose estimate, which is relative to where its trace started (None: the scene's
+        start pose)."""
+        return self.scene.start if pose is None else compose_pose(self.scene.start, pose)
+
+    def cameras_for(self, pose: PoseEstimate | None) -> dict[str, EyeCamera]:
+        """The eye cameras at a head-pose estimate (None: the scene's start pose): a frame is rendered with them, and
+        a repeat is warped to them at the pose predicted for its VSync."""
+        return eye_cameras(self.profile, self.head(pose), self.eyes)
 
     def close(self) -> None:
         self.tracer.close()

@@ -31,6 +31,11 @@ class BackgroundWriter(Generic[Item]):
         self.failed = 0  # items that could not be written
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
+    @property
+    def lost(self) -> int:
+        """Items dropped for want of room (real time) or that could not be written: the run report's count."""
+        return self.skipped + self.failed
+
     def start(self) -> None:
         self._thread.start()
 

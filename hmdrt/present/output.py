@@ -34,18 +34,19 @@ def check_folder(folder: str) -> None:
 
 class FrameWriter(BackgroundWriter[list]):
     """Writes every `every`th offered frame (the eyes side by side, sRGB) to `folder` as vsync_NNNNNN.png and to
-    `video` at refresh_hz / every frames per second; ConfigError at once when either cannot be written. With
-    `block` (virtual time) offer() waits for room in the queue rather than skip a frame."""
+    `video` at video_hz frames per second (the display's rate over `every`, fixed for the video's life); ConfigError
+    at once when the video cannot be written. The folder and `every` are configure()'s: none, and every frame, until
+    it is called. With `block` (virtual time) offer() waits for room in the queue rather than skip a frame."""
 
-    def __init__(self, folder: str, video: str, every: int, refresh_hz: float, block: bool = False):
-        check_folder(folder)
+    def __init__(self, video: str, video_hz: float, block: bool = False):
         super().__init__("frame-writer", QUEUE, block)
-        self.folder, self.every = folder, every
-        self._video = VideoWriter(video, refresh_hz / every) if video else None
+        self.folder, self.every = "", 1
+        self._video = VideoWriter(video, video_hz) if video else None
         self._srgb8: np.ndarray | None = None  # the encoded frame, one buffer reused
 
     def configure(self, folder: str, every: int) -> None:
-        """A new folder and rate (a reload; check_folder first): the video's rate stays as it started."""
+        """The folder (check_folder first) and the rate, at start and on a reload: the video's rate stays as it
+        started."""
         self.folder, self.every = folder, every
 
     def offer(self, vsync: int, images: list[np.ndarray]) -> None:
