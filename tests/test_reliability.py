@@ -25,8 +25,8 @@ from hmdrt.errors import ConfigError
 from hmdrt.replay import load_trace
 from hmdrt.testing import TRACE, Background, compositor, free_port, write_config
 
+from .compositor_helpers import readline, start_run
 from .helpers import reap, wait_for
-from .test_runtime import readline, start_run
 
 MS = 1_000_000
 

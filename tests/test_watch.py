@@ -26,8 +26,8 @@ from hmdrt.watch.access import TOKEN_HEADER
 from hmdrt.watch.protocol import MAX_MESSAGE_BYTES
 from hmdrt.watch.server import WatchOptions
 
+from .compositor_helpers import hmdrt, receive
 from .helpers import wait_for
-from .test_runtime import hmdrt, receive
 from .watching import expected_gaze, paced_compositor, watch_server
 
 EVIL = "http://evil.example"

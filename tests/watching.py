@@ -20,7 +20,7 @@ from hmdrt.compositor.config import load_config
 from hmdrt.testing import Recording
 from hmdrt.watch.server import WatchOptions, WatchServer
 
-from .test_runtime import readline
+from .compositor_helpers import readline
 
 URL = re.compile(r"hmdrt watch: (http://\S+/\?token=(\S+)) \(read-only: (http://\S+/)\)")
 
