@@ -21,7 +21,7 @@ from hmdrt.compositor.endpoints import request
 from hmdrt.errors import ConfigError
 from hmdrt.testing import ANY_PORT, compositor, run_bounded, write_config
 
-from . import test_runtime as runtime
+from . import compositor_helpers as runtime
 from .helpers import reap
 
 NOBODY = 65534

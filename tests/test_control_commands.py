@@ -24,6 +24,8 @@ TAKES_SNAPSHOT = 'snapshot takes "path": a file name such as "shown.png"'
 
 # (what is wrong, the command, the start of the refusal): refused by the declarations, never run
 BAD = [
+    ("no command", {"command": "status"}, commands.NOT_A_COMMAND),
+    ("command not a string", {"cmd": 5}, commands.NOT_A_COMMAND),
     ("unknown command", {"cmd": "explode"}, "unknown command 'explode'; commands: status, stats, set, snapshot"),
     ("missing argument", {"cmd": "set"}, TAKES_SET + "got neither"),
     ("wrong type", {"cmd": "set", "params": "fovea_deg=5"}, TAKES_SET + "params: expected `object`, got `str`"),

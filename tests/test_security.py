@@ -25,7 +25,7 @@ from hmdrt.drivers.host import DriverHost
 from hmdrt.errors import ConfigError
 from hmdrt.testing import ANY_PORT, Background, compositor, write_config
 
-from . import test_runtime as runtime
+from . import compositor_helpers as runtime
 from .helpers import wait_for
 
 NO_ANSWER_S = 0.5  # how long a refused client waits for the answer that never comes

@@ -26,6 +26,7 @@ import zmq
 from hmdrt.bus.local import ipc_path
 from hmdrt.bus.messages import MAX_PAYLOAD_BYTES, MAX_TOPIC_BYTES, MalformedMessage, Status, decode, pack
 from hmdrt.bus.security import LOCAL_TRANSPORTS, ClientKeys, Guard
+from hmdrt.compositor.commands import NOT_A_COMMAND
 from hmdrt.errors import ConfigError
 
 POLL_MS = 50
@@ -174,7 +175,7 @@ class ControlServer:
             request = None
         if not isinstance(request, dict) or not isinstance(request.get("cmd"), str):
             self.bad_requests += 1
-            return {"ok": False, "error": 'a request is a msgpack map with a "cmd" string'}
+            return {"ok": False, "error": NOT_A_COMMAND}
         refusal = self._refusal(frames[0]) if request["cmd"] in self._mutating else ""
         if refusal:
             self.unauthorised += 1
