@@ -139,14 +139,16 @@ def test_s_in_reproduces_the_density_of_equation_1():
     cdf = (2 * x - (1 - cfg.p_min) * x * x) / (1 + cfg.p_min)
     assert np.max(np.abs(np.arange(1, len(x) + 1) / len(x) - cdf)) < 5.0 / len(x) ** 0.5  # KS, low discrepancy
     assert np.all((r >= cfg.r0) & (r < cfg.r1 + 1e-9))
-    # S_in is every pixel inside r0 plus exactly the pixels the points land on
+    # S_in is every pixel inside r0 and the pixels the points land on; a point whose pixel an earlier one took
+    # moves along its circle to a free one, so the band holds one marked pixel per point (but where the printed
+    # density next to r0 exceeds one per pixel)
     ry, rx = tables.s_in.shape[0] // 2, tables.s_in.shape[1] // 2
     oy, ox = np.mgrid[-ry : ry + 1, -rx : rx + 1]
     r_pix = np.hypot(ox / ppd_x, oy / ppd_y)
-    expected = r_pix < cfg.r0
+    assert tables.s_in[r_pix < cfg.r0].all()
     hit = np.rint(points).astype(int)
-    expected[hit[:, 1] + ry, hit[:, 0] + rx] = True
-    np.testing.assert_array_equal(tables.s_in, expected)
+    assert tables.s_in[hit[:, 1] + ry, hit[:, 0] + rx].all()
+    assert 0.95 * len(points) <= tables.s_in[r_pix >= cfg.r0].sum() <= len(points)
     # M is the transition band's expected count under the linear falloff of weier2016
     band = (r_pix >= cfg.r0) & (r_pix < cfg.r1)
     falloff = 1 - (1 - cfg.p_min) * (r_pix[band] - cfg.r0) / (cfg.r1 - cfg.r0)
@@ -160,7 +162,7 @@ def test_table_mask_uses_s_out_outside_r1_and_moves_s_in_with_the_gaze():
     for yaw in (0.0, 12.0):
         g = gaze_direction(yaw, 0.0)
         ecc = cam.eccentricity(g)
-        mask = table_mask(ecc, cfg, tables, cam.gaze_pixel(g))
+        mask = table_mask(cam, g, ecc, cfg, tables)
         outside = ecc >= cfg.r1
         np.testing.assert_array_equal(mask[outside], tables.s_out[outside])
         assert np.all(mask[ecc < cfg.r0])

@@ -299,7 +299,7 @@ class Weier18(Configurable):
         ecc = eccentricity_map(cam, gaze)
         por = cam.gaze_pixel(gaze)
         view = (cam._frustum(), float(gaze[0]), float(gaze[1]), float(gaze[2]))
-        state.samples.update((view, state.tables_for), ecc, self.foveal, state.tables, por)
+        state.samples.update((view, state.tables_for), cam, gaze, ecc, self.foveal, state.tables)
         p = self.params
         if state.levels_for != (view, p.r0, p.r1):
             if state.levels is None or state.levels.shape[:2] != ecc.shape:

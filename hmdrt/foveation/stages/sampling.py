@@ -17,7 +17,7 @@ import numpy as np
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import Knob
 from hmdrt.foveation.stages.pyramid import quincunx_offset
-from hmdrt.kernels.jit import inline, kernel
+from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.rng import uniform
 from hmdrt.optics.camera import EyeCamera
 
@@ -151,7 +151,8 @@ def pixels_per_degree(camera: EyeCamera) -> tuple[float, float]:
 
 
 class SamplingTables(NamedTuple):
-    """weier2018's S_in (pixel offsets around the point of regard) and S_out (static, density p_min)."""
+    """weier2018's S_in (offsets in degrees around the point of regard, at the image centre's pixels per degree)
+    and S_out (static, density p_min)."""
 
     s_in: np.ndarray  # (2 ry + 1, 2 rx + 1) bool, centre = the point of regard
     s_out: np.ndarray  # (height, width) bool
@@ -177,9 +178,11 @@ def transition_points(cfg: Foveal, count: int, ppd: tuple[float, float], density
 def sampling_tables(camera: EyeCamera, cfg: Foveal, seed: int = 0, density: Density = "printed") -> SamplingTables:
     """Precompute S_in and S_out for a camera (weier2018 section 3.1).
 
-    S_in holds every offset inside r0 and, in [r0, r1), the pixels hit by transition_points; their
-    number M is the expected number of transition pixels under weier2016's linear falloff, their radii drawn
-    as `density` says (transition_points). S_out is a seeded uniform pattern of density p_min.
+    S_in holds every offset inside r0 and, in [r0, r1), the texels of transition_points; their number M is
+    the expected number of transition pixels under weier2016's linear falloff, their radii drawn as `density`
+    says (transition_points). A point whose texel an earlier one took moves along its circle to the nearest free
+    texel (_place), so that M points mark M texels at the radii the equation gave them. S_out is a seeded
+    uniform pattern of density p_min.
     """
     ppd = pixels_per_degree(camera)
     r1 = min(cfg.r1, 180.0)
@@ -192,29 +195,68 @@ def sampling_tables(camera: EyeCamera, cfg: Foveal, seed: int = 0, density: Dens
     if band.any() and r1 > cfg.r0:
         p = 1.0 - (1.0 - cfg.p_min) * (r_deg[band] - cfg.r0) / (r1 - cfg.r0)
         samples = int(round(p.sum()))
-        offsets = np.rint(transition_points(cfg, samples, ppd, density)).astype(np.int64)
-        s_in[offsets[:, 1] + ry, offsets[:, 0] + rx] = True
+        _place(transition_points(cfg, samples, ppd, density), np.array(ppd), s_in)
     rng = np.random.default_rng(seed)
     s_out = rng.random((camera.height, camera.width)) < cfg.p_min
     return SamplingTables(s_in, s_out, samples, ppd)
 
 
+@serial
+def _place(points, ppd, s_in):
+    """Mark each point's texel of S_in (its offset from the centre in pixels); a point whose texel is taken
+    steps along its own circle, a texel at a time in either direction, to the nearest free one. Where the
+    circle is full (equation (1) as printed asks for more than one sample per texel next to r0) it is left out.
+    Rounding the points alone loses about a quarter of them next to r0, where the density is near 1."""
+    ry, rx = s_in.shape[0] // 2, s_in.shape[1] // 2
+    for k in range(points.shape[0]):
+        x, y = points[k, 0], points[k, 1]
+        rpx = math.sqrt(x * x + y * y)
+        if rpx == 0.0:
+            s_in[ry, rx] = True
+            continue
+        r, phi = math.hypot(x / ppd[0], y / ppd[1]), math.atan2(y / ppd[1], x / ppd[0])
+        dphi = 1.0 / rpx  # about a texel along the circle
+        for s in range(int(math.pi / dphi) + 2):
+            placed = False
+            for sign in (1.0, -1.0):
+                a = phi + sign * s * dphi
+                ix = rx + int(math.floor(r * math.cos(a) * ppd[0] + 0.5))
+                iy = ry + int(math.floor(r * math.sin(a) * ppd[1] + 0.5))
+                if 0 <= iy < s_in.shape[0] and 0 <= ix < s_in.shape[1] and not s_in[iy, ix]:
+                    s_in[iy, ix] = True
+                    placed = True
+                    break
+            if placed:
+                break
+
+
 @kernel
-def _table_mask(ecc, r0, r1, s_in, s_out, gx, gy, out, counts):
-    """table_mask's rows, and how many pixels of each row it selects."""
+def _table_mask(ecc, frustum, basis, r0, r1, s_in, s_out, ppd_x, ppd_y, out, counts):
+    """table_mask's rows, and how many pixels of each row it selects. A transition pixel reads S_in at its offset
+    from the point of regard in angle space: its eccentricity along its azimuth about the gaze (basis: the unit
+    vectors u and v across the gaze), at S_in's degrees per texel."""
     h, w = ecc.shape
+    tan_l, tan_r, tan_u, tan_d = frustum[0], frustum[1], frustum[2], frustum[3]
+    sx, sy = (tan_r - tan_l) / w, (tan_u - tan_d) / h
+    ux, uy, uz, vx, vy, vz = basis[0], basis[1], basis[2], basis[3], basis[4], basis[5]
     ry, rx = s_in.shape[0] // 2, s_in.shape[1] // 2
     for y in nb.prange(h):
         n = 0
+        ty = tan_u - (y + 0.5) * sy
         for x in range(w):
             e = ecc[y, x]
             if e < r0:
                 v = True
             elif e < r1:
-                ty, tx = y - gy + ry, x - gx + rx
-                if 0 <= ty < s_in.shape[0] and 0 <= tx < s_in.shape[1]:
-                    v = s_in[ty, tx]
-                else:  # off S_in (far off-axis, or the point of regard off the image): S_out's p_min
+                tx = tan_l + (x + 0.5) * sx
+                a_u, a_v = tx * ux + ty * uy - uz, tx * vx + ty * vy - vz  # the view ray (tx, ty, -1) across the gaze
+                norm = math.sqrt(a_u * a_u + a_v * a_v)
+                cu, cv = (a_u / norm, a_v / norm) if norm > 0.0 else (1.0, 0.0)
+                ix = rx + int(math.floor(e * cu * ppd_x + 0.5))
+                iy = ry + int(math.floor(-e * cv * ppd_y + 0.5))  # S_in's rows run down, as the image's
+                if 0 <= iy < s_in.shape[0] and 0 <= ix < s_in.shape[1]:
+                    v = s_in[iy, ix]
+                else:  # only where rounding leaves S_in's last texel: the density outside r1
                     v = s_out[y, x]
             else:
                 v = s_out[y, x]
@@ -223,19 +265,32 @@ def _table_mask(ecc, r0, r1, s_in, s_out, gx, gy, out, counts):
         counts[y] = n
 
 
-def _gaze_texel(gaze_pixel: np.ndarray) -> tuple[int, int]:
-    return int(math.floor(gaze_pixel[0])), int(math.floor(gaze_pixel[1]))
+def gaze_basis(gaze: np.ndarray) -> np.ndarray:
+    """(ux, uy, uz, vx, vy, vz): unit vectors across the unit gaze g (head frame), u toward the head's +x and
+    v = u x g toward its +y, so that for a gaze ahead they are the image's right and up."""
+    g = np.asarray(gaze, dtype=np.float64)
+    g = g / np.linalg.norm(g)
+    for axis in (np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])):
+        u = axis - (axis @ g) * g
+        if np.linalg.norm(u) > 1e-6:
+            break
+    u /= np.linalg.norm(u)
+    return np.concatenate([u, np.cross(u, g)])
 
 
-def table_mask(ecc: np.ndarray, cfg: Foveal, tables: SamplingTables, gaze_pixel: np.ndarray) -> np.ndarray:
-    """weier2018's ray generation: S_in addressed relative to the point of regard inside r1, S_out outside.
+def _mask_into(cam: EyeCamera, gaze: np.ndarray, ecc: np.ndarray, cfg: Foveal, tables: SamplingTables, out, counts):
+    frustum = np.array(cam._frustum()[:4], dtype=np.float64)
+    r1 = min(cfg.r1, 180.0)
+    _table_mask(ecc, frustum, gaze_basis(gaze), cfg.r0, r1, tables.s_in, tables.s_out, *tables.ppd, out, counts)
 
-    S_in spans r1 at the centre's pixel density; a transition pixel beyond its reach (off-axis, where the
-    image plane stretches angles, or with the point of regard off the image) takes S_out, density p_min,
-    rather than no sample at all."""
+
+def table_mask(cam: EyeCamera, gaze: np.ndarray, ecc: np.ndarray, cfg: Foveal, tables: SamplingTables) -> np.ndarray:
+    """weier2018's ray generation: S_in inside r1, S_out outside. S_in holds offsets in degrees around the point
+    of regard (at the image centre's pixels per degree); each transition pixel reads it at its own offset from the
+    gaze in angle space, so that every eccentricity gets equation (1)'s density wherever the gaze is, also off-axis
+    where the image plane stretches angles."""
     out = np.empty(ecc.shape, dtype=bool)
-    counts = np.empty(ecc.shape[0], np.int64)
-    _table_mask(ecc, cfg.r0, min(cfg.r1, 180.0), tables.s_in, tables.s_out, *_gaze_texel(gaze_pixel), out, counts)
+    _mask_into(cam, gaze, ecc, cfg, tables, out, np.empty(ecc.shape[0], np.int64))
     return out
 
 
@@ -278,7 +333,9 @@ class SampleSet:
         self._level = np.zeros(0, np.float64)
         self._offset = np.zeros(0, np.float64)
 
-    def update(self, key: object, ecc: np.ndarray, cfg: Foveal, tables: SamplingTables, gaze_pixel: np.ndarray) -> None:
+    def update(
+        self, key: object, cam: EyeCamera, gaze: np.ndarray, ecc: np.ndarray, cfg: Foveal, tables: SamplingTables
+    ) -> None:
         if key == self.key:
             return
         h, w = ecc.shape
@@ -286,7 +343,7 @@ class SampleSet:
             self.mask = np.empty((h, w), bool)
             self._starts = np.zeros(h + 1, np.int64)
         r1 = min(cfg.r1, 180.0)
-        _table_mask(ecc, cfg.r0, r1, tables.s_in, tables.s_out, *_gaze_texel(gaze_pixel), self.mask, self._starts[1:])
+        _mask_into(cam, gaze, ecc, cfg, tables, self.mask, self._starts[1:])
         np.cumsum(self._starts[1:], out=self._starts[1:])
         self.count = n = int(self._starts[-1])
         if len(self._pixels) < n:
