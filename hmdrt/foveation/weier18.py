@@ -83,6 +83,8 @@ class Weier18Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     taa_depth: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.05  # relative depth tolerance of a tap
     contrast: Annotated[float, msgspec.Meta(ge=0.0, le=10.0)] = 0.2
     table_seed: Annotated[int, msgspec.Meta(ge=0, lt=2**31)] = 0
+    # section 4.1's "full" mode: every pixel sampled and no TAA, with the same CoC, filter and combine
+    mode: Literal["foveated", "full"] = "foveated"
 
     def __post_init__(self) -> None:
         if self.r0 > self.r1:
@@ -274,8 +276,11 @@ class Weier18(Configurable):
 
     @property
     def warmup_frames(self) -> int:
-        """TAA's history (section 3.1): the frames until the first one weighs under 5% of the running estimate."""
+        """TAA's history (section 3.1): the frames until the first one weighs under 5% of the running estimate;
+        none in full mode, which keeps no history."""
         a = self.params.alpha_min
+        if self.params.mode == "full":
+            return 0
         return 1 if a >= 1.0 else math.ceil(math.log(0.05) / math.log1p(-a))
 
     def _state(self, request: FrameRequest) -> tuple[_EyeState, bool]:
@@ -287,7 +292,7 @@ class Weier18(Configurable):
             pyramids = [Pyramid.empty(cam.width, cam.height), Pyramid.empty(cam.width, cam.height)]
             axes, columns, rows = pixel_axes(pyramids[0]), push_columns(cam.width), RowSamples.empty(cam.width)
             state = self._eyes[request.eye] = _EyeState(cam, pyramids, axes, columns, rows)
-        if state.tables_for != self._tables_for:
+        if state.tables_for != self._tables_for and self.params.mode == "foveated":
             state.tables = sampling_tables(cam, self.foveal, self.params.table_seed, self.params.density)
             state.tables_for = self._tables_for
         return state, history
@@ -299,7 +304,10 @@ class Weier18(Configurable):
         ecc = eccentricity_map(cam, gaze)
         por = cam.gaze_pixel(gaze)
         view = (cam._frustum(), float(gaze[0]), float(gaze[1]), float(gaze[2]))
-        state.samples.update((view, state.tables_for), cam, gaze, ecc, self.foveal, state.tables)
+        if self.params.mode == "full":
+            state.samples.update_all(ecc)
+        else:
+            state.samples.update((view, state.tables_for), cam, gaze, ecc, self.foveal, state.tables)
         p = self.params
         if state.levels_for != (view, p.r0, p.r1):
             if state.levels is None or state.levels.shape[:2] != ecc.shape:
@@ -319,7 +327,8 @@ class Weier18(Configurable):
 
     def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         state, history = self._state(request)
-        steps = plan(self.stages, self.features | ({HISTORY} if history else set()))
+        keeps_history = history and self.params.mode == "foveated"
+        steps = plan(self.stages, self.features | ({HISTORY} if keeps_history else set()))
         with stats.stage("sample"):
             ecc, por, keys = self._select(state, request)
         traced = self._trace(state, request, keys, stats)

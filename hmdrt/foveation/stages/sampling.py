@@ -350,17 +350,24 @@ class SampleSet:
             size = max(n, int(1.25 * len(self._pixels)))
             self._pixels, self._level, self._offset = np.empty(size, np.int64), np.empty(size), np.empty(size)
             self._xy = np.empty((size, 2), np.float32)
-        _list_samples(
-            self.mask,
-            self._starts,
-            ecc,
-            Foveal(cfg.r0, r1, cfg.p_min),
-            self._pixels,
-            self._xy,
-            self._level,
-            self._offset,
-        )
+        _list_samples(self.mask, self._starts, ecc, Foveal(cfg.r0, r1, cfg.p_min), *self._buffers())
         self.key = key
+
+    def _buffers(self) -> tuple[np.ndarray, ...]:
+        return self._pixels, self._xy, self._level, self._offset
+
+    def update_all(self, ecc: np.ndarray) -> None:
+        """Every pixel, at footprint level 0 (weier2018 section 4.1's full mode), listed once per image size."""
+        h, w = ecc.shape
+        if self.key == ("all", h, w):
+            return
+        self.mask = np.ones((h, w), bool)
+        self._starts = np.arange(0, (h + 1) * w, w, dtype=np.int64)
+        self.count = n = h * w
+        self._pixels, self._level, self._offset = np.empty(n, np.int64), np.empty(n), np.empty(n)
+        self._xy = np.empty((n, 2), np.float32)
+        _list_samples(self.mask, self._starts, ecc, Foveal(math.inf, math.inf, 1.0), *self._buffers())
+        self.key = ("all", h, w)
 
     @property
     def pixels(self) -> np.ndarray:
