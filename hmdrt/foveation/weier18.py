@@ -319,7 +319,7 @@ class Weier18(Configurable):
             state.levels_for = (view, p.r0, p.r1)
         n = state.samples.count
         if len(state.keys) < n:
-            state.keys = np.empty(max(n, int(1.25 * len(state.keys))), np.int64)
+            state.keys = np.empty(request.camera.width * request.camera.height, np.int64)  # the bound, once
         # base.pixel_keys(pixels, seed, frame) without its temporary
         offset = (np.int64(request.seed) << np.int64(32)) + np.int64(request.frame) * np.int64(1 << 22)
         keys = np.add(state.samples.pixels, offset, out=state.keys[:n])
@@ -361,7 +361,8 @@ class Weier18(Configurable):
     def _trace(self, state: _EyeState, request: FrameRequest, keys: np.ndarray, stats: FrameStats) -> Traced:
         samples = state.samples
         with stats.stage("trace"):
-            gbuf, rgb = self._gbuffers.rows(samples.count)
+            cam = request.camera
+            gbuf, rgb = self._gbuffers.rows(samples.count, most=cam.width * cam.height)
             self.tracer.trace_samples(request.camera, samples.xy, keys, stats, gbuf, out=rgb)
         return Traced(samples.pixels, samples.xy, samples.level, samples.offset, gbuf.primary.depth, rgb)
 

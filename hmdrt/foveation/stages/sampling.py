@@ -347,7 +347,7 @@ class SampleSet:
         np.cumsum(self._starts[1:], out=self._starts[1:])
         self.count = n = int(self._starts[-1])
         if len(self._pixels) < n:
-            size = max(n, int(1.25 * len(self._pixels)))
+            size = h * w  # the bound, once: the count varies as the gaze moves, and untouched pages cost nothing
             self._pixels, self._level, self._offset = np.empty(size, np.int64), np.empty(size), np.empty(size)
             self._xy = np.empty((size, 2), np.float32)
         _list_samples(self.mask, self._starts, ecc, Foveal(cfg.r0, r1, cfg.p_min), *self._buffers())
