@@ -26,7 +26,7 @@ from hmdrt.clock import VirtualClock  # noqa: E402
 from hmdrt.compositor.clock import VsyncClock  # noqa: E402
 from hmdrt.compositor.config import Bus, load_config  # noqa: E402
 from hmdrt.compositor.daemon import Compositor  # noqa: E402
-from hmdrt.compositor.pacer import Pacer, replay_frame  # noqa: E402
+from hmdrt.compositor.pacer import Pacer, pacing_settings, replay_frame  # noqa: E402
 
 ANY_PORT = "tcp://127.0.0.1:*"
 
@@ -53,7 +53,7 @@ def measure(config_path: str, duration_s: float) -> tuple[list[int], int, dict]:
     compositor = Timed(config)
     try:
         report = compositor.run()
-        settings = compositor._pacing(config)
+        settings = pacing_settings(config.pacing, compositor.vsync.period_ns)
         times = compositor.times
         period = compositor.vsync.period_ns
     finally:

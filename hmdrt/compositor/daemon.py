@@ -151,11 +151,6 @@ class Compositor:
         self.outages.config = config.fallback
         self.builder.controller = make_controller(config, self.session.method)
 
-    def _pacing(self, config: RunConfig) -> dict:
-        """The pacer's settings of a config at this display's period (bench/pacing.py replays render times with
-        them)."""
-        return pacing_settings(config.pacing, self.session.profile.period_ns)
-
     # --- the display's callbacks (display thread) -----------------------------------------------------------------
 
     def _shown(self, record: FrameRecord, images: list[np.ndarray]) -> None:
