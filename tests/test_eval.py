@@ -76,6 +76,10 @@ def test_hmdrt_eval_writes_one_row_per_cell_with_band_scores_plots_and_a_summary
         assert r["psnr_image"] is not None and 0 < r["psnr_image"] < 100
     full = [r for r in result["rows"] if r["method"] == "full"]
     assert all(r["speedup_vs_full"] == 1.0 and r["sample_fraction"] == 1.0 for r in full)
+    # rrm's per-frame metrics, averaged: its sample fraction and its fovea's pixels; full reports none
+    assert [set(r["metrics"]) for r in result["rows"]] == 2 * [set(), *2 * [{"sample_fraction", "fovea_pixels"}]]
+    assert all(r["metrics"]["sample_fraction"] == r["sample_fraction"] for r in result["rows"] if r["metrics"])
+    assert {r["metric_fovea_pixels"] != "" for r in rows} == {True, False}  # a CSV column, empty for full
     # rrm with N = 1 refreshes every pixel each frame: the image is full's, and a smaller fovea is no cheaper
     for r in result["rows"]:
         twin = next(f for f in full if f["trace"] == r["trace"])
@@ -156,9 +160,8 @@ def test_eval_config_paths_are_relative_to_the_file(tmp_path):
 def table_lines(markdown: str, title: str) -> list[list[str]]:
     """The body rows of the Markdown table under the heading that starts with `title`."""
     section = markdown.split(f"### {title}")[1].split("###")[0]
-    return [
-        [c.strip() for c in line.strip("|").split("|")] for line in section.splitlines()[4:] if line.startswith("|")
-    ]
+    lines = [line for line in section.splitlines() if line.startswith("|")][2:]  # past the header and its rule
+    return [[c.strip() for c in line.strip("|").split("|")] for line in lines]
 
 
 def test_paper_tables_are_filled_from_the_labelled_cells_of_each_scene(tmp_path):
@@ -168,11 +171,15 @@ def test_paper_tables_are_filled_from_the_labelled_cells_of_each_scene(tmp_path)
     assert main(["eval", str(config), "--out", str(tmp_path / "out"), "--no-plots"]) == 0
     rows = json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
     assert {r["scene"] for r in rows if r["label"] == "weier18"} == {"whitted?max_depth=0"}  # scenes = [...]
-    # ahead: whitted full, weier16, Regular_36, Selective, Sel_Fov, rrm; the other full, rrm, 2 x weier18; on each
-    # of the two grid traces (traces = [...]): full, rrm and rrm N=4 on both scenes
-    assert len(rows) == 6 + 4 + 2 * 2 * 3
+    # ahead: whitted full, weier16, Regular_36, Selective, Sel_Fov, Sel_Fov reuse, rrm; the other full, rrm,
+    # 2 x weier18; on each of the two grid traces (traces = [...]): full, rrm and rrm N=4 on both scenes
+    assert len(rows) == 7 + 4 + 2 * 2 * 3
     markdown = (tmp_path / "out" / "tables.md").read_text()
     by = {(r["scene"], r["trace"], r["label"]): r for r in rows}
+    # under each heading: the date, commit and machine of the rows (one run: one of each)
+    [measured] = {line for line in markdown.splitlines() if line.startswith("Measured ")}
+    assert markdown.count(measured) == markdown.count("### ") == 4
+    assert measured == f"Measured {rows[0]['date']} (UTC) at commit {rows[0]['commit']} on {rows[0]['machine']}."
 
     [weier16] = table_lines(markdown, "weier2016")
     full, ours = by["whitted", "ahead", "full"], by["whitted", "ahead", "weier16"]
@@ -182,25 +189,35 @@ def test_paper_tables_are_filled_from_the_labelled_cells_of_each_scene(tmp_path)
     assert weier16[6] == f"{ours['stages_ms']['trace']:.2f}"  # the trace stage's mean ms
 
     kim = table_lines(markdown, "kim2021")
-    assert [line[2] for line in kim] == ["Regular_36", "Regular_1", "Selective", "Sel_Fov"]
+    assert [line[2] for line in kim] == ["Regular_36", "Regular_1", "Selective", "Sel_Fov", "Sel_Fov reuse"]
     assert kim[1][3] == f"{full['ms_per_frame']:.1f}"  # Regular_1 is full's cell
-    assert "kim2021 Table 2: time, rays and PSNR per band against regular 36 spp (PSNR of display-encoded" in markdown
-    assert [line[9] for line in kim] == ["Regular_1", "Regular_1", "Regular_1", "Selective"]  # compare_to
+    assert "regular 36 spp, and pixels reused (PSNR of display-encoded" in markdown
+    assert [line[11] for line in kim] == ["Regular_1", "Regular_1", "Regular_1", "Selective", "Sel_Fov"]  # compare_to
     selective, sel_fov = by["whitted", "ahead", "Selective"], by["whitted", "ahead", "Sel_Fov"]
-    assert kim[3][10] == f"{sel_fov['speedup_vs_baseline']:.2f}"
+    reuse = by["whitted", "ahead", "Sel_Fov reuse"]
+    assert kim[3][12] == f"{sel_fov['speedup_vs_baseline']:.2f}"
     assert sel_fov["speedup_vs_baseline"] == pytest.approx(selective["ms_per_frame"] / sel_fov["ms_per_frame"], 1e-3)
-    assert float(kim[3][11]) == pytest.approx(sel_fov["psnr_fovea"] - selective["psnr_fovea"], abs=0.01)
-    assert (kim[1][10], kim[1][11]) == ("1.00", "+0.00")  # full against itself
+    assert float(kim[3][13]) == pytest.approx(sel_fov["psnr_fovea"] - selective["psnr_fovea"], abs=0.01)
+    assert (kim[1][12], kim[1][13]) == ("1.00", "+0.00")  # full against itself
+    # reuse against reuse off: its speed-up and what it costs in the fovea
+    assert float(kim[4][12]) == pytest.approx(sel_fov["ms_per_frame"] / reuse["ms_per_frame"], rel=0.01, abs=0.01)
+    assert float(kim[4][13]) == pytest.approx(reuse["psnr_fovea"] - sel_fov["psnr_fovea"], abs=0.01)
+    fraction = reuse["metrics"].get("reuse_fraction")
+    assert kim[4][10] == ("-" if fraction is None else f"{100 * fraction:.1f}%")
     assert by["whitted", "ahead", "Regular_36"]["rays_primary"] == 3 * 48 * 54
+    # rays as kim2021 counts them: every ray of a plain ray tracer, the hybrid's without the rasterised presample
+    assert [int(line[5].replace(",", "")) for line in kim[:2]] == [int(line[4].replace(",", "")) for line in kim[:2]]
+    assert sel_fov["rays_primary"] > 48 * 54
+    assert int(kim[3][5].replace(",", "")) == round((sel_fov["rays_per_frame"] - 48 * 54) / 1e3)
 
     smith = table_lines(markdown, "smith2013")
     assert sorted(line[2] for line in smith if line[1] == "ahead (1)") == ["no", "yes"]  # with and without
     grid = [line for line in smith if line[0] == "whitted" and line[1] == "grid (2)"]
     assert [line[3] for line in grid] == ["2", "4"]  # each cell's N
-    for line, label in zip(grid, ("rrm", "rrm N=4"), strict=True):  # averaged over the group's fovea positions
-        f = statistics.fmean(by["whitted", t, "full"]["ms_per_frame"] for t in ("left", "right"))
-        r = statistics.fmean(by["whitted", t, label]["ms_per_frame"] for t in ("left", "right"))
-        assert (line[4], line[5], line[8]) == (f"{f:.1f}", f"{r:.1f}", f"{f / r:.2f}")
+    for line, label in zip(grid, ("rrm", "rrm N=4"), strict=True):  # frame rates averaged over the fovea positions
+        f = statistics.fmean(1e3 / by["whitted", t, "full"]["ms_per_frame"] for t in ("left", "right"))
+        r = statistics.fmean(1e3 / by["whitted", t, label]["ms_per_frame"] for t in ("left", "right"))
+        assert (line[4], line[5], line[8]) == (f"{f:.1f}", f"{r:.1f}", f"{r / f:.2f}")
 
     foveated, every = table_lines(markdown, "weier2018")
     assert (foveated[2], every[2]) == ("foveated", "full")

@@ -110,6 +110,9 @@ def test_local_cluster_of_two_gets_the_serial_image_columns(tmp_path, monkeypatc
     assert _images(rows) == _images(serial) and all(r["psnr_image"] for r in rows)
     assert all(r["worker"].startswith("tcp://") and r["group_seconds"] > 0 for r in rows)
     assert all(r["worker"] is None for r in serial)
+    # the methods' metrics come back (image columns, compared above) and each worker stamps its rows
+    assert all(r["metrics"]["fovea_pixels"] > 0 for r in rows if r["method"] == "rrm")
+    assert {(r["commit"], r["machine"]) for r in rows} == {(serial[0]["commit"], serial[0]["machine"])}
     truth = json.loads((out / "results.json").read_text())["truth"]
     assert (truth["rendered"], truth["read"]) == (4, 0)  # the head still: one view; the path: three
     assert len(list((tmp_path / "xdg" / "hmdrt" / "truth").glob("*.npy"))) == 4

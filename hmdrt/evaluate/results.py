@@ -37,19 +37,21 @@ def write_results(evaluation: Evaluation, config: EvalConfig, out: Path, with_pl
     return written
 
 
-IMAGE_COLUMNS = ("psnr_", "ssim_", "flicker_", "jod", "rays_", "sample_fraction")
+IMAGE_COLUMNS = ("psnr_", "ssim_", "flicker_", "jod", "rays_", "sample_fraction", "metrics")
 
 
 def image_columns(row: dict) -> dict:
-    """The columns of a row derived from its images (PSNR, SSIM, flicker, JOD, rays, sample fractions): in
-    virtual time and with fixed seeds they are the same on every run, in process or on a cluster; times are not."""
+    """The columns of a row derived from its images (PSNR, SSIM, flicker, JOD, rays, sample fractions, the methods'
+    metrics): in virtual time and with fixed seeds they are the same on every run, in process or on a cluster;
+    times, dates and machines are not."""
     return {k: v for k, v in row.items() if k.startswith(IMAGE_COLUMNS)}
 
 
 def flat(row: dict) -> dict:
-    """A row with its stage times as stage_ms_NAME columns, for the CSV."""
-    out = {k: v for k, v in row.items() if k != "stages_ms"}
+    """A row with its stage times as stage_ms_NAME columns and its metrics as metric_NAME columns, for the CSV."""
+    out = {k: v for k, v in row.items() if k not in ("stages_ms", "metrics")}
     out.update({f"stage_ms_{k}": v for k, v in row["stages_ms"].items()})
+    out.update({f"metric_{k}": v for k, v in row["metrics"].items()})
     return out
 
 

@@ -7,8 +7,10 @@ warmup_frames frames, and where a method of the group declares a longer history 
 refresh cycle) as many more frames before them holding the trace's first frame, so that no method is scored
 before its images are steady and every group scores the same frames of the trace; methods without history
 (warmup_frames 0: full, regular) skip them. The trace's frames after its first warmup_frames follow, timed and
-scored; ms_per_frame is their median. Each cell is compared with a baseline cell (its compare_to, else full):
-speed-up and foveal PSNR delta.
+scored; ms_per_frame is their median. Each number a method reports per frame (FrameStats.metrics: sample_fraction,
+reused_pixels, ...) is averaged over the scored frames that report it into the row's metrics. Each cell is
+compared with a baseline cell (its compare_to, else full): speed-up and foveal PSNR delta. The rows say when, at
+which commit and on which machine they were rendered (provenance).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import dataclasses
 import itertools
 import logging
 import math
+import numbers
 import os
 import platform
 import statistics
@@ -29,6 +32,7 @@ import msgspec
 import numpy as np
 from tqdm import tqdm
 
+from hmdrt.evaluate import provenance
 from hmdrt.evaluate.config import EvalConfig
 from hmdrt.evaluate.groups import Crops, GroupKey, GroupResult, group_id, group_shape, groups, profile_of
 from hmdrt.evaluate.partial import PartialResults
@@ -57,6 +61,7 @@ class _Cell:
     ms: list[float] = field(default_factory=list)
     rays: list[int] = field(default_factory=list)
     fractions: list[float] = field(default_factory=list)
+    metrics: dict[str, list[float]] = field(default_factory=dict)  # each metric's finite values, frame by frame
     stages_ms: dict[str, float] = field(default_factory=dict)  # summed over the timed frames, top-level stages
     frames: list[np.ndarray] = field(default_factory=list)  # the scored frames, display-encoded (with jod only)
     rays_by_kind: dict[str, int] = field(default_factory=lambda: dict.fromkeys(RAY_KINDS, 0))  # summed likewise
@@ -76,7 +81,8 @@ class Evaluation:
     def to_dict(self, config: EvalConfig) -> dict:
         return {
             "config": config.source,
-            "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "cpu": provenance.machine()},
+            "commit": provenance.commit(),
             "seconds": round(self.seconds, 1),
             "score_space": self.score_space,
             "truth": {
@@ -164,7 +170,8 @@ def run_group(
     group: Group, config: EvalConfig, truth_of: Callable[[EyeCamera], np.ndarray], tick=None, worker: str | None = None
 ) -> GroupResult:
     """Render a planned group, its cells frame by frame in turn, and score it against truth_of's images; tick()
-    after each cell's frame. `worker` (the Dask worker's address; None: in-process) goes into every row."""
+    after each cell's frame. `worker` (the Dask worker's address; None: in-process) goes into every row, as do
+    the date, the commit and the machine of the process that rendered it (provenance.stamp)."""
     started = time.perf_counter()
     last, scored = _render(group, config, truth_of, tick or (lambda: None))
     jod = _jod(group.cells, scored, JodScorer(group.profile, config.eye)) if config.jod else {}
@@ -173,7 +180,7 @@ def run_group(
         {**row, "trace_group": group.key.trace.group_label, **jod.get(row["label"], {})}
         for row in _rows(group.ids, group.cells, group.profile, group.warmup, config.score_space)
     ]
-    rows = [{**row, "worker": worker, "group_seconds": seconds} for row in rows]
+    rows = [{**row, "worker": worker, "group_seconds": seconds, **provenance.stamp()} for row in rows]
     return GroupResult(rows, Crops(**group.ids, **last, images={c.label: c.last for c in group.cells}))
 
 
@@ -235,6 +242,9 @@ def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dic
                 for kind, n in stats.rays.items():
                     cell.rays_by_kind[kind] += n
                 cell.fractions.append(stats.metrics.get("sample_fraction", stats.rays["primary"] / pixels))
+                for name, value in stats.metrics.items():
+                    if isinstance(value, numbers.Real) and math.isfinite(value):
+                        cell.metrics.setdefault(name, []).append(float(value))
                 cell.scores.add(image, truth, eccentricity)
                 cell.last = image.copy()
                 if config.jod:
@@ -264,6 +274,7 @@ def _rows(group: dict, cells: list[_Cell], profile, warmup: int, space: ScoreSpa
                 "rays_per_frame": round(float(np.mean(cell.rays))),
                 **{f"rays_{k}": round(n / len(cell.ms)) for k, n in cell.rays_by_kind.items()},
                 "sample_fraction": round(float(np.mean(cell.fractions)), 5),
+                "metrics": {k: round(statistics.fmean(v), 5) for k, v in cell.metrics.items()},
                 "score_space": space,
                 **{k: _round(v) for k, v in cell.scores.result().items()},
                 "stages_ms": {k: round(v / len(cell.ms), 3) for k, v in cell.stages_ms.items()},

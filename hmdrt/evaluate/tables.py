@@ -4,13 +4,19 @@ A table takes, per scene and trace, the rows whose labels it names; a scene with
 - weier2016 Table 1: "full" and "weier16": rays, per-stage ms (reproject, trace, cache update, merge, post),
   total and speed-up (section 4.1);
 - kim2021 Table 2: "full" (the paper's Regular_1), "Selective", "Sel_Fov", and "Regular_36" and "Sel_Fov reuse"
-  where they ran: ms, rays and PSNR in the four central bands (section 5), and each cell's speed-up and foveal
-  PSNR delta against its baseline (a cell's compare_to: Sel_Fov against Selective shows the paper's claim);
-- smith2013: "full" and every rrm cell, per scene (with and without secondary rays) and trace group, averaged
-  over the group's traces (section 4: a frame at every fovea position, averaged), with each cell's refresh
-  cycle N (Figure 9 sweeps N from 12 to 132): ms, rays, speed-up and PSNR over the image;
+  where they ran: ms, rays (all, and as the paper counts them: kim2021_rays), PSNR in the four central bands
+  (section 5), the share of pixels reused (section 4.4; the row's metrics reuse_fraction), and each cell's
+  speed-up and foveal PSNR delta against its baseline (a cell's compare_to: Sel_Fov against Selective shows the
+  paper's claim, Sel_Fov reuse against Sel_Fov what reuse costs);
+- smith2013: "full" and every rrm cell, per scene (with and without secondary rays) and trace group, with each
+  cell's refresh cycle N (Figure 9 sweeps N from 12 to 132): frame rates averaged over the group's traces as
+  section 4 averages them ("we render one frame for each possible foveal position and average the results to
+  produce a representative overall frame rate"), the speed-up as the ratio of those mean frame rates, rays and
+  PSNR over the image;
 - weier2018 Table 1: "weier18" and "weier18 full": ray tracing, TAA, PPI, CoC, filter, combine, total and
   samples (section 4.1).
+
+Under each heading a line says when, at which commit and on which machine the rows were measured (provenance).
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ from __future__ import annotations
 import statistics
 from collections.abc import Callable
 
+from hmdrt.evaluate import provenance
 from hmdrt.evaluate.quality import SPACE_NAMES
 
 Row = dict
@@ -81,8 +88,8 @@ KIM21_NEEDED = ("full", "Selective", "Sel_Fov")  # Regular_36 (the truth's rende
 
 
 def kim2021(rows: list[Row]) -> str:
-    header = ["scene", "trace", "method", "ms", "rays (k)", "fovea dB", "parafovea dB", "perifovea dB",
-              "near periphery dB", "compared with", "speed-up", "fovea delta dB"]  # fmt: skip
+    header = ["scene", "trace", "method", "ms", "rays (k)", "rays as counted (k)", "fovea dB", "parafovea dB",
+              "perifovea dB", "near periphery dB", "reused", "compared with", "speed-up", "fovea delta dB"]  # fmt: skip
     lines = [
         [
             scene,
@@ -90,7 +97,9 @@ def kim2021(rows: list[Row]) -> str:
             _kim2021_name(label),
             f"{r['ms_per_frame']:.1f}",
             f"{r['rays_per_frame'] / 1e3:,.0f}",
+            f"{kim2021_rays(r) / 1e3:,.0f}",
             *(_db(r[f"psnr_{b}"]) for b in ("fovea", "parafovea", "perifovea", "near_periphery")),
+            _percent(r["metrics"].get("reuse_fraction")),
             "-" if r["baseline"] is None else _kim2021_name(r["baseline"]),
             "-" if r["speedup_vs_baseline"] is None else f"{r['speedup_vs_baseline']:.2f}",
             _db(r["psnr_fovea_vs_baseline"], "+.2f"),
@@ -107,8 +116,24 @@ def _kim2021_name(label: str) -> str:
     return "Regular_1" if label == "full" else label
 
 
+def kim2021_rays(row: Row) -> int:
+    """A row's rays per frame as kim2021's Table 2 counts them. Regular_1 and Regular_36 are plain ray tracers and
+    count every ray (Regular_36's are 36 times Regular_1's). Selective and Sel_Fov run on the paper's hybrid
+    renderer (section 4.3, Figure 4): OpenGL rasterises the first hit of every pixel (Box A-2) and only the rays
+    the CUDA tracer fires are counted (Sel_Fov traces fewer than Regular_1 in Table 2), so a kim21 row counts all
+    but its presample's primary ray through each pixel centre. The periphery's presample shadow rays, which the
+    paper takes from shadow maps (Box A-3), stay counted: FrameStats counts rays by kind, not by region."""
+    if row["method"] == "kim21":
+        return row["rays_per_frame"] - row["width"] * row["height"]
+    return row["rays_per_frame"]
+
+
+def _percent(fraction: float | None) -> str:
+    return "-" if fraction is None else f"{100 * fraction:.1f}%"
+
+
 def smith2013(rows: list[Row]) -> str:
-    header = ["scene", "trace", "secondary rays", "N", "full ms", "rrm ms", "rays full", "rays rrm", "speed-up",
+    header = ["scene", "trace", "secondary rays", "N", "full fps", "rrm fps", "rays full", "rays rrm", "speed-up",
               "image dB"]  # fmt: skip
     lines = []
     for (scene, group), cells in _averaged(rows, lambda r: r["label"] == "full" or r["method"] == "rrm").items():
@@ -119,24 +144,30 @@ def smith2013(rows: list[Row]) -> str:
             if label != "full":
                 n = rrm["options"]["group_w"] * rrm["options"]["group_h"]
                 lines.append([scene, f"{group} ({full['traces']})", "yes" if full["rays_secondary"] else "no", str(n),
-                              f"{full['ms_per_frame']:.1f}", f"{rrm['ms_per_frame']:.1f}", _mrays(full), _mrays(rrm),
-                              f"{full['ms_per_frame'] / rrm['ms_per_frame']:.2f}", _db(rrm["psnr_image"])])  # fmt: skip
+                              f"{full['fps']:.1f}", f"{rrm['fps']:.1f}", _mrays(full), _mrays(rrm),
+                              f"{rrm['fps'] / full['fps']:.2f}", _db(rrm["psnr_image"])])  # fmt: skip
     return _markdown(header, lines)
 
 
-AVERAGED = ("ms_per_frame", "rays_per_frame", "rays_secondary", "psnr_image")
+AVERAGED = ("rays_per_frame", "rays_secondary", "psnr_image")
 
 
 def _averaged(rows: list[Row], keep: Callable[[Row], bool]) -> dict[tuple[str, str], dict[str, Row]]:
-    """{(scene, trace group): {label: row}} of the rows kept, the AVERAGED fields their mean over the group's
-    traces, and "traces" how many there were."""
+    """{(scene, trace group): {label: row}} of the rows kept: "fps" the mean over the group's traces of each
+    trace's frame rate (1000 / its median ms per frame: smith2013 section 4 averages frame rates, not times, over
+    the fovea positions), the AVERAGED fields their mean, and "traces" how many there were."""
     found: dict[tuple[str, str], dict[str, list[Row]]] = {}
     for r in rows:
         if keep(r):
             found.setdefault((r["scene"], r["trace_group"]), {}).setdefault(r["label"], []).append(r)
     return {
         key: {
-            label: {**group[0], "traces": len(group), **{k: _mean([r[k] for r in group]) for k in AVERAGED}}
+            label: {
+                **group[0],
+                "traces": len(group),
+                "fps": statistics.fmean(1e3 / r["ms_per_frame"] for r in group),
+                **{k: _mean([r[k] for r in group]) for k in AVERAGED},
+            }
             for label, group in labels.items()
         }
         for key, labels in found.items()
@@ -168,14 +199,24 @@ def weier2018(rows: list[Row]) -> str:
 SCORED = ("kim2021",)  # the tables that show PSNR: their headings say in which space it was scored
 TABLES: dict[str, tuple[str, Callable[[list[Row]], str]]] = {
     "weier2016": ("weier2016 Table 1: ms per stage, full vs foveated (weier16, r0 10, r1 20, p_min 0.05)", weier2016),
-    "kim2021": ("kim2021 Table 2: time, rays and PSNR per band against regular 36 spp", kim2021),
-    "smith2013": ("smith2013: RRM's speed-up over full, with and without secondary rays", smith2013),
+    "kim2021": (
+        "kim2021 Table 2: time, rays (all; as counted: without the primary ray per pixel that the paper rasterises "
+        "for Selective and Sel_Fov), PSNR per band against regular 36 spp, and pixels reused",
+        kim2021,
+    ),
+    "smith2013": (
+        "smith2013: RRM's speed-up over full, with and without secondary rays (frames per second, averaged over "
+        "a group's fovea positions; speed-up: the ratio of the mean frame rates)",
+        smith2013,
+    ),
     "weier2018": ("weier2018 Table 1: ms per stage, foveated vs full sampling, and samples", weier2018),
 }
 
 
 def paper_tables(rows: list[Row], names: list[str]) -> str:
-    """The named tables as one Markdown document."""
+    """The named tables as one Markdown document, each under its heading and a line saying when, at which
+    commit and on which machine its rows were measured."""
     space = SPACE_NAMES[rows[0]["score_space"]] if rows else ""
     titles = {name: TABLES[name][0] + (f" (PSNR of {space} images)" if name in SCORED else "") for name in names}
-    return "\n\n".join(f"### {titles[name]}\n\n{TABLES[name][1](rows)}" for name in names) + "\n"
+    measured = provenance.line(rows)
+    return "\n\n".join(f"### {titles[name]}\n\n{measured}\n\n{TABLES[name][1](rows)}" for name in names) + "\n"

@@ -5,16 +5,20 @@ traceback from deep in the tables or plots."""
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 
 from hmdrt.errors import HmdrtError
+from hmdrt.evaluate import provenance
 from hmdrt.evaluate.groups import Crops, GroupResult, GroupShape
 from hmdrt.evaluate.quality import BANDS
 
 SCALARS = (type(None), bool, int, float, str)
 NUMBER = (int, float)
 MAYBE_NUMBER = (type(None), int, float)
+MAX_METRICS = 64  # a row's metrics (a method's per-frame figures, averaged)
+METRIC_NAME = re.compile(r"[a-z][a-z0-9_]{0,63}")
 # the columns every row has, by type; the rest (rays by kind, jod) need only be scalars, or tables of them
 COLUMNS: dict[str, tuple[type, ...]] = {
     "scene": (str,),
@@ -31,6 +35,7 @@ COLUMNS: dict[str, tuple[type, ...]] = {
     "ms_per_frame": NUMBER,
     "rays_per_frame": (int,),
     "sample_fraction": NUMBER,
+    "metrics": (dict,),
     "score_space": (str,),
     "stages_ms": (dict,),
     "options": (dict,),
@@ -41,6 +46,9 @@ COLUMNS: dict[str, tuple[type, ...]] = {
     "pareto": (bool,),
     "worker": (type(None), str),
     "group_seconds": NUMBER,
+    "date": (str,),
+    "commit": (str,),
+    "machine": (str,),
     **{f"{score}_{band}": MAYBE_NUMBER for score in ("psnr", "ssim", "flicker") for band in (*BANDS, "image")},
 }
 
@@ -109,6 +117,31 @@ def _check_row(task: str, row: dict, ids: dict[str, str]) -> None:
             raise _fail(task, f"{where}: column {str(name)[:80]!r} is a {_kind(value)}, not a value")
     if not _same(ids, {k: row[k] for k in ids}):
         raise _fail(task, f"{where} is of another group")
+    _check_metrics(task, where, row["metrics"])
+    _check_provenance(task, where, row)
+
+
+def _check_metrics(task: str, where: str, metrics: dict) -> None:
+    """At most MAX_METRICS metrics, each a lower-case name (a CSV column metric_NAME) and a finite number."""
+    if len(metrics) > MAX_METRICS:
+        raise _fail(task, f"{where} has {len(metrics)} metrics, more than {MAX_METRICS}")
+    for name, value in metrics.items():
+        if not METRIC_NAME.fullmatch(name):
+            raise _fail(task, f"{where}: metric {name[:80]!r} is not a lower-case name of at most 64 characters")
+        if not _finite(value):
+            raise _fail(task, f"{where}: metric {name!r} is not a finite number")
+
+
+def _check_provenance(task: str, where: str, row: dict) -> None:
+    """The date (YYYY-MM-DD), commit (a short hash, "-dirty" or not, or "unknown") and machine (one printable
+    line of at most provenance.MAX_TEXT characters) that the tables print."""
+    machine = row["machine"]
+    if not provenance.DATE.fullmatch(row["date"]):
+        raise _fail(task, f"{where}: date {row['date'][:40]!r} is not YYYY-MM-DD")
+    if not provenance.COMMIT.fullmatch(row["commit"]):
+        raise _fail(task, f"{where}: commit {row['commit'][:60]!r} is not a short hash or 'unknown'")
+    if not machine or len(machine) > provenance.MAX_TEXT or not machine.isprintable():
+        raise _fail(task, f"{where}: machine is not one printable line of at most {provenance.MAX_TEXT} characters")
 
 
 def _plain(value: object) -> bool:
@@ -127,4 +160,10 @@ def _check_image(task: str, what: str, value: object, shape: tuple[int, int]) ->
 
 
 def _finite(value: object) -> bool:
-    return isinstance(value, NUMBER) and not isinstance(value, bool) and math.isfinite(value)
+    """A number, not a bool, that a float holds finitely (an int past float's range is not one)."""
+    if not isinstance(value, NUMBER) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False

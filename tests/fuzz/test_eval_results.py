@@ -4,6 +4,7 @@ the results, tables and summary take it, or refused as one HmdrtError line namin
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 from hypothesis import strategies as st
@@ -19,6 +20,7 @@ TASK = "group-0123abcd-run"
 IDS = {"scene": "whitted", "profile": "sim-cpu", "trace": "gaze 0,0"}
 SHAPE = GroupShape(IDS, ["full", "rrm a"], (3, 4))
 TEXT_VALUES = {"trace_group": "gaze 0,0", "params": "full", "score_space": "srgb", "baseline": "full"}
+TEXT_VALUES |= {"date": "2026-12-06", "commit": "08396c0-dirty", "machine": "Intel(R) Xeon(R) Processor, 2 CPUs"}
 
 
 def _row(label: str) -> dict:
@@ -48,6 +50,11 @@ ARRAYS = st.sampled_from(
 )
 JUNK = st.one_of(MSGPACK_VALUES, ARRAYS, st.just(object()), st.just(GroupResult([], None)))  # type: ignore[arg-type]
 COLUMN = st.sampled_from([*validate.COLUMNS, "label", "rays_primary", "options", "nonsense"])
+METRICS = st.dictionaries(  # of names valid and not, values finite and not
+    st.one_of(st.sampled_from(["sample_fraction", "reuse_fraction"]), st.text(max_size=70)),
+    st.one_of(MSGPACK_VALUES, st.floats(), st.integers(), st.just(2**1100)),
+    max_size=70,
+)
 
 
 def _set_column(result: GroupResult, index: int, column: str, value: object) -> GroupResult:
@@ -68,6 +75,7 @@ def _set_crops(result: GroupResult, field: str, value: object) -> GroupResult:
 EDITS = st.one_of(  # of a result whose rows and crops are still the runner's
     st.builds(lambda i, c, v: lambda r: _set_column(r, i, c, v), st.integers(0, 3), COLUMN, JUNK),
     st.builds(lambda i, c: lambda r: _drop_column(r, i, c), st.integers(0, 3), COLUMN),
+    st.builds(lambda i, m: lambda r: _set_column(r, i, "metrics", m), st.integers(0, 3), METRICS),
     st.builds(
         lambda f, v: lambda r: _set_crops(r, f, v),
         st.sampled_from(["scene", "truth", "images", "gaze_xy"]),
@@ -98,7 +106,10 @@ def test_a_group_result_is_accepted_whole_or_refused_as_one_line_naming_the_task
         return
     assert [r["label"] for r in result.rows] == SHAPE.labels
     assert all(image.shape == (3, 4, 3) for image in [result.crops.truth, *result.crops.images.values()])
-    [flat(row) for row in result.rows]
+    for row in result.rows:
+        assert len(row["metrics"]) <= validate.MAX_METRICS
+        assert all(math.isfinite(v) and not isinstance(v, bool) for v in row["metrics"].values())
+        flat(row)
     json.dumps(result.rows)
     table(Evaluation(result.rows, summarise(result.rows), [result.crops], 0, 0, 1.0, "srgb"))
 
