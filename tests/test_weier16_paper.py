@@ -1,6 +1,6 @@
 """weier16 against weier2016: the post filter of section 3.5 (donors, fovea, cache) and the resampling info of
-section 3.3 (second-difference depth test, luminance of the reprojected final colour), on `interior` and on
-hand-made buffers."""
+section 3.3 (second-difference depth test, luminance of the reprojected final colour, cells tested where the
+reprojection moved them), on `interior` and on hand-made buffers."""
 
 from __future__ import annotations
 
@@ -99,7 +99,7 @@ def test_merged_pixels_carry_the_support_images_light_buffer():
 
 def test_a_merged_pixel_counts_no_sample_and_its_next_sample_replaces_it():
     """rho is the number of samples accumulated at a pixel (section 3.4); the support image's bilinear colour
-    is none of them, so the first sample after a merge takes alpha = 1."""
+    is none of them, so the first sample on a merged pixel's reprojected cache takes alpha = 1."""
     reqs = requests(2)
     with Whitted(load_scene("interior")) as tracer:
         method = make_method("weier16", tracer)
@@ -107,7 +107,10 @@ def test_a_merged_pixel_counts_no_sample_and_its_next_sample_replaces_it():
         merged = (method._buffers.selection.flags & TRACED) == 0
         method.render(reqs[1], FrameStats())
     flags = method._buffers.selection.flags
-    again = merged & ((flags & (TRACED | FRESH | COVERED)) == (TRACED | COVERED))
+    prev = method._buffers.mesh.image.prev  # the cache info comes from the nearest texel
+    h, w = flags.shape
+    came_from = merged[np.clip(prev[1].astype(int), 0, h - 1), np.clip(prev[0].astype(int), 0, w - 1)]
+    again = came_from & ((flags & (TRACED | FRESH | COVERED)) == (TRACED | COVERED))
     info = method._eyes["left"].finals[method._eyes["left"].newest].info
     assert again.sum() > 50
     np.testing.assert_array_equal(info[again, 0], 1.0)  # alpha
@@ -195,27 +198,41 @@ def test_no_donor_no_change_and_the_fovea_is_left_alone():
 SW, FULL = 16, 64  # support cells and full-resolution pixels per side
 
 
-def info_marks(zinv: np.ndarray, color: np.ndarray) -> np.ndarray:
-    """The cells marked for a still view (each cell sees its own previous texels) of depths 1/zinv and final
-    colour `color`, no normals (no grazing test)."""
-    cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(FULL, FULL), Pose())
+def previous_positions(shift: float = 1.0) -> np.ndarray:
+    """Where each cell's surface lay in the previous frame for a view that pans by `shift` full-resolution pixels
+    (each cell sees the previous texels that far to its left; 0: a still view), (2, SW, SW) x and y."""
     centres = (np.arange(SW) + 0.5) * FULL / SW
-    prev = np.stack(np.broadcast_arrays(centres[None, :], centres[:, None])).astype(np.float32)
+    return np.stack(np.broadcast_arrays(centres[None, :] - shift, centres[:, None])).astype(np.float32)
+
+
+def info_marks(
+    zinv: np.ndarray,
+    color: np.ndarray,
+    prev: np.ndarray | None = None,
+    motion: float = 0.1,
+    unsampled: np.ndarray | None = None,
+) -> np.ndarray:
+    """The cells marked for depths 1/zinv and final colour `color` reprojected from `prev` (a pan by one pixel
+    by default), no normals (no grazing test), cells tested where they or a neighbour moved more than `motion`
+    or where the previous frame showed the support image's reconstruction (`unsampled`, none by default)."""
+    cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(FULL, FULL), Pose())
     scratch = InfoScratch(
+        np.empty((SW, SW), np.uint8),
         np.empty((SW, SW), np.uint8),
         np.empty((SW, SW), np.float32),
         np.empty((numba.config.NUMBA_NUM_THREADS, FULL), np.float32),
     )
     out = np.empty((SW, SW), bool)
     _resampling_info(
-        MeshImage(prev, zinv.astype(np.float32)),
+        MeshImage(previous_positions() if prev is None else prev, zinv.astype(np.float32)),
         camera_arrays(cam, SW, SW),
         color.astype(np.float32),
         np.zeros((SW, SW, 3), np.float32),
+        np.zeros((SW, SW), np.uint8) if unsampled is None else unsampled,
         np.zeros(3),
         float(FULL),
         float(FULL),
-        InfoRule(0.05, 0.2, 0.1, np.random.default_rng(0).standard_normal((4, 2))),
+        InfoRule(0.05, 0.2, 0.1, motion, np.random.default_rng(0).standard_normal((4, 2))),
         scratch,
         out,
     )
@@ -251,3 +268,42 @@ def test_the_luminance_test_reads_the_reprojected_final_colour():
     assert marks[:, SW // 2 - 1 : SW // 2 + 1].all()
     marks[:, SW // 2 - 2 : SW // 2 + 2] = False  # the footprint filter may reach one cell further
     assert not marks.any()
+
+
+def step_and_edge() -> tuple[np.ndarray, np.ndarray]:
+    """A box in front of the right half of a slanted plane, bright on the bottom half of the image."""
+    zinv, color = slanted_plane(), np.full((FULL, FULL, 3), 0.1)
+    zinv[:, SW // 2 :] += 0.3
+    color[FULL // 2 :] = 0.9
+    return zinv, color
+
+
+def test_a_still_view_marks_nothing():
+    """Section 3.3 looks for reprojection errors; a still view reprojects the previous frame onto itself, so its
+    depth steps and contrast edges, marked once the view moves, are left to the cache."""
+    zinv, color = step_and_edge()
+    assert not info_marks(zinv, color, previous_positions(0.0)).any()
+    assert not info_marks(zinv, color, previous_positions(0.09), motion=0.1).any()
+    moved = info_marks(zinv, color, previous_positions(0.11), motion=0.1)
+    assert moved[:, SW // 2 - 1 : SW // 2 + 1].all() and moved[SW // 2 - 1 : SW // 2 + 1].all()
+
+
+def test_a_cell_next_to_a_moved_one_is_tested():
+    """The tests read a cell's 4-neighbours: a cell that stayed still beside one that moved is tested too."""
+    zinv, color = step_and_edge()
+    prev = previous_positions(0.0)
+    prev[0, :, SW // 2] -= 1.0  # only the box's first column moved
+    marks = info_marks(zinv, color, prev)
+    assert marks[:, SW // 2 - 1 : SW // 2 + 1].all()  # the step, on both sides
+    assert not marks[:, : SW // 2 - 2].any() and not marks[:, SW // 2 + 2 :].any()  # the edge away from the move
+
+
+def test_a_still_cell_showing_the_support_image_is_tested():
+    """Section 3.3 reconstructs pixels outside the previous frustum from the coarse support image; where the
+    reprojection shows such pixels (no sample of their own yet), their cells are tested like moved ones."""
+    zinv, color = step_and_edge()
+    unsampled = np.zeros((SW, SW), np.uint8)
+    unsampled[: SW // 4] = 1  # the top quarter showed the support image
+    marks = info_marks(zinv, color, previous_positions(0.0), unsampled=unsampled)
+    assert marks[: SW // 4, SW // 2 - 1 : SW // 2 + 1].all()  # the step, there
+    assert not marks[SW // 4 :].any()

@@ -10,7 +10,7 @@ import pytest
 
 from hmdrt.foveation.stages.reproject import MeshImage
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
-from hmdrt.foveation.weier16.buffers import CacheRule, Final, RowTaps, Samples, Selection
+from hmdrt.foveation.weier16.buffers import CacheRule, Final, RowTaps, Samples, Selection, Support, SupportGrid
 from hmdrt.foveation.weier16.cache import _update
 from hmdrt.foveation.weier16.params import COVERED, TRACED
 from hmdrt.kernels.schedule import dynamic
@@ -103,7 +103,8 @@ def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0):
                 camera_arrays(cam),
                 previous,
                 samples,
-                zeros.reshape(size, size, 3),
+                Support.empty(size, size),  # every pixel traced: nothing merged from it
+                SupportGrid.of(size, size, size, size),
                 rule,
                 taps,
                 final,

@@ -49,6 +49,8 @@ VERTEX_ATTRS = 4  # previous pixel x z, y z and z (z: previous view depth), each
 # 1 over it: linear in the screen on a planar facet, so perspective-correct interpolation recovers x and y exactly
 ROWS = 4  # rows of a block, the unit of work of the row-parallel kernels (see hmdrt/trace/blocks.py)
 BANDS = 64  # bands of image rows the rasteriser splits the image into, one parallel task each
+EDGE = 1e-9  # barycentric weight below 0 a pixel centre may have and be inside: a centre on an edge, as weier16's
+# support pixels are (vertices on pixel centres) on a still view, is taken by both triangles whatever the rounding
 
 
 class MeshVertices(NamedTuple):
@@ -167,7 +169,8 @@ def _raster_band(y0, vertices, triangles, image):
             b0, b1, b2, izb = attr[b[0], b[1], 0], attr[b[0], b[1], 1], attr[b[0], b[1], 2], attr[b[0], b[1], 3]
             c0, c1, c2, izc = attr[c[0], c[1], 0], attr[c[0], c[1], 1], attr[c[0], c[1], 2], attr[c[0], c[1], 3]
             # barycentric weights are affine in the pixel position: stepped along x. On a still view the grid's
-            # vertices sit on support pixel centres, and these sums decide which triangle takes them
+            # vertices and edges pass through pixel centres: EDGE keeps the rounding of these sums from leaving
+            # such a centre out of both triangles, and the depth test keeps the first
             dwa_dx, dwb_dx = (by - cy) * inv_area, (cy - ay) * inv_area
             for y in range(ry0, ry1):
                 sy, sx = y + 0.5, rx0 + 0.5
@@ -175,7 +178,7 @@ def _raster_band(y0, vertices, triangles, image):
                 wb = ((cx - sx) * (ay - sy) - (cy - sy) * (ax - sx)) * inv_area
                 for x in range(rx0, rx1):
                     wc = 1.0 - wa - wb
-                    if wa >= 0.0 and wb >= 0.0 and wc >= 0.0:
+                    if wa >= -EDGE and wb >= -EDGE and wc >= -EDGE:
                         iz = wa * iza + wb * izb + wc * izc
                         if iz > out_zinv[y, x]:
                             out_zinv[y, x] = iz

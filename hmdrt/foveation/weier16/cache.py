@@ -1,6 +1,7 @@
-"""weier16's cache update (weier2016 sections 3.2 and 3.4) in one pass: the previous frame gathered through the
-coarse mesh with its footprint filter, each new sample merged into the cache with the running estimate or
-replacing it, and the pixels left without colour merged from the support image."""
+"""weier16's cache update (weier2016 sections 3.2 and 3.4): the support image and support G-buffer extracted from
+the frame's samples, then one pass: the previous frame gathered through the coarse mesh with its footprint filter,
+each new sample (the support pixels' among them) merged into the cache with the running estimate or replacing
+it, and the pixels left without colour merged from the support image."""
 
 from __future__ import annotations
 
@@ -26,28 +27,49 @@ def _moved(depth, dist, eps_cache):
 
 
 @serial
-def _support_light(light, base, sw, sh, x, y, c):
-    """Channel c of the support image's light buffer (sample rows base + j * sw + i) at continuous support
-    coordinates (x, y), bilinear and clamped at the border like the merge's colour (bilinear3)."""
-    fx, fy = x - 0.5, y - 0.5
-    x0, y0 = math.floor(fx), math.floor(fy)
-    ax, ay = fx - x0, fy - y0
-    i0, j0 = min(max(int(x0), 0), sw - 1), min(max(int(y0), 0), sh - 1)
-    i1, j1 = min(max(int(x0) + 1, 0), sw - 1), min(max(int(y0) + 1, 0), sh - 1)
-    top = (1.0 - ax) * light[base + j0 * sw + i0, c] + ax * light[base + j0 * sw + i1, c]
-    bottom = (1.0 - ax) * light[base + j1 * sw + i0, c] + ax * light[base + j1 * sw + i1, c]
-    return (1.0 - ay) * top + ay * bottom
+def _gather_support(grid, index, samples, normals, support):
+    """Section 3.4: the support image and support G-buffer "extracted" from the frame's samples, each support
+    pixel's own (grid: where they lie; index: each traced pixel's sample)."""
+    depth, normal, color, light = support.depth, support.normal, support.color, support.light
+    for j in range(grid.y.shape[0]):
+        y = int(grid.y[j])
+        for i in range(grid.x.shape[0]):
+            s = index[y, int(grid.x[i])]
+            depth[j, i] = samples.depth[s]
+            for c in range(3):
+                normal[j, i, c] = normals[s, c]
+                color[j, i, c] = samples.rgb[s, c]
+                light[j, i, c] = samples.light[s, c]
+
+
+@kernel
+def _unsampled_cells(flags, info, unsampled):
+    """The support cells (those of the resampling info: pixel (y, x) in cell (y sh // h, x sw // w)) holding a
+    pixel that the reprojection covers but that shows the support image's reconstruction, no sample of its own
+    (rho 0: merged when it was uncovered, untraced since). Section 3.3 reconstructs such pixels from the coarse
+    support image; the next frame's resampling info tests these cells for the discontinuities it misses. A cell
+    row per task, its pixels tested without branches."""
+    h, w = flags.shape
+    sh, sw = unsampled.shape
+    for j in nb.prange(sh):
+        y0, y1 = (j * h + sh - 1) // sh, ((j + 1) * h + sh - 1) // sh
+        for i in range(sw):
+            x0, x1 = (i * w + sw - 1) // sw, ((i + 1) * w + sw - 1) // sw
+            shown = False
+            for y in range(y0, y1):
+                for x in range(x0, x1):
+                    shown |= (flags[y, x] & (COVERED | TRACED) == COVERED) & (info[y, x, 1] <= 0.0)
+            unsampled[j, i] = shown
 
 
 @serial
-def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule, taps, final, image):
+def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid, rule, taps, final, image):
     flags, row_start = selection.flags, selection.row_start
     prev, zinv = mesh.prev, mesh.zinv
     prev_color, prev_info, prev_light = previous.color, previous.info, previous.light
     rgb, sample_depth, sample_light = samples.rgb, samples.depth, samples.light
     color, info, light = final.color, final.info, final.light
     h, w = flags.shape
-    sh, sw = support.shape[0], support.shape[1]
     t = nb.get_thread_id()
     spread_row, across, down = taps.spread[t], taps.weights[t, 0], taps.weights[t, 1]
     corner, step_x, step_y = taps.index[t, 0], taps.index[t, 1], taps.index[t, 2]
@@ -105,14 +127,12 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule,
                     for c in range(3):
                         light[y, x, c] = prev_light[jy, jx, c]
             else:  # the merge: the bilinearly upsampled support image, colour and light buffer
-                lx, ly = (x + 0.5) * sw / w, (y + 0.5) * sh / h
-                r, g, b = bilinear3(support, lx, ly)
+                r, g, b = bilinear3(support.color, grid.u[x], grid.v[y])
                 color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
                 for c in range(INFO):
                     info[y, x, c] = 0.0
                 if rule.stochastic:
-                    for c in range(3):
-                        light[y, x, c] = _support_light(sample_light, row_start[h], sw, sh, lx, ly, c)
+                    light[y, x, 0], light[y, x, 1], light[y, x, 2] = bilinear3(support.light, grid.u[x], grid.v[y])
                 merged += 1
             for c in range(3):
                 image[y, x, c] = color[y, x, c]
@@ -120,16 +140,16 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule,
 
 
 @kernel
-def _update(selection, mesh, cur, previous, samples, support, rule, taps, final, image, counter, threads):
+def _update(selection, mesh, cur, previous, samples, support, grid, rule, taps, final, image, counter, threads):
     """Sections 3.2 and 3.4 in one pass: each pixel's previous colour and cache info gathered through the
-    mesh, its sample merged into them with the running estimate (or replacing them: fovea, resampled,
-    uncovered or moved), and pixels left without colour taken from the support image; into the final
-    colour, cache info and the caller's image."""
+    mesh, its sample (a support pixel's too) merged into them with the running estimate (or replacing them:
+    fovea, resampled, uncovered or moved), and pixels left without colour taken from the support image
+    (support, at grid's coordinates); into the final colour, cache info and the caller's image."""
     h = selection.flags.shape[0]
     blocks = (h + ROWS - 1) // ROWS
     for _ in nb.prange(threads):
         b = claim(counter)
         while b < blocks:
             y0, y1 = b * ROWS, min(h, (b + 1) * ROWS)
-            _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, rule, taps, final, image)
+            _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid, rule, taps, final, image)
             b = claim(counter)

@@ -23,7 +23,7 @@ from hmdrt.foveation.weier16.buffers import (
     Surfaces,
     _Buffers,
 )
-from hmdrt.foveation.weier16.cache import _update
+from hmdrt.foveation.weier16.cache import _gather_support, _unsampled_cells, _update
 from hmdrt.foveation.weier16.params import Weier16Params, support_size
 from hmdrt.foveation.weier16.post import _post
 from hmdrt.foveation.weier16.resample import _resampling_info
@@ -38,7 +38,7 @@ from hmdrt.trace.integrator import Whitted
 
 class _EyeState:
     """One eye's history: the camera of its newest frame, its final colour and cache info double-buffered
-    (the newest is read while the next is written) and the newest support G-buffer."""
+    (the newest is read while the next is written) and the newest support image and G-buffer."""
 
     def __init__(self, w: int, h: int, sw: int, sh: int):
         self.size = (w, h, sw, sh)
@@ -119,12 +119,15 @@ class Weier16(Configurable):
         resample = self._resample_info(f, stats)
         n, xy, keys, light = self._sample(f, mesh, resample, stats)
         samples, normals = self._trace(f, xy, keys, light, stats)
-        self._cache_update(f, mesh, n, samples, normals, stats)
+        self._cache_update(f, mesh, samples, normals, stats)
         self._post(f, samples, normals, stats)
         f.eye.camera, f.eye.newest = f.request.camera, 1 - f.eye.newest
         sel = f.buf.selection
-        stats.metrics["sample_fraction"] = n / (f.size[0] * f.size[1])
-        stats.metrics["resampled_pixels"] = int(sel.resampled.sum())
+        pixels = f.size[0] * f.size[1]
+        resampled = int(sel.resampled.sum())
+        stats.metrics["sample_fraction"] = n / pixels  # traced pixels, the support image's among them
+        stats.metrics["resampled_pixels"] = resampled
+        stats.metrics["resampled_fraction"] = resampled / pixels
         stats.metrics["support_rays"] = f.size[2] * f.size[3]
         stats.metrics["merged_pixels"] = int(sel.merged.sum())
         return f.image
@@ -150,7 +153,7 @@ class Weier16(Configurable):
         w, h = f.size[:2]
         written = w * h * 3 * np.dtype(np.float32).itemsize  # the mesh image: x, y in the previous frame and 1/z
         with stats.stage("reproject", touches=f.eye.support.depth.nbytes + written):
-            return f.buf.mesh.reproject(f.eye.camera, f.buf.grid_x, f.buf.grid_y, f.eye.support.depth, f.camera, w, h)
+            return f.buf.mesh.reproject(f.eye.camera, f.buf.grid.x, f.buf.grid.y, f.eye.support.depth, f.camera, w, h)
 
     def _resample_info(self, f: _Frame, stats: FrameStats) -> np.ndarray:
         """Section 3.3: the support cells to sample afresh (the no-history stand-in without a previous frame)."""
@@ -159,68 +162,68 @@ class Weier16(Configurable):
         w, h, sw, sh = f.size
         buf, eye, p = f.buf, f.eye, self.params
         with stats.stage("resample_info"):
-            low = buf.low_mesh.reproject(eye.camera, buf.grid_x, buf.grid_y, eye.support.depth, f.camera, sw, sh)
-            rule = InfoRule(p.eps_depth, p.eps_lum, p.eps_edge, self._taps)
+            low = buf.low_mesh.reproject(eye.camera, buf.grid.x, buf.grid.y, eye.support.depth, f.camera, sw, sh)
+            rule = InfoRule(p.eps_depth, p.eps_lum, p.eps_edge, p.eps_motion, self._taps)
             low_cam, previous = camera_arrays(f.camera, sw, sh), eye.finals[eye.newest]
             _resampling_info(
-                low, low_cam, previous.color, eye.support.normal, eye.camera.position, float(w), float(h), rule,
-                buf.low_scratch, buf.resample,
+                low, low_cam, previous.color, eye.support.normal, eye.support.unsampled, eye.camera.position,
+                float(w), float(h), rule, buf.low_scratch, buf.resample,
             )  # fmt: skip
             return buf.resample
 
     def _sample(
         self, f: _Frame, mesh: MeshImage, resample: np.ndarray, stats: FrameStats
     ) -> tuple[int, np.ndarray, np.ndarray, LightBuffer]:
-        """Section 3.4: how many pixels to trace (foveal probability, resampling info, uncovered pixels), and
-        the tracer's sample list: those pixels, then the support grid."""
+        """Section 3.1: the pixels to trace (foveal probability, resampling info, the support image's pixels),
+        and the tracer's sample list, one sample per traced pixel."""
         buf, request, sel = f.buf, f.request, f.buf.selection
-        sw, sh = f.size[2:]
         with stats.stage("sample"):
             ecc = eccentricity_map(f.camera, request.gaze)
             zinv = mesh.zinv if f.history else buf.no_zinv
             dynamic(
-                _select, ecc, self.foveal, request.seed, request.frame, zinv, resample, buf.low_cols, sel, buf.draws
-            )
+                _select, ecc, self.foveal, request.seed, request.frame, zinv, resample, buf.low_cols, buf.grid, sel,
+                buf.draws,
+            )  # fmt: skip
             np.cumsum(sel.counts, out=sel.row_start[1:])
             n = int(sel.row_start[-1])
-            xy, keys, light = buf.sample_list(n + sw * sh)
+            xy, keys, light = buf.sample_list(n)
             key = (request.seed << 32) + request.frame * (1 << 22)
-            _fill_samples(sel.flags, sel.row_start, buf.grid_x, buf.grid_y, key, xy, keys, buf.sample_index)
+            _fill_samples(sel.flags, sel.row_start, key, xy, keys, buf.sample_index)
             return n, xy, keys, light
 
     def _trace(
         self, f: _Frame, xy: np.ndarray, keys: np.ndarray, light: LightBuffer, stats: FrameStats
     ) -> tuple[Samples, np.ndarray]:
         """The samples' colour, depth and light buffer, and their geometric normals (n, 3)."""
-        w, h, sw, sh = f.size
+        w, h = f.size[:2]
         stochastic = STOCHASTIC in self.features
         with stats.stage("trace"):
-            gbuf, rgb = self._gbuffers.rows(len(xy), most=w * h + sw * sh)
+            gbuf, rgb = self._gbuffers.rows(len(xy), most=w * h)
             self.tracer.trace_samples(f.camera, xy, keys, stats, gbuf, light if stochastic else None, rgb)
         return Samples(rgb, gbuf.primary.depth, light.irradiance, light.albedo), gbuf.primary.normal_geometric
 
     def _cache_update(
-        self, f: _Frame, mesh: MeshImage, n: int, samples: Samples, normals: np.ndarray, stats: FrameStats
+        self, f: _Frame, mesh: MeshImage, samples: Samples, normals: np.ndarray, stats: FrameStats
     ) -> None:
-        """Sections 3.1 and 3.4: the new support G-buffer, then the reprojected frame's gather, the merge of the
-        new samples and the running estimate, in one pass into the final colour and the image."""
-        p, t, support = self.params, f.request.frame, f.eye.support
-        sw, sh = f.size[2:]
+        """Section 3.4: the support image and G-buffer extracted from the support pixels' samples (the next
+        frame's coarse mesh), then the reprojected frame's gather, the merge of the new samples and the running
+        estimate, in one pass into the final colour and the image; last, the cells that show the support
+        image's reconstruction (the next frame's resampling info tests them)."""
+        p, t, support, buf = self.params, f.request.frame, f.eye.support, f.buf
         previous, final = f.eye.finals[f.eye.newest], f.eye.finals[1 - f.eye.newest]
         stochastic = STOCHASTIC in self.features
         lights = (previous.light, final.light, samples.light) if stochastic else ()
-        touched = (f.buf.selection.flags, *mesh, previous.color, previous.info, final.color, final.info, f.image)
+        touched = (buf.selection.flags, *mesh, previous.color, previous.info, final.color, final.info, f.image)
         with stats.stage("cache_update", touches=nbytes(*touched, samples.rgb, samples.depth, *lights)):
-            np.copyto(support.depth, samples.depth[n:].reshape(sh, sw))
-            np.copyto(support.normal, normals[n:].reshape(sh, sw, 3))
-            support_image = samples.rgb[n:].reshape(sh, sw, 3)
+            _gather_support(buf.grid, buf.sample_index, samples, normals, support)
             rule = CacheRule(
                 float(t), p.k_min, p.k_max, p.t_max, p.eps_cache, p.footprint_samples, f.request.seed + t, stochastic
             )
             dynamic(
-                _update, f.buf.selection, mesh, camera_arrays(f.camera), previous, samples, support_image, rule,
-                f.buf.taps, final, f.image,
+                _update, buf.selection, mesh, camera_arrays(f.camera), previous, samples, support, buf.grid, rule,
+                buf.taps, final, f.image,
             )  # fmt: skip
+            _unsampled_cells(buf.selection.flags, final.info, support.unsampled)
 
     def _post(self, f: _Frame, samples: Samples, normals: np.ndarray, stats: FrameStats) -> None:
         """Section 3.5: the post filter over the stochastic light buffer, on the image shown."""

@@ -12,10 +12,9 @@ from hmdrt.ranges import Deg, Fraction
 
 DK2_SUPPORT = (256, 318, 1182, 1464)  # section 4.1: a 256 x 318 support image at 1182 x 1464
 INFO = 3  # cache info per pixel: alpha, rho and the frame it was last touched
-TRACED, FRESH, RESAMPLE, COVERED, FOVEA = 1, 2, 4, 8, 16  # a pixel's flags: traced this frame; its sample
-# replaces the cache (fovea or resampled); marked in the resampling info; covered by the reprojected mesh;
-# inside r0
-SUPPORT_STREAM = 2 << 40  # base.pixel_keys stream 2: the support image's samples
+TRACED, FRESH, RESAMPLE, COVERED, FOVEA, SUPPORT = 1, 2, 4, 8, 16, 32  # a pixel's flags: traced this frame;
+# its sample replaces the cache (fovea or resampled); marked in the resampling info; covered by the reprojected
+# mesh; inside r0; a pixel of the support image
 
 
 class Weier16Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -28,6 +27,9 @@ class Weier16Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     eps_depth: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.05  # second difference of 1/z, relative
     eps_lum: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 0.2  # luminance contrast |a - b| / (a + b)
     eps_edge: Fraction = 0.1  # grazing angle: edge_t = max(n.d, 0) below this
+    # full-resolution pixels the reprojection must move a cell (or a 4-neighbour) for its tests to run:
+    # configs/eval/weier16_thresholds.toml
+    eps_motion: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)] = 0.1
     eps_cache: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.05  # relative depth, cache vs new sample
     k_min: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 0.1
     k_max: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 0.5  # configs/eval/weier16_cache.toml

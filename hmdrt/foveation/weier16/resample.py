@@ -1,6 +1,8 @@
 """weier16's resampling info (weier2016 section 3.3): the previous final colour reprojected through the coarse mesh
 at the support resolution with section 3.2's footprint filter, and the cells whose depth or luminance departs from
-their neighbourhood, or whose surface was seen at a grazing angle, marked to be traced afresh."""
+their neighbourhood, or whose surface was seen at a grazing angle, marked to be traced afresh, where the
+reprojection moved the cell or a neighbour or shows the support image's coarse reconstruction (elsewhere it shows
+the previous frame's samples unchanged: no reprojection error to find)."""
 
 from __future__ import annotations
 
@@ -88,14 +90,20 @@ def _discontinuous(zinv, covered, lum, y, x, rule):
     )
 
 
+@serial
+def _previous_cell(prev, y, x, ph, pw, full_w, full_h):
+    """The support cell (row, column) of a ph x pw support image over full_w x full_h pixels that held the surface
+    seen at cell (y, x) in the previous frame."""
+    sx = min(max(int(prev[0, y, x] * pw / full_w), 0), pw - 1)
+    sy = min(max(int(prev[1, y, x] * ph / full_h), 0), ph - 1)
+    return sy, sx
+
+
 @inline
 def _grazing(mesh, cur, normal, prev_position, x, y, full_w, full_h, eps):
     """Section 3.3's edge test: edge_t = max(n.d, 0) < eps with the previous frame's geometric normal n and the
     direction d to its eye, at cell (y, x); never where the support G-buffer holds no normal (a miss)."""
-    prev = mesh.prev
-    ph, pw = normal.shape[0], normal.shape[1]
-    sx = min(max(int(prev[0, y, x] * pw / full_w), 0), pw - 1)
-    sy = min(max(int(prev[1, y, x] * ph / full_h), 0), ph - 1)
+    sy, sx = _previous_cell(mesh.prev, y, x, normal.shape[0], normal.shape[1], full_w, full_h)
     nx, ny, nz = normal[sy, sx, 0], normal[sy, sx, 1], normal[sy, sx, 2]
     if nx == 0.0 and ny == 0.0 and nz == 0.0:
         return False
@@ -105,23 +113,48 @@ def _grazing(mesh, cur, normal, prev_position, x, y, full_w, full_h, eps):
     return max((nx * vx + ny * vy + nz * vz) * inv, 0.0) < eps
 
 
+@serial
+def _moved_near(moved, y, x):
+    """Whether the reprojection moved cell (y, x) or one of its 4-neighbours, the cells its tests read."""
+    h, w = moved.shape
+    return (
+        moved[y, x] != 0
+        or (x > 0 and moved[y, x - 1] != 0)
+        or (x + 1 < w and moved[y, x + 1] != 0)
+        or (y > 0 and moved[y - 1, x] != 0)
+        or (y + 1 < h and moved[y + 1, x] != 0)
+    )
+
+
 @kernel
-def _resampling_info(mesh, cur, color, normal, prev_position, full_w, full_h, rule, scratch, out):
+def _resampling_info(mesh, cur, color, normal, unsampled, prev_position, full_w, full_h, rule, scratch, out):
     """weier2016 section 3.3 at support resolution: the previous final colour reprojected through the coarse
-    mesh; cells with a depth or luminance discontinuity against their neighbourhood, grazing surfaces and
-    uncovered cells are marked."""
-    zinv, covered = mesh.zinv, scratch.covered  # written through locals: see hmdrt/trace/blocks.py
+    mesh; cells with a depth or luminance discontinuity against their neighbourhood or a grazing surface are
+    marked where the reprojected image may be wrong: where the reprojection moved them or a neighbour by more
+    than rule.motion full-resolution pixels, or where it shows the coarse support image's reconstruction
+    (`unsampled`, cells of the previous frame: cache._unsampled_cells). Uncovered cells are not: section 3.3
+    reconstructs them from the support image (the merge)."""
+    # written through locals: see hmdrt/trace/blocks.py
+    zinv, prev, covered, moved = mesh.zinv, mesh.prev, scratch.covered, scratch.moved
     h, w = zinv.shape
+    cell_w, cell_h = full_w / w, full_h / h
     for y in nb.prange(h):
         for x in range(w):
-            covered[y, x] = 1 if zinv[y, x] > 0.0 else 0
+            on = zinv[y, x] > 0.0
+            covered[y, x] = 1 if on else 0
+            shift = max(abs(prev[0, y, x] - (x + 0.5) * cell_w), abs(prev[1, y, x] - (y + 0.5) * cell_h))
+            moved[y, x] = 1 if on and shift > rule.motion else 0
     for b in nb.prange((h + ROWS - 1) // ROWS):
-        _luminance_rows(b * ROWS, min(h, (b + 1) * ROWS), mesh.prev, color, rule, scratch)
+        _luminance_rows(b * ROWS, min(h, (b + 1) * ROWS), prev, color, rule, scratch)
     lum = scratch.lum
+    ph, pw = unsampled.shape
     for y in nb.prange(h):
         for x in range(w):
-            out[y, x] = (
-                not covered[y, x]
-                or _discontinuous(zinv, covered, lum, y, x, rule)
+            tested = False
+            if covered[y, x] != 0:
+                sy, sx = _previous_cell(prev, y, x, ph, pw, full_w, full_h)
+                tested = _moved_near(moved, y, x) or unsampled[sy, sx] != 0
+            out[y, x] = tested and (
+                _discontinuous(zinv, covered, lum, y, x, rule)
                 or _grazing(mesh, cur, normal, prev_position, x, y, full_w, full_h, rule.edge)
             )
