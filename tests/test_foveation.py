@@ -43,7 +43,9 @@ def test_a_still_view_converges(spec):
     frames = run(spec, "whitted", lambda s: still(s, 16, (6.0, -3.0)))
     changes = [np.abs(a[0][0] - b[0][0]).mean() for a, b in zip(frames, frames[1:], strict=False)]
     assert changes[-1] < 1e-3 * frames[-1][0][0].mean()
-    assert changes[-1] <= changes[0]
+    # no growth; kim21 draws its extra samples' jitter afresh each frame, and renders every 6th frame afresh (after
+    # n_reuse_max = 5 reuses), which changes it most (tests/test_kim21_temporal.py)
+    assert changes[-1] <= max(changes[:6])
     assert all(np.all(np.isfinite(f[0][0])) for f in frames)
 
 

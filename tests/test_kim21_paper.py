@@ -64,8 +64,10 @@ def reuse_against_no_reuse(inputs: list[FrameInput], first: int) -> tuple[list[d
 
 def test_reuse_after_a_saccade_keeps_the_new_foveas_quality():
     """Section 4.4: a pixel whose colour was rendered at a lower class than its band needs now (the new fovea and
-    parafovea were in the perifovea and near periphery before a 15 degree saccade) is rendered again, so the five
-    frames after the saccade match rendering without reuse."""
+    parafovea were in the perifovea and near periphery before a 15 degree saccade) is rendered again, so none of the
+    five frames after the saccade is worse than the worst of them rendered without reuse, which vary by a few dB
+    with the jitter of the extra samples (drawn anew each frame); copying the one-sample colours would cost the
+    fovea 8-10 dB for two frames."""
     start = load_scene("whitted").start
     inputs = [
         FrameInput(f, f * PROFILE.period_ns, start, {"left": np.array(gaze_direction(*gaze))})
@@ -73,9 +75,9 @@ def test_reuse_after_a_saccade_keeps_the_new_foveas_quality():
     ]
     reused, fresh = reuse_against_no_reuse(inputs, 4)
     assert all(r["reused_pixels"] > 0.3 * r["central_pixels"] for r in reused[1:])
-    for r, f in zip(reused, fresh, strict=True):
-        assert r["fovea"] == pytest.approx(f["fovea"], abs=1.0)
-        assert r["parafovea"] == pytest.approx(f["parafovea"], abs=1.0)
+    for band in ("fovea", "parafovea"):
+        worst = min(f[band] for f in fresh)
+        assert all(r[band] > worst - 1.0 for r in reused), band
 
 
 def yawed(pose: Pose, degrees: float) -> Pose:
@@ -86,13 +88,13 @@ def yawed(pose: Pose, degrees: float) -> Pose:
 
 def test_reuse_under_head_motion_keeps_the_foveas_quality():
     """Section 4.4's nearest-pixel copy at 0.8 pixels of yaw per frame: a copy whose colour was rendered more than
-    reuse_px away from where the pixel looks now (its drift summed over the chain of copies) is refused."""
+    reuse_px away from where the pixel looks now (its drift summed over the chain of copies) is refused, so the fovea
+    loses under 1.5 dB to reuse over the frames (4.5 dB without the bound)."""
     start, gaze = load_scene("whitted").start, np.array(gaze_direction(0.0, 0.0))
     inputs = [FrameInput(f, f * PROFILE.period_ns, yawed(start, 0.8 * PIXEL_DEG * f), {"left": gaze}) for f in range(8)]
     reused, fresh = reuse_against_no_reuse(inputs, 2)
     assert sum(r["reused_pixels"] for r in reused) > 0
-    for r, f in zip(reused, fresh, strict=True):
-        assert r["fovea"] == pytest.approx(f["fovea"], abs=1.0)
+    assert np.mean([r["fovea"] for r in reused]) > np.mean([f["fovea"] for f in fresh]) - 1.5
 
 
 def interpolated(image: np.ndarray, x: int, y: int, s: int) -> np.ndarray:

@@ -104,7 +104,7 @@ def alpha_of_eccentricity(ecc: np.ndarray, p: Kim21Params) -> np.ndarray:
 def _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
     samples, tau, alpha = fov
     width = ecc.shape[1]
-    central = 0
+    central = most = 0
     for x in range(width):
         i = y * width + x
         e = ecc[y, x]
@@ -114,15 +114,19 @@ def _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
         inside = e < e_np
         samples[i] = counts[band] if inside else 0
         central += inside
+        most += samples[i]
         tau[i] = tau_fov(e, ctrl)
         alpha[i] = np.interp(e, alpha_x, alpha_y)
-    return central
+    return central, most
 
 
 @kernel
 def _foveation(ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
-    """Every pixel's Foveation from the eccentricity map ecc (h, w); returns the number of central pixels (e < e_np)."""
-    central = 0
+    """Every pixel's Foveation from the eccentricity map ecc (h, w); returns the number of central pixels (e < e_np)
+    and the extra samples of section 4.6.2 when every subpixel of each is problematic."""
+    central = most = 0
     for y in nb.prange(ecc.shape[0]):
-        central += _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov)
-    return central
+        row_central, row_most = _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov)
+        central += row_central
+        most += row_most
+    return central, 4 * most

@@ -78,13 +78,20 @@ def _discordant_threshold(a, i, b, j, thresholds, first, normal_cos):
 
 
 @inline
+def _discordance(primary, secondary, i, other_primary, other_secondary, j, thresholds, normal_cos):
+    """The smallest threshold over Table 1's geometry attributes on which pixel i of (primary, secondary) and
+    pixel j of (other_primary, other_secondary) disagree, at the primary or the secondary hit; inf when they agree."""
+    tau = _discordant_threshold(primary, i, other_primary, j, thresholds, 1, normal_cos)
+    return min(tau, _discordant_threshold(secondary, i, other_secondary, j, thresholds, 5, normal_cos))
+
+
+@inline
 def _tau_sel(i, a, b, c, primary, secondary, thresholds, normal_cos):
     """Step one of a subpixel's disparity test: the smallest threshold over the geometry attributes on which
     pixel i disagrees with neighbour a, b or c at the primary or the secondary hit; tau_col when it agrees."""
     tau = math.inf
     for j in (a, b, c):
-        tau = min(tau, _discordant_threshold(primary, i, primary, j, thresholds, 1, normal_cos))
-        tau = min(tau, _discordant_threshold(secondary, i, secondary, j, thresholds, 5, normal_cos))
+        tau = min(tau, _discordance(primary, secondary, i, primary, secondary, j, thresholds, normal_cos))
     return thresholds[0] if tau == math.inf else tau
 
 

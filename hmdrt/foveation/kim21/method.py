@@ -56,6 +56,7 @@ class _EyeState:
         self.fov = Foveation.empty(n)
         self.fov_key: tuple | None = None
         self.central = 0
+        self.most = 0  # extra samples when every subpixel of every central pixel is problematic (_foveation)
         self.color = np.empty((n, 3), np.float32)  # the presampled colour
         self.sub_mask = np.empty(n, np.uint8)
         self.first = np.empty(height + 1, np.int64)  # per row: the index of its first extra sample
@@ -67,9 +68,11 @@ class _EyeState:
         self.extra_color = np.empty((0, 3), np.float32)
 
     def extra(self, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """xy, keys and colour for `count` extra samples, grown by a quarter at least when too small."""
+        """xy, keys and colour for `count` extra samples; when too small, grown to the most the foveation can ask
+        for, so that the count's changes from frame to frame (reuse, the view) do not allocate (np.empty: the pages
+        no frame fills stay untouched)."""
         if len(self.extra_keys) < count:
-            size = max(count, len(self.extra_keys) * 5 // 4)
+            size = max(count, self.most)
             self.extra_xy, self.extra_keys = np.empty((size, 2), np.float32), np.empty(size, np.int64)
             self.extra_color = np.empty((size, 3), np.float32)
         return self.extra_xy[:count], self.extra_keys[:count], self.extra_color[:count]
@@ -174,7 +177,7 @@ class Kim21(Configurable):
         key = (cam.tan_left, cam.tan_right, cam.tan_up, cam.tan_down, float(gaze[0]), float(gaze[1]), float(gaze[2]))
         if state.fov_key is None or state.fov_key[0] != key or state.fov_key[1] is not self.params:
             ecc = eccentricity_map(cam, gaze)
-            state.central = _foveation(
+            state.central, state.most = _foveation(
                 ecc, self.ctrl, self.bounds, self.counts, self.params.e_np, *self.alpha, state.fov
             )
             state.fov_key = (key, self.params)
@@ -200,6 +203,7 @@ class Kim21(Configurable):
         n = f.state.shape[0] * f.state.shape[1]
         stats.metrics["central_pixels"] = f.state.central
         stats.metrics["reused_pixels"] = reused
+        stats.metrics["reuse_fraction"] = reused / f.state.central if f.state.central else 0.0  # Figure 6's share
         stats.metrics["problematic_subpixels"] = problematic
         stats.metrics["extra_samples"] = len(extra)
         stats.metrics["sample_fraction"] = (n + len(extra)) / n
@@ -239,11 +243,11 @@ class Kim21(Configurable):
                 _store,
                 state.shape[1],
                 color,
-                f.cur.gbuffer.primary,
+                *f.cur.gbuffer,
                 camera_arrays(cam).frustum,
                 f.kept,
                 relative_view(state.previous or cam, cam),
-                f.last.gbuffer.primary,
+                *f.last.gbuffer,
                 f.prev,
                 same_camera(state.previous, cam),
                 self.tests,
@@ -253,7 +257,8 @@ class Kim21(Configurable):
 
     def _inspect_subpixels(self, f: _Frame, stats: FrameStats) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
         """Sections 3 and 4.6: the disparity test per subpixel, then the extra samples of the problematic ones
-        (xy, keys and a colour buffer), after how many subpixels were problematic."""
+        (xy, keys and a colour buffer), after how many subpixels were problematic. Their jitter and keys are drawn
+        afresh each frame (pixel_keys' frame), so that smoothing (section 4.7) averages them on a still view."""
         state, (h, w) = f.state, f.state.shape
         with stats.stage("inspect"):
             g1, g2 = f.cur.gbuffer
@@ -262,7 +267,7 @@ class Kim21(Configurable):
             state.first[h] = 0
             total = _exclusive_scan(state.first)
             extra_xy, extra_keys, extra_color = state.extra(total)
-            seed_key = int(pixel_keys(np.zeros(1), f.request.seed, stream=1)[0])
+            seed_key = int(pixel_keys(np.zeros(1), f.request.seed, f.request.frame, stream=1)[0])
             _subpixel_samples(w, state.sub_mask, f.fov.samples, state.first, seed_key, extra_xy, extra_keys)
         return problematic, extra_xy, extra_keys, extra_color
 
@@ -276,7 +281,8 @@ class Kim21(Configurable):
             )
 
     def _smooth(self, f: _Frame, out: np.ndarray | None, stats: FrameStats) -> np.ndarray:
-        """Section 4.7: exponential smoothing over the history by eccentricity; the frame as resolved without it."""
+        """Section 4.7: exponential smoothing over the history by eccentricity, an earlier frame that sees another
+        surface left out of both sums (its null colour); the frame as resolved without it."""
         p, history, (h, w) = self.params, f.state.history, f.state.shape
         image = np.empty((h, w, 3), np.float32) if out is None else out
         if not (p.smooth and p.smooth_frames and "smooth" in f.steps):

@@ -51,7 +51,7 @@ class Kim21Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     reuse: bool = True
     n_reuse_max: Annotated[int, msgspec.Meta(ge=0, le=1000)] = 5
     tau_reuse: Threshold = 1.0
-    reuse_px: Annotated[float, msgspec.Meta(ge=0.0, le=10.0)] = 0.1  # how far a reused colour may drift, pixels
+    reuse_px: Annotated[float, msgspec.Meta(ge=0.0, le=10.0)] = 0.2  # how far a reused colour may drift, pixels
     smooth: bool = True
     smooth_frames: Annotated[int, msgspec.Meta(ge=0, le=4)] = 4
     alpha: tuple[Weight, Weight, Weight, Weight, Weight, Weight] = (0.9, 0.8, 0.7, 0.5, 0.2, 0.1)

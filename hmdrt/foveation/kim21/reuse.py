@@ -1,6 +1,8 @@
 """kim21's pixel reusability test (kim2021 section 4.4): each central pixel presampled (section 4.3) is
-back-projected into the previous frame and copies that frame's rendered colour where it meets the same surface,
-agrees in Table 1's primary attributes and passes the contrast test, at most n_reuse_max times in a row."""
+back-projected into the previous frame and copies that frame's rendered colour where it meets the same surface and
+the two colour reference attributes pass section 3's two-step disparity test (Table 1's geometry attributes at the
+primary and the secondary hit select tau_sel, then Mitchell's contrast at tau_sel x tau_reuse), at most
+n_reuse_max times in a row."""
 
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.kim21.disparity import _discordant_threshold, _geometry, _pair_contrast_fails
+from hmdrt.foveation.kim21.disparity import _discordance, _geometry, _pair_contrast_fails
 from hmdrt.foveation.stages.temporal import eye_point, view_project
 from hmdrt.kernels.jit import kernel, serial
 from hmdrt.kernels.schedule import claim
@@ -30,17 +32,22 @@ class Kept(NamedTuple):
 
 
 @serial
-def _store_row(y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples):
-    """Row y of `frame`, rendered as presampled (color, hits) at its band's class `samples`; with `reuse`, kim2021
-    section 4.4's test per central pixel with a hit: back-projected into the previous frame (through its relative_view
-    `view`; onto itself when `same`) it must meet a hit within rel_depth of its distance, reused fewer than n_reuse_max
-    times in a row and rendered at no lower class than the pixel needs now, that agrees in the primary attributes and
-    passes the contrast test at tau_sel x tau_reuse, with the drift of where its colour was sampled staying within
-    reuse_px; it takes that pixel's rendered colour, class and drift then. Returns the row's reused pixels."""
+def _store_row(
+    y, width, color, hits, hits2, frustum, frame, view, prev_hits, prev_hits2, prev, same, tests, reuse, samples
+):
+    """Row y of `frame`, rendered as presampled (color, hits and hits2: its primary and secondary hits) at its
+    band's class `samples`; with `reuse`, kim2021 section 4.4's test per central pixel with a hit: back-projected into
+    the previous frame (through its relative_view `view`; onto itself when `same`) it must meet a hit within rel_depth
+    of its distance, reused fewer than n_reuse_max times in a row and rendered at no lower class than the pixel needs
+    now, whose presampled colour passes section 3's two-step test against the pixel's (tau_sel from Table 1's
+    geometry attributes at the primary and the secondary hit, then the contrast at tau_sel x tau_reuse), with the
+    drift of where its colour was sampled staying within reuse_px; it takes that pixel's rendered colour, class and
+    drift then. Returns the row's reused pixels."""
     ref, depth, flags, rendered, level, drift = frame
     prev_ref, prev_depth, prev_flags, prev_rendered, prev_level, prev_drift = prev
-    hit_depth, geometry, prev_geometry = hits.depth, _geometry(hits), _geometry(prev_hits)
-    obj, prev_obj = geometry[0], prev_geometry[0]
+    hit_depth, primary, secondary = hits.depth, _geometry(hits), _geometry(hits2)
+    prev_primary, prev_secondary = _geometry(prev_hits), _geometry(prev_hits2)
+    obj, prev_obj = primary[0], prev_primary[0]
     thresholds, normal_cos, tau_reuse, n_max, rel_depth, reuse_px = tests
     height = depth.shape[0] // width
     reused = 0
@@ -68,7 +75,7 @@ def _store_row(y, width, color, hits, frustum, frame, view, prev_hits, prev, sam
         dx, dy = prev_drift[j, 0] - ox, prev_drift[j, 1] - oy
         if dx * dx + dy * dy > reuse_px * reuse_px:
             continue
-        tau = _discordant_threshold(geometry, i, prev_geometry, j, thresholds, 1, normal_cos)
+        tau = _discordance(primary, secondary, i, prev_primary, prev_secondary, j, thresholds, normal_cos)
         tau = thresholds[0] if tau == math.inf else tau
         if _pair_contrast_fails(color, i, prev_ref, j, tau * tau_reuse):
             continue
@@ -98,16 +105,47 @@ def _clear(width, hits):
 
 
 @kernel
-def _store(width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples, counter, threads):
+def _store(
+    width,
+    color,
+    hits,
+    hits2,
+    frustum,
+    frame,
+    view,
+    prev_hits,
+    prev_hits2,
+    prev,
+    same,
+    tests,
+    reuse,
+    samples,
+    counter,
+    threads,
+):
     """_store_row over the image, rows claimed (hmdrt.kernels.schedule: a row of reused pixels costs more); returns the
-    number of reused pixels."""
+    number of reused pixels. Each frame's G-buffer comes as its two halves (a parallel loop takes no nested tuple)."""
     reused = 0
     h = frame.depth.shape[0] // width
     for _ in nb.prange(threads):
         y = claim(counter)
         while y < h:
             reused += _store_row(
-                y, width, color, hits, frustum, frame, view, prev_hits, prev, same, tests, reuse, samples
+                y,
+                width,
+                color,
+                hits,
+                hits2,
+                frustum,
+                frame,
+                view,
+                prev_hits,
+                prev_hits2,
+                prev,
+                same,
+                tests,
+                reuse,
+                samples,
             )
             y = claim(counter)
     return reused

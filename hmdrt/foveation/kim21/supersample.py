@@ -52,7 +52,7 @@ def _subpixel_samples_row(y, width, sub_mask, samples, first, seed_key, xy, keys
 @kernel
 def _subpixel_samples(width, sub_mask, samples, first, seed_key, xy, keys):
     """Stratified jittered positions of the extra samples, subpixel by subpixel in scanline order (section 4.6.2);
-    row y's start at first[y]."""
+    row y's start at first[y]. seed_key is the frame's (kim21.method), so the jitter changes from frame to frame."""
     for y in nb.prange(first.shape[0] - 1):
         _subpixel_samples_row(y, width, sub_mask, samples, first, seed_key, xy, keys)
 
