@@ -33,6 +33,7 @@ REPORT_KEYS = {
     "miss_rate",
     "frame_ms",
     "latency_ms",
+    "gaze_error_at_photon_deg",
     "stages_ms",
     "rays_per_frame",
     "method",

@@ -28,7 +28,7 @@ from hmdrt.telemetry import frames_log
 from hmdrt.telemetry.frames_log import FramesHeader, FramesLog, read_frames_log
 from hmdrt.telemetry.perfetto import trace_events
 from hmdrt.telemetry.plot import NEEDS_LOG, plot_run
-from hmdrt.telemetry.report import FrameRecord, SampleUse
+from hmdrt.telemetry.report import FrameRecord, GazeError, SampleUse
 from hmdrt.testing import compositor, run_bounded, write_config
 
 N = 20
@@ -153,6 +153,9 @@ def frame(vsync: int, shown: str = "new", frame_id: int | None = None, **fields)
     return FrameRecord(vsync=vsync, frame_id=frame_id, shown=shown, **{**values, **fields})
 
 
+GAZE_ERRORS = [GazeError(0, 0.5, 0.75, 10.0), GazeError(1, 12.5, 12.25, 10.0)]  # of VSyncs 0 and 1, known at 2
+
+
 def real_time_records() -> list[FrameRecord]:
     """Frame 0 on time, a repeat (frame 1 late), frame 1 late, frame 2, an unwarped repeat."""
     t1 = 1_000_000_000 + PERIOD
@@ -160,7 +163,8 @@ def real_time_records() -> list[FrameRecord]:
         frame(0),
         frame(1, "repeat", frame_id=0, warp_pose=SampleUse("head", 7, t1 - 5 * MS)),
         frame(2, "late", frame_id=1, missed=True, predicted_present_ns=t1, actual_wake_ns=t1 - 28 * MS,
-              render_start_ns=t1 - 27 * MS, render_end_ns=t1 + 10 * MS, frame_ms=38.0, render_ms=36.0),
+              render_start_ns=t1 - 27 * MS, render_end_ns=t1 + 10 * MS, frame_ms=38.0, render_ms=36.0,
+              gaze_errors=GAZE_ERRORS),
         frame(3, frame_id=2, actual_wake_ns=t1 + 11 * MS, render_start_ns=t1 + 12 * MS),
         frame(4, "repeat", frame_id=2, warp_skipped=True),
     ]  # fmt: skip
@@ -228,12 +232,15 @@ def test_the_reader_leaves_out_a_cut_last_line_and_names_a_bad_one(tmp_path):
     path.write_bytes(whole + msgspec.json.encode(frame(5).to_dict())[:100])
     reading = read_frames_log(path)
     assert reading.cut and reading.records == real_time_records()
+    assert reading.gaze_errors() == {0: GAZE_ERRORS[0], 1: GAZE_ERRORS[1]}  # joined back to their own VSyncs
     lines = whole.splitlines(keepends=True)
     for bad, reason in (
         (lines[3].replace(b'"shown":"late"', b'"shown":"early"'), "shown is 'early'"),
         (lines[3].replace(b'"frame_ms":38.0', b'"frame_ms":-1.0'), "frame_ms = -1.0"),
         (lines[3].replace(b'"vsync":2', b'"vsync":1'), "out of order"),
         (lines[3].replace(b'"rays":1000', b'"rays":' + b"9" * 30), "integer beyond"),
+        (lines[3].replace(b'"vsync":1,"left', b'"vsync":3,"left'), "vsync 3, neither this VSync nor an earlier"),
+        (lines[3].replace(b'"left_deg":0.5', b'"left_deg":-0.5'), "left_deg = -0.5 is not an angle"),
         (b"{" + lines[3], "malformed"),
         (b"\n", "an empty line"),
     ):

@@ -23,7 +23,7 @@ from hmdrt.compositor.preview import MAX_HZ
 from hmdrt.present.encode import preview_srgb8, side_by_side_srgb8
 from hmdrt.testing import Background, write_config
 from hmdrt.watch.access import TOKEN_HEADER
-from hmdrt.watch.protocol import MAX_MESSAGE_BYTES
+from hmdrt.watch.protocol import MAX_GAZE_ERRORS, MAX_MESSAGE_BYTES, frame_point
 from hmdrt.watch.server import WatchOptions
 
 from .compositor_helpers import hmdrt, receive
@@ -242,3 +242,13 @@ def test_a_watch_server_beyond_loopback_takes_curve_keys_and_needs_the_token_for
     state = out["state"]
     assert state["connected"] and state["report"]["vsyncs"] > 0  # telemetry and control, both over CURVE
     assert state["status"]["security"]["curve"] and state["control_allows"] is True
+
+
+def test_a_frame_point_carries_the_gaze_errors_its_record_settled_and_refuses_a_malformed_list():
+    error = {"vsync": 7, "left_deg": 1.5, "right_deg": None, "fovea_deg": 10.0}
+    point = frame_point({"vsync": 9, "shown": "new", "gaze_errors": [{**error, "extra": "x"}] * 40})
+    assert point["gaze_errors"] == [error] * MAX_GAZE_ERRORS  # the page puts each at its own VSync's point
+    assert frame_point({"vsync": 9})["gaze_errors"] == []
+    for bad in (5, [5], {"vsync": 7}, "text"):  # the hub counts these as malformed and skips them
+        with pytest.raises((TypeError, AttributeError)):
+            frame_point({"vsync": 9, "gaze_errors": bad})

@@ -118,6 +118,9 @@ def test_the_page_shows_the_run_live_and_switches_the_method(tmp_path, context):
             )
             assert points["plot-frame"][0] >= 30 and points["plot-frame"][1] >= 10, points
             assert points["plot-latency"][1] >= 10 and points["plot-latency"][2] >= 10, points
+            # each eye's gaze error at photon time, put at its own VSync, and the foveal radius
+            assert all(n >= 10 for n in points["plot-gaze-error"][1:]), points
+            page.wait_for_function("() => document.getElementById('summary').textContent.includes('gaze error p95')")
             assert points["plot-controller"][1] >= 10, points
 
             # the drivers' table and the security counters

@@ -79,10 +79,17 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"{report['vsyncs']} VSyncs: {report['presented']} frames shown ({report['late']} late), "
         f"{report['re_presented']} repeated, {report['dropped']} dropped; miss rate {report['miss_rate']:.1%}; "
         f"frame p99 {report['frame_ms']['p99']} ms; gaze-to-photon p99 {gaze['p99']} ms"
+        + _gaze_error(report.get("gaze_error_at_photon_deg") or {})
         + (f"; controller level p50 {levels['p50']}" if levels and "controller" in report else "")
         + (f"; report {report_path}" if report_path else "")
     )
     return 0
+
+
+def _gaze_error(errors: dict) -> str:
+    """The gaze error at photon time per eye shown, p95, for the end-of-run line; nothing when none resolved."""
+    shown = [f"{eye} {errors[eye]['p95']}" for eye in ("left", "right") if errors.get(eye, {}).get("p95") is not None]
+    return f"; gaze error p95 {', '.join(shown)} deg" if shown else ""
 
 
 def _run_status(report: dict) -> str:

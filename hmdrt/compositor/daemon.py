@@ -4,11 +4,12 @@ Each frame, as a compositor pacer schedules it (Monado's u_pacing; hmdrt.composi
 time, sample gaze and head pose predicted for the frame's display time from what has arrived, render through the
 method (hmdrt.compositor.frames), and hand the frame to the display, which latches it at its VSync or, when it is
 late, shows the last frame again timewarped to the newest head pose. Each VSync's frame goes to the sinks
-(hmdrt.compositor.sinks): the `frame` telemetry, the frames log, the LSL outlets, the frames on disk
-(hmdrt.present.output) and previews (`preview`, hmdrt.compositor.preview) while a client subscribes to them. The
-loops, in real and in virtual time, are hmdrt.compositor.loops's; the status and the run report, which goes out
-each second (`stats`) and is written at the end, also after SIGTERM, hmdrt.compositor.status's; the control
-socket's commands hmdrt.compositor.control's; and what a reload may change hmdrt.compositor.config.reload_plan's.
+(hmdrt.compositor.sinks): the gaze error at photon time (hmdrt.compositor.gaze_error), the `frame` telemetry, the
+frames log, the LSL outlets, the frames on disk (hmdrt.present.output) and previews (`preview`,
+hmdrt.compositor.preview) while a client subscribes to them. The loops, in real and in virtual time, are
+hmdrt.compositor.loops's; the status and the run report, which goes out each second (`stats`) and is written at the
+end, also after SIGTERM, hmdrt.compositor.status's; the control socket's commands hmdrt.compositor.control's; and
+what a reload may change hmdrt.compositor.config.reload_plan's.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from hmdrt.compositor.display import Display, Frame
 from hmdrt.compositor.endpoints import ControlServer, Ingest, Telemetry
 from hmdrt.compositor.fallback import Outages
 from hmdrt.compositor.frames import FrameBuilder
+from hmdrt.compositor.gaze_error import GazeErrors
 from hmdrt.compositor.lsl_outlets import LslOutlets
 from hmdrt.compositor.pacer import Pacer, pacing_settings
 from hmdrt.compositor.preview import PREVIEW, PreviewPublisher
@@ -75,7 +77,8 @@ class Compositor:
         self.outages = Outages()
         self.lock = threading.Lock()  # pacer and report: the render and display threads share them
         self._pending: list[tuple[str, object]] = []  # control changes applied between frames
-        # where each shown frame goes, in order: the `frame` telemetry, frames log, LSL outlets, frames on disk, preview
+        # where each shown frame goes, in order: the gaze error, the `frame` telemetry, frames log, LSL outlets, frames
+        # on disk, preview
         self.sinks: list[Sink] = []
         self.lsl: LslOutlets | None = None
         self.shown_images: list[np.ndarray] | None = None
@@ -92,6 +95,9 @@ class Compositor:
             self.guard = Guard(self._context, server_keys) if server_keys else None  # before any bind
             self.telemetry = Telemetry(self._context, config.bus.telemetry, self.guard, on_demand=(PREVIEW,))
             self.sinks.insert(0, FrameTelemetry(self.telemetry))
+            # first of all: it puts into each record the gaze errors that the others carry
+            eyes, device = self.session.eyes, lambda: self.config.prediction.gaze_device
+            self.sinks.insert(0, GazeErrors(self.store, self.clock, eyes, device))
             self.preview = PreviewPublisher(self.telemetry)
             self.sinks.append(self.preview)
             self._log = TelemetryHandler(self.telemetry.publish)

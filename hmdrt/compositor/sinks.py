@@ -1,8 +1,10 @@
 """Where the shown frames go. After every VSync that showed something the display's callback offers the same Shown
 (the record, the images shown and the frame they came from) to each sink in the compositor's list, in order, on the
-display thread: the `frame` telemetry, the frames log, the LSL outlets, the frames on disk and the preview. A sink
-starts with the run, finishes when the run ends, is closed with the compositor, and puts its own counters into the
-run report. Adding an output is a module with a Sink and one line that appends it to `Compositor.sinks`.
+display thread: the gaze error at photon time (hmdrt.compositor.gaze_error, first: it adds to the record the errors
+that the samples arrived since have resolved, for the others to carry), the `frame` telemetry, the frames log, the
+LSL outlets, the frames on disk and the preview. A sink starts with the run, finishes when the run ends, is closed
+with the compositor, and puts its own counters into the run report. Adding an output is a module with a Sink and
+one line that appends it to `Compositor.sinks`.
 
 A sink must not hold up the display: one that writes or encodes hands the work to a thread of its own
 (hmdrt.files.background), and in real time drops and counts what it has no room for.

@@ -2,6 +2,11 @@
 record (the `frame` telemetry: predicted and actual times, new/late/repeat, method and parameters, stage times,
 rays, the gaze and pose samples used, latencies) as one line of JSON.
 
+A VSync's gaze error at photon time is known only once samples captured after its photon time have arrived, so it
+is not on its own line, written at the VSync: it is on the line of the later VSync at which it became known, in
+`gaze_errors`, naming its VSync (FramesLogReading.gaze_errors joins them back). A VSync without one was not resolved
+(the run report counts why: hmdrt.compositor.gaze_error).
+
 The log is written append-only on a thread of its own (hmdrt.files.background), each line with one write to the file
 (no buffer in between), so a run killed with SIGKILL keeps every frame up to its last line. In real time a full
 queue drops the record and counts it; in virtual time the display waits, so every frame is logged. The reader
@@ -20,7 +25,7 @@ import msgspec
 
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.files.background import BackgroundWriter
-from hmdrt.telemetry.report import SHOWN, FrameRecord
+from hmdrt.telemetry.report import SHOWN, FrameRecord, GazeError
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +108,10 @@ class FramesLogReading:
     records: list[FrameRecord]
     cut: bool = False  # its last line was cut short (a run killed mid-write) and left out
 
+    def gaze_errors(self) -> dict[int, GazeError]:
+        """Each resolved VSync's gaze error at photon time, by VSync (each is on the line of a later VSync)."""
+        return {error.vsync: error for record in self.records for error in record.gaze_errors}
+
 
 def _fault(record: FrameRecord) -> str | None:
     """What makes a decoded record one no run writes, or None."""
@@ -120,6 +129,13 @@ def _fault(record: FrameRecord) -> str | None:
             return f"{name} = {ms} is not a time in ms"
     if record.level is not None and not 0.0 <= record.level <= 1.0:
         return f"level = {record.level} is not in [0, 1]"
+    for error in record.gaze_errors:
+        if not 0 <= error.vsync <= record.vsync:
+            return f"a gaze error of vsync {error.vsync}, neither this VSync nor an earlier one"
+        for name in ("left_deg", "right_deg", "fovea_deg"):
+            degrees = getattr(error, name)
+            if degrees is not None and not 0.0 <= degrees <= 180.0:
+                return f"gaze_errors: {name} = {degrees} is not an angle in degrees"
     return None
 
 

@@ -6,8 +6,10 @@ present and display; actual wake, render start and end, actual present; margin; 
 hmdrt adds: the method's parameters, stage times and rays, and the gaze and pose samples used with
 their capture times, so gaze-to-photon = present - capture of the gaze sample shown. VSyncs whose
 gaze was held through a blink (or pose through lost tracking) are counted apart, not as latency: no
-newer sample existed to be late about. The report keeps times in bounded histograms (hmdrt.telemetry.histogram),
-so its memory and the cost of a summary stay the same however long the daemon runs.
+newer sample existed to be late about. A record also carries the gaze errors at photon time of earlier
+VSyncs that the samples arrived since have settled (hmdrt.compositor.gaze_error, which keeps their report).
+The report keeps times in bounded histograms (hmdrt.telemetry.histogram), so its memory and the cost of a
+summary stay the same however long the daemon runs.
 """
 
 from __future__ import annotations
@@ -35,6 +37,18 @@ class SampleUse:
     t_host: int
     predicted_ns: int = 0
     held: bool = False
+
+
+@dataclass(frozen=True)
+class GazeError:
+    """How far, in degrees, each eye's gaze at VSync `vsync`'s photon time was from the gaze its frame was rendered
+    for (None: an eye the display does not show), and the foveal radius that frame was rendered with (None: a
+    method without a fovea)."""
+
+    vsync: int
+    left_deg: float | None
+    right_deg: float | None
+    fovea_deg: float | None
 
 
 @dataclass
@@ -65,6 +79,9 @@ class FrameRecord:
     warp_pose: SampleUse | None = None  # the pose a repeat was warped to
     warp_skipped: bool = False  # a repeat shown unwarped: the warp would not have ended before the next VSync
     level: float | None = None  # the controller's quality level the frame was rendered at (None: no controller)
+    # the gaze errors at photon time first known at this VSync, of earlier VSyncs (or, in real time, this one): the
+    # tracker's gaze at a photon time comes in with samples captured after it (hmdrt.compositor.gaze_error)
+    gaze_errors: list[GazeError] = field(default_factory=list)
 
     @property
     def margin_ns(self) -> int:

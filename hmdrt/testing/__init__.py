@@ -14,6 +14,7 @@ from hmdrt.telemetry.view import Report
 from hmdrt.testing.checks import (
     as_report,
     assert_every_vsync_shown,
+    assert_gaze_error_within,
     assert_latency_within,
     assert_miss_rate_at_most,
 )
@@ -32,6 +33,7 @@ __all__ = [
     "Report",
     "as_report",
     "assert_every_vsync_shown",
+    "assert_gaze_error_within",
     "assert_latency_within",
     "assert_miss_rate_at_most",
     "compositor",

@@ -55,3 +55,42 @@ def assert_miss_rate_at_most(report: Mapping[str, Any], rate: float, after_warmu
     key = "miss_rate_after_warmup" if after_warmup else "miss_rate"
     if r[key] > rate:
         raise AssertionError(f"{key} {r[key]:.2%} over {rate:.2%} ({r.deadline_misses} deadline misses in all)")
+
+
+def assert_gaze_error_within(
+    report: Mapping[str, Any],
+    *,
+    p50_deg: float | None = None,
+    p95_deg: float | None = None,
+    p99_deg: float | None = None,
+    max_deg: float | None = None,
+    beyond_fovea: float | None = None,
+) -> None:
+    """Each eye's gaze error at photon time (`gaze_error_at_photon_deg`: how far the eye was, when the frame was
+    seen, from where the frame was rendered for it) is within the bounds given: at most p50_deg, p95_deg, p99_deg
+    and max_deg degrees, and at most a `beyond_fovea` share of the resolved VSyncs past the foveal radius."""
+    __tracebackhide__ = True
+    bounds = {"p50": p50_deg, "p95": p95_deg, "p99": p99_deg, "max": max_deg}
+    bounds = {key: bound for key, bound in bounds.items() if bound is not None}
+    if not bounds and beyond_fovea is None:
+        raise TypeError("assert_gaze_error_within: give a bound (p50_deg, p95_deg, p99_deg, max_deg, beyond_fovea)")
+    errors = as_report(report)["gaze_error_at_photon_deg"]
+    counts = f"{errors.resolved} VSyncs resolved, {errors.held} held, {errors.unresolved} unresolved"
+    if not errors.resolved:
+        raise AssertionError(f"no gaze error at photon time was measured ({counts})")
+    for eye in ("left", "right"):
+        if eye not in errors:
+            continue
+        for key, bound in bounds.items():
+            value = errors[eye][key]
+            if value > bound:
+                raise AssertionError(f"{eye} eye's gaze error {key} {value:.3f} deg, over {bound:g} deg ({counts})")
+        if beyond_fovea is not None:
+            share = errors[eye].beyond_fovea
+            if share is None:
+                raise AssertionError("no share beyond the fovea: the method has no foveal radius")
+            if share > beyond_fovea:
+                raise AssertionError(
+                    f"{eye} eye's gaze error beyond the foveal radius at {share:.2%} of VSyncs, over "
+                    f"{beyond_fovea:.2%} ({counts})"
+                )

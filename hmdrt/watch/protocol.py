@@ -23,6 +23,8 @@ from hmdrt.compositor import commands
 MAX_MESSAGE_BYTES = 4096
 MAX_FRAMES_PER_BATCH = 256  # frame points per "frames" message; more arriving between flushes are counted, not sent
 MAX_ID = 2**53  # a page's message id: any integer JavaScript holds exactly
+GAZE_ERROR_KEYS = ("vsync", "left_deg", "right_deg", "fovea_deg")  # of each of a record's gaze_errors
+MAX_GAZE_ERRORS = 32  # of a record's gaze_errors passed on (the compositor puts at most 32 into one)
 
 
 class BadMessage(ValueError):
@@ -56,7 +58,8 @@ def parse_command(data: str | bytes) -> PageCommand:
 
 
 def frame_point(record: dict) -> dict:
-    """What the page plots of a `frame` record."""
+    """What the page plots of a `frame` record; its gaze_errors are those of earlier VSyncs, which the page puts at
+    their own VSync's point."""
     params = record.get("params")
     return {
         "vsync": record.get("vsync"),
@@ -67,6 +70,9 @@ def frame_point(record: dict) -> dict:
         "gaze_ms": record.get("gaze_to_photon_ms"),
         "pose_ms": record.get("pose_to_photon_ms"),
         "level": record.get("level"),
+        "gaze_errors": [
+            {k: e.get(k) for k in GAZE_ERROR_KEYS} for e in (record.get("gaze_errors") or [])[:MAX_GAZE_ERRORS]
+        ],
         "method": record.get("method"),
         "params": {k: v for k, v in params.items() if type(v) in (int, float)} if isinstance(params, dict) else {},
     }

@@ -21,7 +21,9 @@
   let token = sessionStorage.getItem("hmdrt-watch-token") || "";
 
   // --- plots ----------------------------------------------------------------------------------------------------
-  const data = { t: [], frame: [], period: [], misses: [], repeats: [], gaze: [], pose: [], level: [], knobs: {} };
+  // per-VSync series, in step with t; a VSync's gaze error comes with a later VSync's point and is put at its own
+  const SERIES = ["t", "vsync", "frame", "period", "misses", "repeats", "gaze", "pose", "errorLeft", "errorRight", "fovea", "level"];
+  const data = { ...Object.fromEntries(SERIES.map((key) => [key, []])), knobs: {} };
   let t0 = null, lastVsync = -1, knobNames = [], recent = [];
 
   function chart(id, title, series, scales, axes) {
@@ -42,6 +44,8 @@
     chart("plot-frame", "frame time (ms) against the period", [{ label: "frame ms" }, { label: "period ms", dash: [4, 4] }], {}, [{}]);
     chart("plot-misses", "misses and repeats in the last second", [{ label: "misses" }, { label: "repeats" }], {}, [{}]);
     chart("plot-latency", "latency (ms)", [{ label: "gaze-to-photon" }, { label: "pose-to-photon" }], {}, [{}]);
+    chart("plot-gaze-error", "gaze error at photon time (deg) against the foveal radius",
+      [{ label: "left eye" }, { label: "right eye" }, { label: "foveal radius", dash: [4, 4] }], {}, [{}]);
     controllerChart();
   }
 
@@ -60,6 +64,7 @@
     state.charts["plot-frame"].setData([t, data.frame, data.period]);
     state.charts["plot-misses"].setData([t, data.misses, data.repeats]);
     state.charts["plot-latency"].setData([t, data.gaze, data.pose]);
+    state.charts["plot-gaze-error"].setData([t, data.errorLeft, data.errorRight, data.fovea]);
     state.charts["plot-controller"].setData([t, data.level, ...knobNames.map((n) => data.knobs[n] || t.map(() => null))]);
   }
 
@@ -70,7 +75,7 @@
       if (typeof p.t_ns !== "number") continue;
       if (t0 === null || p.vsync < lastVsync) { // a new run: start the plots afresh
         t0 = p.t_ns;
-        for (const key of ["t", "frame", "period", "misses", "repeats", "gaze", "pose", "level"]) data[key] = [];
+        for (const key of SERIES) data[key] = [];
         data.knobs = {};
         recent = [];
       }
@@ -78,12 +83,21 @@
       recent.push(p);
       if (recent.length > perSecond) recent.shift();
       data.t.push((p.t_ns - t0) / 1e9);
+      data.vsync.push(p.vsync);
       data.frame.push(p.frame_ms);
       data.period.push(hz ? 1000 / hz : null);
       data.misses.push(recent.filter((r) => r.missed).length);
       data.repeats.push(recent.filter((r) => r.shown === "repeat").length);
       data.gaze.push(p.gaze_ms);
       data.pose.push(p.pose_ms);
+      for (const key of ["errorLeft", "errorRight", "fovea"]) data[key].push(null);
+      for (const e of p.gaze_errors || []) {
+        const at = data.vsync.lastIndexOf(e.vsync);
+        if (at < 0) continue; // before the plots' window
+        data.errorLeft[at] = e.left_deg;
+        data.errorRight[at] = e.right_deg;
+        data.fovea[at] = e.fovea_deg;
+      }
       data.level.push(p.level ?? null);
       for (const name of knobNames) {
         (data.knobs[name] ||= data.t.slice(0, -1).map(() => null)).push(p.params ? p.params[name] ?? null : null);
@@ -91,7 +105,7 @@
     }
     const from = data.t.findIndex((t) => t >= data.t[data.t.length - 1] - WINDOW_S);
     if (from > 0) {
-      for (const key of ["t", "frame", "period", "misses", "repeats", "gaze", "pose", "level"]) data[key].splice(0, from);
+      for (const key of SERIES) data[key].splice(0, from);
       for (const name of knobNames) if (data.knobs[name]) data.knobs[name].splice(0, from);
     }
     state.frames += points.length;
@@ -207,8 +221,12 @@
       controllerChart();
     }
     const frame = report.frame_ms || {};
+    const error = report.gaze_error_at_photon_deg || {};
+    const eyes = ["left", "right"].filter((eye) => error[eye]);
+    const beyond = eyes.map((eye) => error[eye].beyond_fovea).filter((share) => share != null);
     $("summary").textContent = `${fmt(report.achieved_hz)} Hz achieved, miss rate ${fmt(100 * (report.miss_rate || 0), 2)}%, ` +
-      `frame p99 ${fmt(frame.p99)} ms`;
+      `frame p99 ${fmt(frame.p99)} ms, gaze error p95 ${eyes.map((eye) => fmt(error[eye].p95, 2)).join(" / ") || "–"} deg` +
+      (beyond.length ? ` (${fmt(100 * Math.max(...beyond), 1)}% beyond the fovea)` : "");
   }
 
   function updateControls() {
