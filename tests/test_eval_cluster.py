@@ -50,6 +50,8 @@ gaze = "0,0"
 [[traces]]
 name = "path"
 builtin = true
+latency_ms = 50.0  # the methods see the gaze as a 120 Hz tracker reported it, 50 ms late
+tracker = "fove-0"
 """
 MORE = '\n[[traces]]\ngaze = "8,0"\n\n[[traces]]\ngaze = "-8,4"\n'  # two groups more (the head still: one truth)
 
@@ -108,6 +110,9 @@ def test_local_cluster_of_two_gets_the_serial_image_columns(tmp_path, monkeypatc
     rows = _rows(out)
     assert [r["label"] for r in rows] == [r["label"] for r in serial]
     assert _images(rows) == _images(serial) and all(r["psnr_image"] for r in rows)
+    gaze = ("latency_ms", "tracker", "gaze_error_p50_deg", "gaze_error_p95_deg", "gaze_outside_fovea")
+    assert [[r[k] for k in gaze] for r in rows] == [[r[k] for k in gaze] for r in serial]
+    assert {r["gaze_error_p50_deg"] > 1.0 for r in rows} == {False, True}  # the still gaze is seen exactly
     assert all(r["worker"].startswith("tcp://") and r["group_seconds"] > 0 for r in rows)
     assert all(r["worker"] is None for r in serial)
     # the methods' metrics come back (image columns, compared above) and each worker stamps its rows

@@ -262,6 +262,9 @@ RUN_MEANINGS = {
     "prediction.horizon_ms": "gaze and pose are extrapolated at most this far past the newest sample",
     "prediction.gaze_device": 'the device whose gaze drives the frames; `""`: the one with the newest gaze',
     "prediction.pose_device": "the same for head pose",
+    "gaze.saccade_prediction": "at a saccade, predict its flight and landing point from its velocity profile and "
+    "the main sequence, and show frames along it instead of extrapolating the gaze velocity "
+    "(`hmdrt/tracking/saccade.py`, docs/trackers.md)",
     "fallback.stale_ms": "silent this long: an outage begins",
     "fallback.widen_deg_per_s": "then the fovea widens this fast",
     "fallback.max_widen_deg": "up to this much",
@@ -322,6 +325,14 @@ EVAL_MEANINGS = {
     "traces.builtin": "the built-in path: head sway with fixations and saccades",
     "traces.group": "traces of one group are averaged in the papers' tables (smith2013: every fovea position); "
     '`""`: the trace\'s own label',
+    "traces.latency_ms": "the method renders each frame with the gaze the tracker reported this long before the "
+    "frame's photon time; the scores follow the true gaze",
+    "traces.tracker": "what the tracker gets wrong: a preset (`perfect`, `eyelink-1000-plus`, `pupil-core`, "
+    "`tobii-pro-spectrum`, `htc-vive-pro-eye`, `varjo-xr-3`, `fove-0`) or a table of `accuracy_deg`, "
+    "`precision_deg` (RMS sample to sample), `rate_hz`, `loss_rate` (the fraction of samples lost) and `loss_ms` "
+    "(each dropout's length); docs/trackers.md",
+    "traces.prediction": "`off`: the newest sample that has arrived; `default`: carried on to the photon time as "
+    "the compositor's SampleStore predicts with the run config's default `[prediction]`",
     "methods.name": 'a method, with options as in `"weier16?frc=small"`',
     "methods.options": "fixed options",
     "methods.sweep": "option -> list of values; one cell per combination (at most 10 000 cells)",

@@ -24,6 +24,7 @@ from tqdm import tqdm
 from hmdrt.errors import ConfigError, HmdrtError
 from hmdrt.evaluate import validate, worker
 from hmdrt.evaluate.config import EvalConfig, default_cache_dir
+from hmdrt.evaluate.gaze import TraceFrames
 from hmdrt.evaluate.groups import GroupKey, group_id, group_shape, groups
 from hmdrt.evaluate.partial import PartialResults
 from hmdrt.evaluate.runner import Evaluation, collect, plan_group, trace_frames, truth_cameras
@@ -31,7 +32,6 @@ from hmdrt.evaluate.truth import TruthCache, scene_digest
 from hmdrt.optics import EyeCamera
 from hmdrt.scene import load_scene
 from hmdrt.trace.integrator import Whitted
-from hmdrt.views import FrameInput
 
 if TYPE_CHECKING:
     from distributed import Client, Future
@@ -48,7 +48,7 @@ class Plan(NamedTuple):
     """What the client sends a group's task: its trace's frames (a recorded trace need be on the client only) and
     the views of the truths it is scored against, by cache key."""
 
-    frames: list[FrameInput]
+    frames: TraceFrames  # true and as the tracker shows them
     truths: dict[str, View]
 
 

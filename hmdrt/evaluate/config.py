@@ -15,14 +15,18 @@ import msgspec
 
 from hmdrt.errors import ConfigError
 from hmdrt.evaluate import perceptual
+from hmdrt.evaluate.gaze import check_rates
 from hmdrt.evaluate.quality import ScoreSpace
 from hmdrt.files.configfile import convert, read_toml
 from hmdrt.foveation import MethodChoice
 from hmdrt.spatial import parse_gaze
+from hmdrt.tracking.model import Tracker
+from hmdrt.tracking.presets import tracker_named
 
 Scalar = str | int | float | bool
 MAX_CELLS = 10_000  # method cells of one sweep: checked before any is built
 MAX_LISTED = 8  # labels an error message lists
+MAX_LATENCY_MS = 1000.0  # beyond a second a tracker is not driving a fovea
 
 
 class _Table(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -31,7 +35,12 @@ class _Table(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 class Trace(_Table):
     """What the eye and head do: a fixed gaze with the head still, a recorded trace, or the built-in path
-    (head sway with fixations and saccades). Exactly one of gaze, path, builtin."""
+    (head sway with fixations and saccades). Exactly one of gaze, path, builtin.
+
+    The method sees the gaze as a tracker reports it (a preset name or a Tracker table: hmdrt.tracking), latency_ms
+    late, held or predicted as the compositor's SampleStore does (prediction "default": the run config's
+    [prediction] defaults); the scores follow the true gaze. The defaults, a perfect tracker without latency or
+    prediction, give the method the true gaze."""
 
     name: str = ""
     gaze: str = ""  # "YAW,PITCH" in degrees
@@ -40,6 +49,9 @@ class Trace(_Table):
     # traces of one group are averaged in the papers' tables (smith2013 section 4: one frame for every fovea
     # position); "": the trace is its own group
     group: str = ""
+    latency_ms: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_LATENCY_MS)] = 0.0  # sample to photon
+    tracker: str | Tracker = "perfect"
+    prediction: Literal["off", "default"] = "off"
 
     def __post_init__(self) -> None:
         if sum((bool(self.gaze), bool(self.path), self.builtin)) != 1:
@@ -49,6 +61,22 @@ class Trace(_Table):
                 parse_gaze(self.gaze)
             except ConfigError as exc:
                 raise ValueError(str(exc)) from None
+        if isinstance(self.tracker, str):
+            tracker_named(self.tracker)
+
+    @property
+    def tracker_model(self) -> Tracker:
+        """The tracker: the preset named, or the table given."""
+        return tracker_named(self.tracker) if isinstance(self.tracker, str) else self.tracker
+
+    @property
+    def tracker_label(self) -> str:
+        """The preset's name, or the table's fields that differ from a perfect tracker's ("perfect" if none)."""
+        if isinstance(self.tracker, str):
+            return self.tracker
+        perfect = Tracker()
+        fields = ((f, getattr(self.tracker, f)) for f in Tracker.__struct_fields__)
+        return "&".join(f"{f}={v:g}" for f, v in fields if v != getattr(perfect, f)) or "perfect"
 
     @property
     def source(self) -> str | None:
@@ -57,7 +85,14 @@ class Trace(_Table):
 
     @property
     def label(self) -> str:
-        return self.name or (f"gaze {self.gaze}" if self.gaze else Path(self.path).stem if self.path else "builtin")
+        """The name, else what the trace is, with its latency, tracker and prediction where not the defaults."""
+        if self.name:
+            return self.name
+        parts = [f"gaze {self.gaze}" if self.gaze else Path(self.path).stem if self.path else "builtin"]
+        parts += [f"{self.latency_ms:g} ms"] if self.latency_ms else []
+        parts += [self.tracker_label] if self.tracker_label != "perfect" else []
+        parts += [f"prediction {self.prediction}"] if self.prediction != "off" else []
+        return " ".join(parts)
 
     @property
     def group_label(self) -> str:
@@ -179,6 +214,7 @@ def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
     cache = str(base / config.cache_dir) if config.cache_dir else default_cache_dir()
     config.cells()  # every method choice parsed: a bad one fails here
     config.check_baselines()
+    check_rates(traces, path)  # a recording too slow for its tracker
     if config.jod:
         perceptual.require()
     return msgspec.structs.replace(config, traces=traces, cache_dir=cache, source=str(path))

@@ -11,6 +11,10 @@ scored; ms_per_frame is their median. Each number a method reports per frame (Fr
 reused_pixels, ...) is averaged over the scored frames that report it into the row's metrics. Each cell is
 compared with a baseline cell (its compare_to, else full): speed-up and foveal PSNR delta. The rows say when, at
 which commit and on which machine they were rendered (provenance).
+
+A method renders each frame around the gaze its trace's tracker reported, late and predicted (hmdrt.evaluate.gaze;
+the true gaze itself by default); the scores follow the true gaze. The rows give the latency, the tracker, the gaze
+error at photon time over the scored frames, and the share of them whose error exceeds the method's foveal radius.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ import msgspec
 import numpy as np
 from tqdm import tqdm
 
-from hmdrt.evaluate import provenance
+from hmdrt.evaluate import gaze, provenance
 from hmdrt.evaluate.config import EvalConfig
 from hmdrt.evaluate.groups import Crops, GroupKey, GroupResult, group_id, group_shape, groups, profile_of
 from hmdrt.evaluate.partial import PartialResults
@@ -98,7 +102,8 @@ class Evaluation:
 
 @dataclass
 class Group:
-    """A group ready to render: its cells' methods built, its warm-up and its frames (warm-up first)."""
+    """A group ready to render: its cells' methods built, its warm-up and its frames (warm-up first), true and as
+    the methods see them."""
 
     key: GroupKey
     profile: HmdProfile
@@ -106,6 +111,7 @@ class Group:
     cells: list[_Cell]
     warmup: int
     inputs: list[FrameInput]
+    seen: list[FrameInput]  # inputs with the gaze the methods are given
 
 
 def evaluate(config: EvalConfig, progress: bool = True, saved: PartialResults | None = None) -> Evaluation:
@@ -142,14 +148,17 @@ def collect(
     return Evaluation(rows, summarise(rows), [r.crops for r in ordered], rendered, read, seconds, config.score_space)
 
 
-def trace_frames(config: EvalConfig, scene: Scene, key: GroupKey) -> list[FrameInput]:
-    """A group's frames of its trace, read here (where the group renders elsewhere, it is sent them)."""
+def trace_frames(config: EvalConfig, scene: Scene, key: GroupKey) -> gaze.TraceFrames:
+    """A group's frames of its trace, true and as its tracker shows them, read here (where the group renders
+    elsewhere, it is sent them)."""
     profile = profile_of(key.profile, config.resolution)
-    source, gaze = key.trace.source, key.trace.gaze or "0,0"
-    return sequence_inputs(scene.start, profile.period_ns, config.frames, source, gaze, config.seed)[0]
+    trace = key.trace
+    source, fixed = trace.source, trace.gaze or "0,0"
+    true = sequence_inputs(scene.start, profile.period_ns, config.frames, source, fixed, config.seed)[0]
+    return gaze.TraceFrames(true, gaze.seen_frames(trace, true, scene.start, config.seed))
 
 
-def plan_group(config: EvalConfig, tracer: Whitted, key: GroupKey, frames: list[FrameInput]) -> Group:
+def plan_group(config: EvalConfig, tracer: Whitted, key: GroupKey, frames: gaze.TraceFrames) -> Group:
     """A group's methods built on `tracer` (of its scene), its warm-up, and its trace's `frames` after it."""
     profile = profile_of(key.profile, config.resolution)
     ids = group_shape(config, key).ids
@@ -158,7 +167,8 @@ def plan_group(config: EvalConfig, tracer: Whitted, key: GroupKey, frames: list[
         for cell in config.cells(key.scene, key.trace)
     ]
     warmup = group_warmup(config.warmup_frames, cells, ids)
-    return Group(key, profile, ids, cells, warmup, held_start(frames, warmup - config.warmup_frames, profile.period_ns))
+    true, seen = (held_start(f, warmup - config.warmup_frames, profile.period_ns) for f in (frames.true, frames.seen))
+    return Group(key, profile, ids, cells, warmup, true, seen)
 
 
 def truth_cameras(group: Group, config: EvalConfig) -> list[EyeCamera]:
@@ -176,9 +186,18 @@ def run_group(
     last, scored = _render(group, config, truth_of, tick or (lambda: None))
     jod = _jod(group.cells, scored, JodScorer(group.profile, config.eye)) if config.jod else {}
     seconds = round(time.perf_counter() - started, 3)
+    errors = gaze.gaze_errors_deg(group.inputs[group.warmup :], group.seen[group.warmup :], config.eye)
+    columns = gaze.gaze_columns(group.key.trace, errors)
+    rows = _rows(group.ids, group.cells, group.profile, group.warmup, config.score_space)
     rows = [
-        {**row, "trace_group": group.key.trace.group_label, **jod.get(row["label"], {})}
-        for row in _rows(group.ids, group.cells, group.profile, group.warmup, config.score_space)
+        {
+            **row,
+            "trace_group": group.key.trace.group_label,
+            **jod.get(row["label"], {}),
+            **columns,
+            "gaze_outside_fovea": gaze.outside_fovea(errors, gaze.foveal_radius_deg(cell.choice)),
+        }
+        for row, cell in zip(rows, group.cells, strict=True)
     ]
     rows = [{**row, "worker": worker, "group_seconds": seconds, **provenance.stamp()} for row in rows]
     return GroupResult(rows, Crops(**group.ids, **last, images={c.label: c.last for c in group.cells}))
@@ -217,8 +236,9 @@ def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dic
     Returns the last scored frame's truth and gaze pixel, and (with jod) every scored truth, encoded, and gaze."""
     last: dict = {}
     truths, gazes = [], []
-    for inp in group.inputs:
-        request = _request(inp, group.profile, config)
+    for inp, seen in zip(group.inputs, group.seen, strict=True):
+        request = _request(inp, group.profile, config)  # the true gaze: what the frame is scored around
+        shown = dataclasses.replace(request, gaze=seen.gaze[config.eye])  # the tracked gaze: what it is rendered for
         scored = inp.frame >= group.warmup
         if scored:
             truth = truth_of(request.camera)
@@ -233,7 +253,7 @@ def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dic
                 continue
             stats = FrameStats()
             t = time.perf_counter()
-            image = cell.method.render(request, stats)
+            image = cell.method.render(shown, stats)
             ms = (time.perf_counter() - t) * 1e3
             if scored:
                 pixels = image.shape[0] * image.shape[1]

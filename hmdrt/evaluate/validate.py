@@ -49,6 +49,12 @@ COLUMNS: dict[str, tuple[type, ...]] = {
     "date": (str,),
     "commit": (str,),
     "machine": (str,),
+    "latency_ms": NUMBER,
+    "tracker": (str,),
+    "prediction": (str,),
+    "gaze_error_p50_deg": NUMBER,
+    "gaze_error_p95_deg": NUMBER,
+    "gaze_outside_fovea": MAYBE_NUMBER,
     **{f"{score}_{band}": MAYBE_NUMBER for score in ("psnr", "ssim", "flicker") for band in (*BANDS, "image")},
 }
 

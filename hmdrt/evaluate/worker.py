@@ -14,13 +14,13 @@ import numpy as np
 
 from hmdrt.errors import HmdrtError
 from hmdrt.evaluate.config import EvalConfig
+from hmdrt.evaluate.gaze import TraceFrames
 from hmdrt.evaluate.groups import GroupKey, GroupResult
 from hmdrt.evaluate.runner import plan_group, run_group
 from hmdrt.evaluate.truth import TruthCache, scene_digest, truth_rows
 from hmdrt.optics import EyeCamera
 from hmdrt.scene import load_scene
 from hmdrt.trace.integrator import Whitted
-from hmdrt.views import FrameInput
 
 _held = threading.local()  # this thread's (scene name, threads) and its tracer and digest
 
@@ -78,7 +78,7 @@ def held(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def group(config: EvalConfig, key: GroupKey, frames: list[FrameInput], truths: dict[str, np.ndarray]) -> GroupResult:
+def group(config: EvalConfig, key: GroupKey, frames: TraceFrames, truths: dict[str, np.ndarray]) -> GroupResult:
     """Render and score one group as the serial runner does, on its trace's `frames` (read by the client), its
     truths looked up by cache key; the rows name the worker."""
     from distributed import get_worker

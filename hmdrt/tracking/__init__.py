@@ -1,0 +1,1 @@
+"""Eye-tracker models and gaze prediction."""
