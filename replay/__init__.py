@@ -6,16 +6,25 @@ import inspect
 from pathlib import Path
 
 from hmdrt.errors import ConfigError
-from hmdrt.replay.formats import csv_header, eyelink, gazebase, generic_csv, pupil_player, refuse_columns
+from hmdrt.replay.formats import (
+    csv_header,
+    eyelink,
+    gazebase,
+    gazebase_desktop,
+    generic_csv,
+    pupil_player,
+    refuse_columns,
+)
 from hmdrt.replay.trace import TraceReading, read_trace
 
 SUPPORTED = (
-    "native hmdrt traces (.jsonl, .jsonl.gz), EyeLink ASC (.asc), and CSV (.csv) from GazeBaseVR, "
+    "native hmdrt traces (.jsonl, .jsonl.gz), EyeLink ASC (.asc), and CSV (.csv) from GazeBase, GazeBaseVR, "
     "Pupil Player gaze_positions or hmdrt's t_ns/t_ms/t_s schema"
 )
 CSV_READERS = (  # tried in this order; each format's module declares its NAME, NEEDS and matches()
     (pupil_player, pupil_player.read_pupil_player),
     (gazebase, gazebase.read_gazebase),
+    (gazebase_desktop, gazebase_desktop.read_gazebase_desktop),
     (generic_csv, generic_csv.read_generic_csv),
 )
 

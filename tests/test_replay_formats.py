@@ -1,4 +1,5 @@
-"""Importers of real trace formats: EyeLink ASC, GazeBaseVR, Pupil Player and hmdrt's CSV, via load_trace."""
+"""Importers of real trace formats: EyeLink ASC, GazeBase, GazeBaseVR, Pupil Player and hmdrt's CSV, via
+load_trace."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import strategies as st
 
 from hmdrt import cli
 from hmdrt.bus.messages import Gaze, usable
@@ -17,11 +19,13 @@ from hmdrt.errors import ConfigError
 from hmdrt.replay import load_trace
 from hmdrt.replay.formats.pupil_player import read_pupil_player
 from hmdrt.replay.trace import write_trace
+from tests.fuzz.common import fuzz, publishable, scratch
 
 TRACES = Path(__file__).parent / "data" / "traces"
 MONOCULAR = TRACES / "raccoons.asc"
 BINOCULAR = TRACES / "eyelink_binocular_example.asc"
 GAZEBASE = TRACES / "gazebase_vr_example.csv"
+GAZEBASE_DESKTOP = TRACES / "gazebase_example.csv"  # real bytes: tests/data/traces/README.md
 EYELINK_2KHZ = TRACES / "eyelink_mono2000_excerpt.asc"  # real bytes: tests/data/traces/README.md
 PUPIL_V1 = TRACES / "pupil_player_v1_gaze_positions.csv"
 
@@ -233,6 +237,133 @@ def test_gazebase_vr_nan_makes_a_sample_invalid(tmp_path):
     assert all(s.valid for s in reading.samples if s is not bad)
 
 
+def test_gazebase_rows_convert_to_the_left_eye_with_yaw_right_and_pitch_up():
+    """GazeBase's real first rows (a reading recording, by their NaN targets and labels): every row a valid
+    left-eye sample at n ms, with yaw = x and pitch = y (top left of the text: left and up)."""
+    rows = list(csv.DictReader(GAZEBASE_DESKTOP.open()))
+    reading = load_trace(GAZEBASE_DESKTOP)
+    assert reading.device == "gazebase" and reading.malformed == 0 and len(reading.samples) == len(rows) == 10
+    for sample, row in zip(reading.samples, rows, strict=True):
+        assert sample.t_host == sample.t_dev == int(row["n"]) * 1_000_000 and sample.valid
+        assert sample.C is None and sample.R is None
+        v = np.array(sample.L)
+        assert v[0] < 0 and v[1] > 0 and v[2] < 0  # x = -16 (left), y = +5.9 (up)
+        assert math.isclose(math.degrees(math.atan2(v[0], -v[2])), float(row["x"]), abs_tol=1e-12)
+        assert math.isclose(math.degrees(math.asin(v[1])), float(row["y"]), abs_tol=1e-12)
+
+
+def test_gazebase_columns_by_name_invalid_samples_and_malformed_rows(tmp_path):
+    """An excerpt made to GazeBase's published layout (not real bytes): the other column order GazeBase uses
+    (n,x,y,val,xT,yT,dP,lab), an invalid sample as GazeBase writes it (val 4, x, y and dP NaN), one with val 0
+    but a gaze beyond 90 deg, and rows that are malformed: a val, x or time that is no number, the wrong
+    width, an over-long line. Valid and invalid samples are kept, the malformed rows counted, none fatal."""
+    lines = [
+        "n,x,y,val,xT,yT,dP,lab",
+        "0,1.5,-2.25,0,0,0,3150,1",
+        "1,NaN,NaN,4,0,0,NaN,3",
+        "2,1.5,-2.25,2,0,0,3150,1",  # val not 0: invalid, whatever x and y say
+        "3,95.0,0.0,0,0,0,3150,1",  # beyond 90 deg: no direction, invalid
+        "4,1.5,-2.25,zero,0,0,3150,1",
+        "5,abc,-2.25,0,0,0,3150,1",
+        "6.5.1,1.5,-2.25,0,0,0,3150,1",
+        "7,1.5,-2.25,0,0,0,3150",
+        "8," + "1" * 70_000 + ",0,0,0,0,3150,1",
+        "9,-3.0,4.0,0,0,0,3150,2",
+    ]
+    path = tmp_path / "S_1001_S1_RAN.csv"
+    path.write_text("\n".join(lines) + "\n")
+    reading = load_trace(path)
+    assert reading.malformed == 5
+    assert [(s.t_host // 1_000_000, s.valid) for s in reading.samples] == [
+        (0, True),
+        (1, False),
+        (2, False),
+        (3, False),
+        (9, True),
+    ]
+    yaw, pitch = (
+        math.degrees(a)
+        for a in (math.atan2(reading.samples[-1].L[0], -reading.samples[-1].L[2]), math.asin(reading.samples[-1].L[1]))
+    )
+    assert math.isclose(yaw, -3.0, abs_tol=1e-9) and math.isclose(pitch, 4.0, abs_tol=1e-9)
+    assert reading.samples[1].L is None and reading.samples[2].L is not None
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("n,x,y,dP,lab\n0,1,2,3000,1\n", r"not a known gaze CSV: found columns \[n, x, y, dP, lab\];.*GazeBase needs"),
+        ("n,x,y,val\n", "holds no valid gazebase gaze samples"),
+        ("n,x,y,val\n0,1,2,x\n1,1,2,y\n", r"no valid gazebase gaze samples \(0 samples read, 2 malformed"),
+    ],
+)
+def test_gazebase_files_without_a_valid_sample_are_one_clear_line(tmp_path, capsys, content, message):
+    """A GazeBase-like CSV without val, or without a valid row, is a ConfigError naming the file, which the CLI
+    prints as one line."""
+    path = tmp_path / "gb.csv"
+    path.write_text(content)
+    with pytest.raises(ConfigError, match=message) as refused:
+        load_trace(path)
+    assert str(path) in str(refused.value) and "\n" not in str(refused.value)
+    assert cli.main(["emulate", "smi", "--trace", str(path), "--port", "0", "--duration", "0.01"]) == 1
+    assert capsys.readouterr().err == f"hmdrt: error: {refused.value}\n"
+
+
+GAZEBASE_CELLS = st.one_of(
+    st.sampled_from(["", ".", "nan", "NaN", "inf", "-inf", "1e308", "1e999", "abc", "1,5", '"1"', "\xff", "0", "4"]),
+    st.floats().map(repr),
+    st.text(st.characters(blacklist_categories=["Cs"], blacklist_characters="\r\n"), max_size=6),
+)
+
+
+@fuzz(
+    60,
+    order=st.permutations(["n", "x", "y", "val", "dP", "lab", "xT", "yT"]),
+    rows=st.lists(
+        st.one_of(
+            st.tuples(st.just("good"), st.integers(0, 10**6)),
+            st.tuples(st.just("invalid"), st.integers(0, 10**6)),
+            st.tuples(st.just("width"), st.integers(1, 3)),
+            st.tuples(st.just("time"), st.sampled_from(["t", "1.2.3", "9" * 40, "1e999", ""])),
+            st.tuples(st.just("cells"), st.lists(GAZEBASE_CELLS, min_size=8, max_size=8)),
+        ),
+        max_size=12,
+    ),
+)
+def test_gazebase_keeps_valid_and_invalid_samples_and_counts_malformed_rows(order, rows):
+    """A GazeBase CSV with its columns in any order, valid rows, invalid ones (val 4, NaN gaze), rows of the
+    wrong width or with a time that is no number, and arbitrary cells keeps every valid and invalid row as a
+    sample, counts the malformed ones, and whatever it reads survives the bus decoder."""
+
+    def line(values: dict[str, str]) -> str:
+        return ",".join(values[name] for name in order)
+
+    good = {"x": "1.5", "y": "-2.0", "val": "0", "dP": "3000", "lab": "1", "xT": "NaN", "yT": "NaN"}
+    lines, kept, bad = [",".join(order)], 0, 0
+    for kind, arg in rows:
+        if kind in ("good", "invalid"):
+            values = {**good, "n": str(arg)}
+            if kind == "invalid":
+                values.update(x="NaN", y="NaN", val="4", dP="NaN")
+            lines.append(line(values))
+            kept += 1
+        elif kind == "width":
+            lines.append(line({**good, "n": "1"}) + ",1" * arg)
+            bad += 1
+        elif kind == "time":
+            lines.append(line({**good, "n": arg}))
+            bad += 1
+        else:
+            lines.append(",".join(f'"{c}"' if "," in c or '"' in c else c for c in arg))
+    lines.append(line({**good, "n": "10000000"}))
+    reading = load_trace(scratch("gazebase.csv", "\n".join(lines).encode("utf-8", "surrogateescape")))
+    assert reading.malformed >= bad and len(reading.samples) >= kept + 1
+    if all(kind != "cells" for kind, _ in rows):
+        assert (len(reading.samples), reading.malformed) == (kept + 1, bad)
+    for sample in reading.samples:
+        publishable(sample, "gazebase")
+
+
 PUPIL_HEADER = (
     "gaze_timestamp,world_index,confidence,norm_pos_x,norm_pos_y,base_data,gaze_point_3d_x,gaze_point_3d_y,"
     "gaze_point_3d_z,eye_center0_3d_x,eye_center0_3d_y,eye_center0_3d_z,gaze_normal0_x,gaze_normal0_y,"
@@ -355,7 +486,7 @@ def test_csv_schema_errors_are_one_clear_sentence(tmp_path, header, message):
         load_trace(path)
 
 
-@pytest.mark.parametrize("source", ["pupil v1", "gazebase", "hmdrt csv", "native"])
+@pytest.mark.parametrize("source", ["pupil v1", "gazebase", "gazebase desktop", "hmdrt csv", "native"])
 def test_blank_lines_before_a_header_are_skipped(tmp_path, source):
     """Blank (and whitespace-only) lines before the header row of each CSV format, and before a native trace's
     header, are skipped: the file reads as it does without them."""
@@ -366,7 +497,7 @@ def test_blank_lines_before_a_header_are_skipped(tmp_path, source):
         plain = tmp_path / "ours.csv"
         plain.write_text("t_ms,yaw_deg,pitch_deg\n0,1,2\n4,3,4\n")
     else:
-        plain = PUPIL_V1 if source == "pupil v1" else GAZEBASE
+        plain = {"pupil v1": PUPIL_V1, "gazebase": GAZEBASE, "gazebase desktop": GAZEBASE_DESKTOP}[source]
     padded = tmp_path / f"padded{''.join(plain.suffixes)}"
     padded.write_bytes(b"\n\r\n  \t\n" + plain.read_bytes())
     expected = load_trace(plain)
@@ -387,8 +518,8 @@ def test_unknown_csv_names_found_and_expected_columns_and_the_cli_says_it_in_one
         f"{path} is not a known gaze CSV: found columns [gaze_timestamp, world_index, {'x' * 40}..., "
         + ", ".join(f"c{k}" for k in range(21))
         + ", ... (33 in all)]; Pupil Player needs [gaze_timestamp, confidence] or [world_timestamp, world_index,"
-        " confidence] or [timestamp, index, confidence]; GazeBaseVR needs [n, x, y, lx, ly, rx, ry]; hmdrt CSV"
-        " needs one of [t_ns, t_ms, t_s] and gaze columns"
+        " confidence] or [timestamp, index, confidence]; GazeBaseVR needs [n, x, y, lx, ly, rx, ry]; GazeBase needs"
+        " [n, x, y, val]; hmdrt CSV needs one of [t_ns, t_ms, t_s] and gaze columns"
     )
     assert cli.main(["emulate", "smi", "--trace", str(path), "--port", "0", "--duration", "0.01"]) == 1
     assert capsys.readouterr().err == f"hmdrt: error: {message}\n"
@@ -410,6 +541,7 @@ def test_native_traces_still_load_plain_and_gzipped(tmp_path):
         ("blank.asc", "** nothing here\nMSG\t1 hello\n", {}, "no valid eyelink gaze samples"),
         ("empty.csv", "", {}, "not a known gaze CSV: found no columns"),
         ("g.csv", "n,x,y,lx,ly,rx,ry\n0,nan,nan,nan,nan,nan,nan\n", {}, "no valid gazebase_vr"),
+        ("d.csv", "n,x,y,val,dP,lab,xT,yT\n0,NaN,NaN,4,NaN,0,NaN,NaN\n", {}, "no valid gazebase gaze samples"),
         ("o.csv", "t_ms,yaw_deg,pitch_deg\n0,0,0\n", {"distance_mm": 600}, "takes no option 'distance_mm'"),
         ("e.asc", "START\t1\tLEFT\n1\t0\t0\t1\n", {"distance_mm": -1}, "positive number of millimetres"),
     ],

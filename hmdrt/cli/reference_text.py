@@ -263,8 +263,8 @@ RUN_MEANINGS = {
     "prediction.gaze_device": 'the device whose gaze drives the frames; `""`: the one with the newest gaze',
     "prediction.pose_device": "the same for head pose",
     "gaze.saccade_prediction": "at a saccade, predict its flight and landing point from its velocity profile and "
-    "the main sequence, and show frames along it instead of extrapolating the gaze velocity "
-    "(`hmdrt/tracking/saccade.py`, docs/trackers.md)",
+    "the main sequence, and while a prediction stands show frames along it instead of extrapolating the gaze "
+    "velocity (`hmdrt/tracking/saccade.py`, docs/trackers.md)",
     "fallback.stale_ms": "silent this long: an outage begins",
     "fallback.widen_deg_per_s": "then the fovea widens this fast",
     "fallback.max_widen_deg": "up to this much",

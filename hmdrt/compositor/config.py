@@ -1,5 +1,5 @@
 """The run configuration of `hmdrt run CONFIG.toml`: display, scene, method, drivers, bus, pacing,
-prediction, controller and output, validated on load with every mistake reported in one line.
+prediction, gaze, controller and output, validated on load with every mistake reported in one line.
 
 Paths in the file (a replay:// trace, hid://stub's trace=, the report, the frames folder) are relative
 to the config file, so a config runs the same from any working directory.
@@ -72,6 +72,14 @@ class Prediction(_Section):
     pose_device: str = ""
 
 
+class GazePath(_Section):
+    """The compositor's gaze estimates at display time (hmdrt.compositor.samples)."""
+
+    # predict a saccade's flight and landing point from its velocity profile and the main sequence, and, while
+    # a prediction stands, show frames along it rather than extrapolating the gaze velocity (hmdrt.tracking.saccade)
+    saccade_prediction: bool = False
+
+
 class Fallback(_Section):
     """When the gaze device goes silent (hmdrt.compositor.fallback)."""
 
@@ -128,6 +136,7 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     security: Security | None = None  # None: every socket binds loopback, local clients are trusted
     pacing: Pacing = Pacing()
     prediction: Prediction = Prediction()
+    gaze: GazePath = GazePath()
     controller: Controller = Controller()
     fallback: Fallback = Fallback()
     output: Output = Output()

@@ -154,6 +154,7 @@ class Compositor:
         with self.lock:
             self.pacer.configure(**pacing)
         self.store.horizon_ns = int(config.prediction.horizon_ms * 1e6)
+        self.store.saccades = config.gaze.saccade_prediction
         self.outages.config = config.fallback
         self.builder.controller = make_controller(config, self.session.method)
 

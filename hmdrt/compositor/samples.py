@@ -7,6 +7,12 @@ sees a sample from its future, whatever order the ingest thread delivered them i
 As a filter updates on each measurement and predicts at each query, the ingest thread fits the velocity to a
 new newest sample when it arrives, and a frame's lookup reuses that fit when it picks the same samples: a
 frame then only extrapolates (its Python runs cache-cold, several times slower than the ingest's).
+
+With saccade prediction on (`[gaze] saccade_prediction`), each gaze device's newest samples also feed a
+hmdrt.tracking.saccade.SaccadePredictor on the ingest thread. While it predicts a saccade's flight at the newest
+sample, a lookup predicting past that sample turns both eyes along the flight (to its landing point once the
+model has landed) rather than extrapolating their velocity, which overshoots as the eye decelerates; without a
+reliable prediction the lookup extrapolates as it always does.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from hmdrt.spatial import (
     advance,
     angle_between,
     lerp,
+    mean_direction,
     nlerp,
     norm,
     quat_conjugate,
@@ -38,6 +45,7 @@ from hmdrt.spatial import (
     turn,
     unit,
 )
+from hmdrt.tracking.saccade import Flight, SaccadePredictor
 
 KINDS = ("gaze", "pose")
 MAX_DEVICES = 64  # devices tracked at once; samples naming another device are refused and counted
@@ -107,14 +115,17 @@ class _Entry(NamedTuple):
 
 class _Track:
     """One device's samples of one kind, sorted by capture time; t mirrors the entries' t_host for bisect;
-    fit is the velocity fitted on arrival to the newest sample, with the entries it was fitted to."""
+    fit is the velocity fitted on arrival to the newest sample, with the entries it was fitted to; a gaze
+    track's saccade predictor, with saccade prediction on, and the flight it predicted at its newest entry."""
 
-    __slots__ = ("t", "entries", "fit")
+    __slots__ = ("t", "entries", "fit", "saccades", "flight")
 
     def __init__(self) -> None:
         self.t: list[int] = []
         self.entries: list[_Entry] = []
         self.fit: tuple[list[_Entry], tuple] | None = None
+        self.saccades: SaccadePredictor | None = None
+        self.flight: tuple[_Entry, Flight] | None = None
 
 
 class _Pick(NamedTuple):
@@ -126,6 +137,7 @@ class _Pick(NamedTuple):
     entries: list[_Entry]
     invalid_since: int | None = None
     fitted: tuple | None = None  # the fit made on arrival to these same entries (predict)
+    flight: Flight | None = None  # predict, with saccade prediction on: the flight predicted at the newest entry
     # a lookup's: the device the entries came from, and where its time lies among them
     device: str = ""
     u: float = 0.0  # interpolate: the fraction of the way from a to b
@@ -148,7 +160,7 @@ class SampleStore:
     Per device and kind it keeps at most max_per_device samples spanning at most history_ns, for at most
     MAX_DEVICES devices (so at most 2 x MAX_DEVICES x max_per_device samples, whatever arrives). Predictions
     extrapolate at most horizon_ns past the newest sample, from a velocity fitted to up to fit_samples
-    consecutive usable samples within fit_window_ns of it.
+    consecutive usable samples within fit_window_ns of it, or, with saccades true, along a predicted saccade.
     """
 
     def __init__(
@@ -158,6 +170,7 @@ class SampleStore:
         horizon_ns: int = 50_000_000,
         fit_samples: int = 3,
         fit_window_ns: int = 25_000_000,
+        saccades: bool = False,
     ) -> None:
         if history_ns <= 0 or max_per_device < 2 or horizon_ns < 0 or fit_samples < 1 or fit_window_ns < 0:
             raise ValueError("history_ns > 0, max_per_device >= 2, fit_samples >= 1; horizon and window >= 0")
@@ -166,10 +179,23 @@ class SampleStore:
         self.horizon_ns = horizon_ns
         self.fit_samples = fit_samples
         self.fit_window_ns = fit_window_ns
+        self._saccades = False
+        self.saccades = saccades
         self._lock = threading.Lock()
         self._tracks: dict[str, dict[str, _Track]] = {kind: {} for kind in KINDS}
         self._counts: dict[str, DeviceCounts] = {}
         self.devices_refused = 0  # samples of a device beyond MAX_DEVICES: memory stays bounded
+
+    @property
+    def saccades(self) -> bool:
+        """Whether lookups predict along saccades (module docstring); set between frames, as horizon_ns is."""
+        return self._saccades
+
+    @saccades.setter
+    def saccades(self, on: bool) -> None:
+        if on:
+            SaccadePredictor()  # builds the fit's tables (0.2 s, once a process) now, not on the ingest thread
+        self._saccades = on
 
     @property
     def devices(self) -> dict[str, list[str]]:
@@ -195,21 +221,24 @@ class SampleStore:
     def add(self, device: str, sample: Gaze | Pose, received_ns: int) -> bool:
         """Keep a sample received at received_ns (host clock); whether it was kept. Invalid samples are kept
         (to mark blinks) and counted; malformed, too old, too far ahead and duplicate ones are counted and dropped.
-        A usable sample that is the newest gets the velocity fit a lookup predicting from it would make now.
+        A usable sample that is the newest gets the velocity fit a lookup predicting from it would make now, and
+        with saccade prediction on the newest gaze sample, usable or not, goes to the device's saccade predictor.
         """
         kept = self._keep(device, sample, received_ns)
         if kept is None:
             return False
-        kind, track = kept
-        if track is not None:
+        kind, track, newest = kept
+        if kind == "gaze" and newest is not None and self.saccades:
+            _follow_saccade(track, newest)
+        if newest is not None and newest.ok:
             with self._lock:
                 pick = self._choose(track, received_ns, received_ns)
             if pick is not None and pick.mode == "predict":
                 track.fit = (pick.entries, FITS[kind](pick.entries))
         return True
 
-    def _keep(self, device: str, sample: Gaze | Pose, received_ns: int) -> tuple[str, _Track | None] | None:
-        """add() under the lock: (kind, the track when the sample is its newest usable one) when kept."""
+    def _keep(self, device: str, sample: Gaze | Pose, received_ns: int) -> tuple[str, _Track, _Entry | None] | None:
+        """add() under the lock: (kind, its track, the sample's entry when it is the track's newest) when kept."""
         admitted = _admit(sample, received_ns)
         with self._lock:
             counts = self._counts.get(device)
@@ -242,8 +271,9 @@ class SampleStore:
                 i -= 1
             if at < len(ts):
                 counts.out_of_order += 1
+            entry = _Entry(received_ns, ok, sample, units)
             ts.insert(at, t_host)
-            entries.insert(at, _Entry(received_ns, ok, sample, units))
+            entries.insert(at, entry)
             if counts.last_received_ns is None or received_ns > counts.last_received_ns:
                 counts.last_received_ns = received_ns
             if not ok:
@@ -252,7 +282,7 @@ class SampleStore:
                     counts.last_invalid_t_host = t_host
             newest = at == len(ts) - 1
             self._trim(track, counts)
-            return kind, track if ok and newest else None
+            return kind, track, entry if newest else None
 
     def gaze_at(self, t_ns: int, now_ns: int, device: str | None = None) -> GazeEstimate | None:
         """Gaze at t_ns from what had arrived by now_ns; None when no usable sample at or before t_ns had."""
@@ -269,7 +299,10 @@ class SampleStore:
                 depth = a.depth_m + pick.u * (b.depth_m - a.depth_m)
         elif pick.mode == "predict":
             spins, speed = pick.fitted or _gaze_fit(pick.entries)
-            left, right = (turn(eyes[0][e], spins[e], pick.predicted_ns * 1e-9) for e in (0, 1))
+            if pick.flight is None:
+                left, right = (turn(eyes[0][e], spins[e], pick.predicted_ns * 1e-9) for e in (0, 1))
+            else:
+                left, right = _along(pick.flight, eyes[0], newest.t_host + pick.predicted_ns)
         else:
             left, right = eyes[0]
         return GazeEstimate(
@@ -338,6 +371,8 @@ class SampleStore:
                 return None
             fit = track.fit
             fitted = fit[1] if pick.mode == "predict" and fit is not None and _same(fit[0], pick.entries) else None
+            flight = track.flight if pick.mode == "predict" and self.saccades else None
+            flight = flight[1] if flight is not None and flight[0] is pick.entries[0] else None
         u, predicted, clamped = 0.0, 0, False
         if pick.mode == "interpolate":
             a, b = pick.samples
@@ -345,7 +380,7 @@ class SampleStore:
         elif pick.mode == "predict":
             ahead = int(t - pick.newest.t_host)
             predicted, clamped = min(ahead, self.horizon_ns), ahead > self.horizon_ns
-        return _Pick(pick.mode, pick.entries, pick.invalid_since, fitted, name, u, predicted, clamped)
+        return _Pick(pick.mode, pick.entries, pick.invalid_since, fitted, flight, name, u, predicted, clamped)
 
     @staticmethod
     def _freshest(tracks: dict[str, _Track], now: int) -> str | None:
@@ -405,6 +440,22 @@ def _admit(sample: Gaze | Pose, received_ns: int) -> tuple[str, int, bool, tuple
     if not (sample.valid and usable(sample)):
         return kind, t_host, False, None
     return kind, t_host, True, sample.eye_directions() if kind == "gaze" else unit(sample.orientation)
+
+
+def _follow_saccade(track: _Track, entry: _Entry) -> None:
+    """Give the gaze track's saccade predictor its newest sample (both eyes' mean; None when invalid), and keep
+    the flight it predicts with that entry."""
+    if track.saccades is None:
+        track.saccades = SaccadePredictor()
+    gaze = mean_direction(*entry.unit) if entry.ok else None
+    flight = track.saccades.update(entry.sample.t_host, gaze)
+    track.flight = None if flight is None else (entry, flight)
+
+
+def _along(flight: Flight, eyes: tuple, t_ns: int) -> tuple[Vec, Vec]:
+    """Both eyes turned by the rotation that takes their mean gaze to the flight's gaze at t_ns."""
+    spin = rotvec_between(mean_direction(*eyes) or eyes[0], flight.gaze_at(t_ns))
+    return turn(eyes[0], spin, 1.0), turn(eyes[1], spin, 1.0)
 
 
 def _same(a: list[_Entry], b: list[_Entry]) -> bool:
