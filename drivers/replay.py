@@ -1,4 +1,4 @@
-"""replay://PATH?speed=1&loop=0&skip=0&use_source_ts=0: a recorded trace played back as a device.
+"""replay://PATH?speed=1&loop=0&skip=0&use_source_ts=0&tracker=PRESET: a recorded trace played back as a device.
 
 PATH is any file replay.load_trace reads (native, EyeLink ASC, GazeBaseVR, Pupil Player, hmdrt CSV),
 relative to the working directory (replay://traces/a.jsonl) or absolute (replay:///data/a.jsonl).
@@ -7,6 +7,10 @@ trace plays in real time on the host clock, at a speed factor, as fast as possib
 lock-step with a virtual clock the compositor injects. Gaze and pose samples both replay. At the end
 of a trace without loop, read() returns no samples (after waiting out its timeout) and the state is
 "ended".
+
+With tracker= (or any tracker_* option: drivers.tracked) the trace's gaze is taken for the true gaze and the
+driver plays what that tracker model reports of it instead, worked out once when the trace is loaded: with loop,
+every lap replays the same reports, as it replays the same gaze.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from hmdrt.clock import MONOTONIC, Clock
+from hmdrt.drivers import tracked
 from hmdrt.drivers.base import Driver, DriverUrl, Sample
 from hmdrt.errors import ConfigError
 from hmdrt.replay import load_trace
@@ -26,7 +31,8 @@ class ReplayDriver(Driver):
         "replay://PATH?speed=FACTOR&loop=0|1&skip=SEC&use_source_ts=0|1&name=DEVICE "
         "(PATH relative, replay://traces/a.jsonl, or absolute, replay:///data/a.jsonl; "
         "defaults speed=1 (0: as fast as possible) loop=0 skip=0 use_source_ts=0 name=replay); "
-        "EyeLink files also take screen_width_mm, screen_height_mm, distance_mm, Pupil Player min_confidence"
+        "EyeLink files also take screen_width_mm, screen_height_mm, distance_mm, Pupil Player min_confidence; "
+        f"the gaze through a tracker model: {tracked.GRAMMAR}"
     )
     options = {
         "speed": (float, 1.0, 0.0, 1000.0),
@@ -35,6 +41,7 @@ class ReplayDriver(Driver):
         "use_source_ts": (bool, False, None, None),
         **{name: (float, None, 1.0, 100_000.0) for name in ("screen_width_mm", "screen_height_mm", "distance_mm")},
         "min_confidence": (float, None, 0.0, 1.0),
+        **tracked.OPTIONS,
     }
     FORMAT_OPTIONS = ("screen_width_mm", "screen_height_mm", "distance_mm", "min_confidence")
     location_is_path = True
@@ -44,13 +51,17 @@ class ReplayDriver(Driver):
         if not self.url.location:
             raise ConfigError(f"replay:// needs a trace file; expected {self.grammar}")
         self.path = Path(self.url.location)
+        self.tracked_by = tracked.TrackedBy.of(self)
         self._player: Player | None = None
 
     def open(self) -> None:
         reading = load_trace(self.path, **{k: self.opt[k] for k in self.FORMAT_OPTIONS if self.opt[k] is not None})
         self.counters.malformed += reading.malformed
+        samples = reading.samples
+        if self.tracked_by is not None:
+            samples = self.tracked_by.report(samples, self.scheme, f"the trace {self.path.name}")
         o = self.opt
-        self._player = Player(reading.samples, o["speed"], o["loop"], o["skip"], o["use_source_ts"])
+        self._player = Player(samples, o["speed"], o["loop"], o["skip"], o["use_source_ts"])
         self._player.start(self.clock.now_ns())
         self.state = "connected"
 
