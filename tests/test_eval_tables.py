@@ -18,7 +18,7 @@ from hmdrt.evaluate import provenance, runner, validate
 from hmdrt.evaluate.config import load_eval_config
 from hmdrt.evaluate.groups import Crops, GroupResult, GroupShape
 from hmdrt.evaluate.results import write_results
-from hmdrt.evaluate.tables import kim2021, paper_tables, smith2013
+from hmdrt.evaluate.tables import kim2021, latency, paper_tables, smith2013
 from hmdrt.foveation import METHODS, FrameRequest, MethodChoice
 from hmdrt.optics import get_profile
 from hmdrt.scene import load_scene
@@ -229,3 +229,22 @@ def test_the_stamp_names_this_checkouts_commit_and_this_machine(monkeypatch):
     finally:
         monkeypatch.undo()
         provenance.commit.cache_clear()
+
+
+def _latency_row(label: str, ms: float, fovea_db: float) -> dict:
+    return {"scene": "whitted", "trace_group": "raccoons", "tracker": "htc-vive-pro-eye", "prediction": "off",
+            "label": label, "latency_ms": ms, "psnr_fovea": fovea_db}  # fmt: skip
+
+
+def test_the_latency_table_gives_the_longest_latency_within_1_db_of_the_methods_own_at_the_least():
+    """A method whose foveal PSNR falls by more than 1 dB after 50 ms tolerates 50 ms; one that never falls, at
+    least the longest latency run; one that falls at once and recovers, the least (the bound holds from the
+    least latency up, without a gap)."""
+    falls = [(0, 40.0), (20, 39.5), (50, 39.1), (80, 38.5), (150, 35.0)]
+    recovers = [(0, 40.0), (20, 38.0), (50, 40.0), (80, 40.0), (150, 40.0)]
+    rows = [_latency_row("kim21", ms, db) for ms, db in falls] + [_latency_row("rrm", ms, db) for ms, db in recovers]
+    rows += [_latency_row("full", ms, 30.0) for ms, _ in falls]
+    lines = {line[4]: line for line in _lines(latency(rows))}
+    assert lines["kim21"][5:] == ["40.00", "39.50", "39.10", "38.50", "35.00", "50 ms"]
+    assert lines["rrm"][-1] == "0 ms"
+    assert lines["full"][-1] == "at least 150 ms"

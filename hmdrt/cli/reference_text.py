@@ -314,7 +314,8 @@ EVAL_MEANINGS = {
     "`~/.cache/hmdrt/truth`); with `--cluster`, a folder named here must be one every worker sees (docs/cluster.md)",
     "jod": "FovVideoVDP's foveated JOD per cell, in its video mode: the scored frames as one video at the profile's "
     "refresh rate, the fixation following each frame's gaze (needs the `eval` extra)",
-    "tables": "the papers' tables to fill",
+    "tables": "the tables to fill in tables.md: the papers' (`weier2016`, `kim2021`, `smith2013`, `weier2018`) "
+    "and `latency`",
     "crop_px": "side of the crops at the gaze point",
     "score_space": "PSNR, SSIM and flicker of display-encoded images (`srgb`: the sRGB transfer function, "
     "unquantised, as a display shows them) or of `linear` radiance; both clipped to [0, 1]. Results, tables and "

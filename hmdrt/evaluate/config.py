@@ -159,7 +159,7 @@ class EvalConfig(_Table):
     threads: Annotated[int, msgspec.Meta(ge=0, le=256)] = 0  # tracing threads (0: all cores)
     cache_dir: str = ""  # ground truths are cached here ("": $XDG_CACHE_HOME/hmdrt/truth)
     jod: bool = False  # FovVideoVDP's foveated JOD per cell (needs the eval extra)
-    tables: list[Literal["weier2016", "kim2021", "smith2013", "weier2018"]] = []  # the papers' tables to fill
+    tables: list[Literal["weier2016", "kim2021", "smith2013", "weier2018", "latency"]] = []  # tables.md
     crop_px: Annotated[int, msgspec.Meta(ge=8, le=4096)] = 96  # side of the crops at the gaze point
     score_space: ScoreSpace = "srgb"  # PSNR, SSIM and flicker of display-encoded images, or of linear radiance
     traces: list[Trace] = msgspec.field(default_factory=lambda: [Trace(gaze="0,0")])

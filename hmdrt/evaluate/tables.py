@@ -196,7 +196,43 @@ def weier2018(rows: list[Row]) -> str:
     return _markdown(header, lines)
 
 
-SCORED = ("kim2021",)  # the tables that show PSNR: their headings say in which space it was scored
+TOLERANCE_DB = 1.0  # the latency table's bound: foveal PSNR within this of the method's own at the least latency
+
+
+def latency(rows: list[Row]) -> str:
+    """Foveal PSNR (scored at the true gaze) against the tracker's latency, per scene, trace group, tracker and
+    prediction, and the longest latency up to which the foveal PSNR stays within TOLERANCE_DB of the method's own
+    at the least latency ("at least" where it holds at every latency run) (configs/eval/latency.toml)."""
+    cells: dict[tuple, dict[str, dict[float, Row]]] = {}
+    for r in rows:
+        if "latency_ms" in r:
+            key = (r["scene"], r["trace_group"], r["tracker"], r["prediction"])
+            cells.setdefault(key, {}).setdefault(r["label"], {})[r["latency_ms"]] = r
+    latencies = sorted({r["latency_ms"] for r in rows if "latency_ms" in r})
+    header = ["scene", "trace", "tracker", "prediction", "method", *(f"{ms:g} ms" for ms in latencies),
+              f"within {TOLERANCE_DB:g} dB up to"]  # fmt: skip
+    lines = []
+    for (scene, trace, tracker, prediction), methods in cells.items():
+        for label, by_latency in methods.items():
+            run = sorted(by_latency)
+            least = by_latency[run[0]]["psnr_fovea"]
+            within = [by_latency[ms]["psnr_fovea"] >= least - TOLERANCE_DB for ms in run]
+            held = run[within.index(False) - 1] if False in within else run[-1]
+            lines.append(
+                [
+                    scene,
+                    trace,
+                    tracker,
+                    prediction,
+                    label,
+                    *(_db(by_latency[ms]["psnr_fovea"]) if ms in by_latency else "-" for ms in latencies),
+                    f"{held:g} ms" if False in within else f"at least {held:g} ms",
+                ]  # fmt: skip
+            )
+    return _markdown(header, lines)
+
+
+SCORED = ("kim2021", "latency")  # the tables that show PSNR: their headings say in which space it was scored
 TABLES: dict[str, tuple[str, Callable[[list[Row]], str]]] = {
     "weier2016": ("weier2016 Table 1: ms per stage, full vs foveated (weier16, r0 10, r1 20, p_min 0.05)", weier2016),
     "kim2021": (
@@ -210,6 +246,7 @@ TABLES: dict[str, tuple[str, Callable[[list[Row]], str]]] = {
         smith2013,
     ),
     "weier2018": ("weier2018 Table 1: ms per stage, foveated vs full sampling, and samples", weier2018),
+    "latency": ("Foveal PSNR against the tracker's latency, scored at the true gaze", latency),
 }
 
 
