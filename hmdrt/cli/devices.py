@@ -113,7 +113,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
     convert = sub.add_parser("convert", help="convert a gaze trace to native JSONL or hmdrt CSV, or export it to BIDS")
     convert.add_argument(
-        "input", metavar="IN", help="a trace: .jsonl[.gz], EyeLink .asc, GazeBase, GazeBaseVR, Pupil Player or hmdrt .csv"
+        "input",
+        metavar="IN",
+        help="a trace: .jsonl[.gz], EyeLink .asc, GazeBase, GazeBaseVR, Pupil Player or hmdrt .csv",
     )
     convert.add_argument(
         "out", metavar="OUT", help="output: .jsonl[.gz] (native), .csv[.gz] (hmdrt CSV), NAME_physio.tsv.gz (BIDS)"
