@@ -332,10 +332,16 @@ EVAL_MEANINGS = {
     "`tobii-pro-spectrum`, `htc-vive-pro-eye`, `varjo-xr-3`, `fove-0`) or a table of `accuracy_deg`, "
     "`precision_deg` (RMS sample to sample), `rate_hz`, `loss_rate` (the fraction of samples lost) and `loss_ms` "
     "(each dropout's length); docs/trackers.md",
-    "traces.prediction": "`off`: the newest sample that has arrived; `default`: carried on to the photon time as "
-    "the compositor's SampleStore predicts with the run config's default `[prediction]`",
+    "traces.pose_latency_ms": "the method renders each frame from the head pose the head tracker reported this "
+    "long before the frame's photon time; the ground truths stay at the true pose",
+    "traces.pose_tracker": "what the head tracker gets wrong: a preset (`perfect`, `htc-vive`) or a table of "
+    "`position_mm` and `orientation_deg` (RMS sample to sample, white noise) and `rate_hz`; docs/trackers.md",
+    "traces.prediction": "of the gaze and the head pose alike: `off`: the newest sample that has arrived; "
+    "`default`: carried on to the photon time as the compositor's SampleStore predicts with the run config's "
+    "default `[prediction]`",
     "methods.name": 'a method, with options as in `"weier16?frc=small"`',
-    "methods.options": "fixed options",
+    "methods.options": "fixed options; a list is the value of an option of several values (kim21's alpha at its "
+    "six band edges: `alpha = [0.5, 0.5, 0.5, 0.5, 0.5, 0.5]`)",
     "methods.sweep": "option -> list of values; one cell per combination (at most 10 000 cells)",
     "methods.label": "names the cells in tables and plots; a sweep's cells add their values",
     "methods.scenes": "only on these of the config's scenes (`[]`: all)",

@@ -48,7 +48,7 @@ class Plan(NamedTuple):
     """What the client sends a group's task: its trace's frames (a recorded trace need be on the client only) and
     the views of the truths it is scored against, by cache key."""
 
-    frames: TraceFrames  # true and as the tracker shows them
+    frames: TraceFrames  # true and as the trackers show them
     truths: dict[str, View]
 
 

@@ -21,9 +21,11 @@ from hmdrt.files.configfile import convert, read_toml
 from hmdrt.foveation import MethodChoice
 from hmdrt.spatial import parse_gaze
 from hmdrt.tracking.model import Tracker
+from hmdrt.tracking.pose import PoseTracker, pose_tracker_named
 from hmdrt.tracking.presets import tracker_named
 
 Scalar = str | int | float | bool
+Option = Scalar | list[Scalar]  # a list: an option of several values (kim21's alpha at its six band edges)
 MAX_CELLS = 10_000  # method cells of one sweep: checked before any is built
 MAX_LISTED = 8  # labels an error message lists
 MAX_LATENCY_MS = 1000.0  # beyond a second a tracker is not driving a fovea
@@ -37,10 +39,12 @@ class Trace(_Table):
     """What the eye and head do: a fixed gaze with the head still, a recorded trace, or the built-in path
     (head sway with fixations and saccades). Exactly one of gaze, path, builtin.
 
-    The method sees the gaze as a tracker reports it (a preset name or a Tracker table: hmdrt.tracking), latency_ms
-    late, held or predicted as the compositor's SampleStore does (prediction "default": the run config's
-    [prediction] defaults); the scores follow the true gaze. The defaults, a perfect tracker without latency or
-    prediction, give the method the true gaze."""
+    The method sees the gaze as an eye tracker reports it (a preset name or a Tracker table: hmdrt.tracking.model)
+    latency_ms late, and the head pose as a head tracker reports it (a preset name or a PoseTracker table:
+    hmdrt.tracking.pose) pose_latency_ms late, both held or predicted as the compositor's SampleStore does
+    (prediction "default": the run config's [prediction] defaults); the scores follow the true gaze, against
+    truths rendered at the true pose. The defaults, perfect trackers without latency or prediction, give the
+    method the true gaze and pose."""
 
     name: str = ""
     gaze: str = ""  # "YAW,PITCH" in degrees
@@ -51,7 +55,9 @@ class Trace(_Table):
     group: str = ""
     latency_ms: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_LATENCY_MS)] = 0.0  # sample to photon
     tracker: str | Tracker = "perfect"
-    prediction: Literal["off", "default"] = "off"
+    pose_latency_ms: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_LATENCY_MS)] = 0.0  # sample to photon
+    pose_tracker: str | PoseTracker = "perfect"
+    prediction: Literal["off", "default"] = "off"  # the gaze's and the pose's alike, as in the compositor
 
     def __post_init__(self) -> None:
         if sum((bool(self.gaze), bool(self.path), self.builtin)) != 1:
@@ -63,20 +69,28 @@ class Trace(_Table):
                 raise ValueError(str(exc)) from None
         if isinstance(self.tracker, str):
             tracker_named(self.tracker)
+        if isinstance(self.pose_tracker, str):
+            pose_tracker_named(self.pose_tracker)
 
     @property
     def tracker_model(self) -> Tracker:
-        """The tracker: the preset named, or the table given."""
+        """The eye tracker: the preset named, or the table given."""
         return tracker_named(self.tracker) if isinstance(self.tracker, str) else self.tracker
 
     @property
+    def pose_tracker_model(self) -> PoseTracker:
+        """The head tracker: the preset named, or the table given."""
+        return pose_tracker_named(self.pose_tracker) if isinstance(self.pose_tracker, str) else self.pose_tracker
+
+    @property
     def tracker_label(self) -> str:
-        """The preset's name, or the table's fields that differ from a perfect tracker's ("perfect" if none)."""
-        if isinstance(self.tracker, str):
-            return self.tracker
-        perfect = Tracker()
-        fields = ((f, getattr(self.tracker, f)) for f in Tracker.__struct_fields__)
-        return "&".join(f"{f}={v:g}" for f, v in fields if v != getattr(perfect, f)) or "perfect"
+        """The eye tracker as rows and labels name it (_model_label)."""
+        return _model_label(self.tracker)
+
+    @property
+    def pose_tracker_label(self) -> str:
+        """The head tracker as rows and labels name it (_model_label)."""
+        return _model_label(self.pose_tracker)
 
     @property
     def source(self) -> str | None:
@@ -85,12 +99,14 @@ class Trace(_Table):
 
     @property
     def label(self) -> str:
-        """The name, else what the trace is, with its latency, tracker and prediction where not the defaults."""
+        """The name, else what the trace is, with its latency, tracker, pose latency and pose tracker ("pose 20 ms
+        htc-vive") and prediction where not the defaults."""
         if self.name:
             return self.name
         parts = [f"gaze {self.gaze}" if self.gaze else Path(self.path).stem if self.path else "builtin"]
-        parts += [f"{self.latency_ms:g} ms"] if self.latency_ms else []
-        parts += [self.tracker_label] if self.tracker_label != "perfect" else []
+        parts += _tracked(self.latency_ms, self.tracker_label)
+        if self.pose_latency_ms or self.pose_tracker_label != "perfect":
+            parts += ["pose", *_tracked(self.pose_latency_ms, self.pose_tracker_label)]
         parts += [f"prediction {self.prediction}"] if self.prediction != "off" else []
         return " ".join(parts)
 
@@ -101,6 +117,20 @@ class Trace(_Table):
     def named(self, names: list[str]) -> bool:
         """Whether `names` selects this trace, by its label or its group ([]: every trace)."""
         return not names or self.label in names or self.group_label in names
+
+
+def _model_label(model: str | Tracker | PoseTracker) -> str:
+    """A tracker preset's name, or a table's fields that differ from a perfect tracker's ("perfect" if none)."""
+    if isinstance(model, str):
+        return model
+    perfect = type(model)()
+    fields = ((f, getattr(model, f)) for f in model.__struct_fields__)
+    return "&".join(f"{f}={v:g}" for f, v in fields if v != getattr(perfect, f)) or "perfect"
+
+
+def _tracked(latency_ms: float, tracker: str) -> list[str]:
+    """A trace label's words for a latency and a tracker, each where not the default."""
+    return ([f"{latency_ms:g} ms"] if latency_ms else []) + ([tracker] if tracker != "perfect" else [])
 
 
 class Cell(NamedTuple):
@@ -118,8 +148,8 @@ class MethodSweep(_Table):
     them is compared with (a paper's baseline: kim2021 measures Sel_Fov against Selective), full by default."""
 
     name: str
-    options: dict[str, Scalar] = {}
-    sweep: dict[str, list[Scalar]] = {}
+    options: dict[str, Option] = {}
+    sweep: dict[str, list[Option]] = {}
     label: str = ""
     scenes: list[str] = []  # only on these of the config's scenes ([]: on all)
     traces: list[str] = []  # only on these of the config's traces, by label or group ([]: on all)
@@ -214,7 +244,7 @@ def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
     cache = str(base / config.cache_dir) if config.cache_dir else default_cache_dir()
     config.cells()  # every method choice parsed: a bad one fails here
     config.check_baselines()
-    check_rates(traces, path)  # a recording too slow for its tracker
+    check_rates(traces, path)  # a recording too slow for its trackers
     if config.jod:
         perceptual.require()
     return msgspec.structs.replace(config, traces=traces, cache_dir=cache, source=str(path))

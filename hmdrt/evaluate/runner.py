@@ -12,9 +12,11 @@ reused_pixels, ...) is averaged over the scored frames that report it into the r
 compared with a baseline cell (its compare_to, else full): speed-up and foveal PSNR delta. The rows say when, at
 which commit and on which machine they were rendered (provenance).
 
-A method renders each frame around the gaze its trace's tracker reported, late and predicted (hmdrt.evaluate.gaze;
-the true gaze itself by default); the scores follow the true gaze. The rows give the latency, the tracker, the gaze
-error at photon time over the scored frames, and the share of them whose error exceeds the method's foveal radius.
+A method renders each frame around the gaze its trace's eye tracker reported and from the head pose its head
+tracker reported, each late and predicted (hmdrt.evaluate.gaze; the true gaze and pose themselves by default); the
+scores follow the true gaze, against ground truths rendered at the true pose. The rows give the latencies, the
+trackers, the gaze and head orientation errors at photon time over the scored frames, and the share of them whose
+gaze error exceeds the method's foveal radius.
 """
 
 from __future__ import annotations
@@ -111,7 +113,7 @@ class Group:
     cells: list[_Cell]
     warmup: int
     inputs: list[FrameInput]
-    seen: list[FrameInput]  # inputs with the gaze the methods are given
+    seen: list[FrameInput]  # inputs with the gaze and pose the methods are given
 
 
 def evaluate(config: EvalConfig, progress: bool = True, saved: PartialResults | None = None) -> Evaluation:
@@ -149,7 +151,7 @@ def collect(
 
 
 def trace_frames(config: EvalConfig, scene: Scene, key: GroupKey) -> gaze.TraceFrames:
-    """A group's frames of its trace, true and as its tracker shows them, read here (where the group renders
+    """A group's frames of its trace, true and as its trackers show them, read here (where the group renders
     elsewhere, it is sent them)."""
     profile = profile_of(key.profile, config.resolution)
     trace = key.trace
@@ -186,8 +188,12 @@ def run_group(
     last, scored = _render(group, config, truth_of, tick or (lambda: None))
     jod = _jod(group.cells, scored, JodScorer(group.profile, config.eye)) if config.jod else {}
     seconds = round(time.perf_counter() - started, 3)
-    errors = gaze.gaze_errors_deg(group.inputs[group.warmup :], group.seen[group.warmup :], config.eye)
-    columns = gaze.gaze_columns(group.key.trace, errors)
+    true, seen = group.inputs[group.warmup :], group.seen[group.warmup :]
+    errors = gaze.gaze_errors_deg(true, seen, config.eye)
+    columns = {
+        **gaze.gaze_columns(group.key.trace, errors),
+        **gaze.pose_columns(group.key.trace, gaze.pose_errors_deg(true, seen)),
+    }
     rows = _rows(group.ids, group.cells, group.profile, group.warmup, config.score_space)
     rows = [
         {
@@ -237,8 +243,10 @@ def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dic
     last: dict = {}
     truths, gazes = [], []
     for inp, seen in zip(group.inputs, group.seen, strict=True):
-        request = _request(inp, group.profile, config)  # the true gaze: what the frame is scored around
-        shown = dataclasses.replace(request, gaze=seen.gaze[config.eye])  # the tracked gaze: what it is rendered for
+        request = _request(inp, group.profile, config)  # the true gaze and pose: what the frame is scored around
+        # the tracked gaze and pose: what it is rendered for
+        camera = eye_cameras(group.profile, seen.pose, (config.eye,))[config.eye]
+        shown = dataclasses.replace(request, camera=camera, gaze=seen.gaze[config.eye])
         scored = inp.frame >= group.warmup
         if scored:
             truth = truth_of(request.camera)

@@ -55,6 +55,10 @@ COLUMNS: dict[str, tuple[type, ...]] = {
     "gaze_error_p50_deg": NUMBER,
     "gaze_error_p95_deg": NUMBER,
     "gaze_outside_fovea": MAYBE_NUMBER,
+    "pose_latency_ms": NUMBER,
+    "pose_tracker": (str,),
+    "pose_error_p50_deg": NUMBER,
+    "pose_error_p95_deg": NUMBER,
     **{f"{score}_{band}": MAYBE_NUMBER for score in ("psnr", "ssim", "flicker") for band in (*BANDS, "image")},
 }
 

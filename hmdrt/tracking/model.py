@@ -11,7 +11,9 @@
   invalid; between dropouts the waits are exponential (a renewal process).
 
 A true gaze is a GazeSequence: timestamped unit directions per eye and a validity flag (blinks stay invalid).
-Tracker.report turns it into the reported sequence, deterministically for a seed.
+Tracker.report turns it into the reported sequence, deterministically for a seed. The sampling (Sampling), the
+noise's scale (white_noise) and the presets' look-up (preset_named) are the head tracker model's too
+(hmdrt.tracking.pose).
 """
 
 from __future__ import annotations
@@ -19,13 +21,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, TypeVar
 
 import msgspec
 import numpy as np
 
 RATE_SLACK = 0.01  # a tracker may sample up to 1% faster than the true sequence (clock jitter in a recording)
 FORWARD = (0.0, 0.0, -1.0)  # the direction an invalid sample holds: it means nothing
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -51,7 +54,61 @@ def sampling_rate_hz(t_ns: np.ndarray) -> float | None:
     return 1e9 / float(np.median(np.diff(t_ns)))
 
 
-class Tracker(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+class Sampling:
+    """What every tracker model does alike, eye or head: it samples a true sequence at rate_hz (inf: every true
+    sample; a field of the model), each of its samples the latest true sample at or before it (sample and hold),
+    and it may not sample faster than the truth it reports."""
+
+    __slots__ = ()
+    rate_hz: float
+
+    @property
+    def period_ns(self) -> int | None:
+        """The sampling period in whole nanoseconds (samples fall on its multiples); None at an infinite rate."""
+        return None if math.isinf(self.rate_hz) else round(1e9 / self.rate_hz)
+
+    def check_rate(self, truth_hz: float | None, what: str) -> None:
+        """ValueError where the tracker samples faster than `truth_hz`, the rate of `what` it reports: it would
+        repeat samples and show no motion between them."""
+        if truth_hz is not None and self.rate_hz > truth_hz * (1.0 + RATE_SLACK):
+            raise ValueError(
+                f"rate_hz {self.rate_hz:g} is faster than {what}, sampled at {truth_hz:.4g} Hz; "
+                f"allowed: a tracker of at most {truth_hz:.4g} Hz"
+            )
+
+    def sample(self, t_ns: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """The times of the tracker's samples of `what`, a true sequence sampled at t_ns, and the index of the true
+        sample each one reports: every true sample at an infinite rate, else the multiples of the period from the
+        first at or after t_ns[0] to t_ns[-1]. ValueError where the truth has no samples or is sampled slower."""
+        if len(t_ns) == 0:
+            raise ValueError(f"{what} has no samples")
+        period = self.period_ns
+        if period is None:
+            return t_ns, np.arange(len(t_ns))
+        self.check_rate(sampling_rate_hz(t_ns), what)
+        t = np.arange(-(-int(t_ns[0]) // period), int(t_ns[-1]) // period + 1, dtype=np.int64) * period
+        return t, np.searchsorted(t_ns, t, side="right") - 1
+
+
+def white_noise(rng: np.random.Generator, rms_s2s: float, shape: tuple[int, ...]) -> np.ndarray:
+    """Gaussian white noise of `shape` (samples first, the axes of one sample's error last) whose RMS
+    sample-to-sample distance is rms_s2s: a standard deviation of rms_s2s / sqrt(2 axes) on each axis, as the
+    difference of two independent samples has twice the variance of each."""
+    return rng.normal(0.0, rms_s2s / math.sqrt(2.0 * shape[-1]), size=shape)
+
+
+def preset_named(presets: dict[str, T], name: str, key: str, table: type) -> T:
+    """The preset of that name; ValueError naming `key`, the presets and the fields of a `table` for another."""
+    try:
+        return presets[name]
+    except KeyError:
+        raise ValueError(
+            f"{key} {name!r} is no preset; presets: {', '.join(presets)}, "
+            f"or a table of {', '.join(table.__struct_fields__)}"
+        ) from None
+
+
+class Tracker(msgspec.Struct, Sampling, frozen=True, forbid_unknown_fields=True):
     """An eye tracker's errors. The defaults are a perfect tracker: no offset, no noise, every true sample
     reported (rate_hz = inf), nothing lost."""
 
@@ -65,36 +122,14 @@ class Tracker(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         if self.loss_rate > 0.0 and self.loss_ms <= 0.0:
             raise ValueError(f"loss_rate {self.loss_rate:g} needs a dropout length: loss_ms > 0")
 
-    @property
-    def period_ns(self) -> int | None:
-        """The sampling period in whole nanoseconds (samples fall on its multiples); None at an infinite rate."""
-        return None if math.isinf(self.rate_hz) else round(1e9 / self.rate_hz)
-
-    def check_rate(self, truth_hz: float | None, what: str = "the true gaze") -> None:
-        """ValueError where the tracker samples faster than `truth_hz`, the rate of `what` it reports: it would
-        repeat samples and show no motion between them."""
-        if truth_hz is not None and self.rate_hz > truth_hz * (1.0 + RATE_SLACK):
-            raise ValueError(
-                f"rate_hz {self.rate_hz:g} is faster than {what}, sampled at {truth_hz:.4g} Hz; "
-                f"allowed: a tracker of at most {truth_hz:.4g} Hz"
-            )
-
     def report(self, truth: GazeSequence, seed: int | Sequence[int] = 0) -> GazeSequence:
         """What the tracker reports of `truth` (ValueError where it samples faster than truth): its samples from
         the first multiple of its period at or after truth's first sample to its last, each offset, noisy, and
         invalid where truth is or where a dropout falls. The same seed gives the same samples."""
-        if len(truth.t_ns) == 0:
-            raise ValueError("the true gaze has no samples")
-        period = self.period_ns
-        if period is None:
-            t, pick = truth.t_ns, np.arange(len(truth.t_ns))
-        else:
-            self.check_rate(truth.rate_hz)
-            t = np.arange(-(-int(truth.t_ns[0]) // period), int(truth.t_ns[-1]) // period + 1, dtype=np.int64) * period
-            pick = np.searchsorted(truth.t_ns, t, side="right") - 1
+        t, pick = self.sample(truth.t_ns, "the true gaze")
         rng = np.random.default_rng(seed)
         bias = math.radians(self.accuracy_deg) * _directions(rng.uniform(0.0, 2.0 * math.pi, size=2))  # (eye, 2)
-        noise = rng.normal(0.0, math.radians(self.precision_deg) / 2.0, size=(len(t), 2, 2))  # (sample, eye, 2)
+        noise = white_noise(rng, math.radians(self.precision_deg), (len(t), 2, 2))  # (sample, eye, 2)
         valid = truth.valid[pick] & ~self._lost(t, rng)
         left, right = (_deflect(d[pick], bias[e] + noise[:, e]) for e, d in enumerate((truth.left, truth.right)))
         left[~valid] = right[~valid] = FORWARD

@@ -15,7 +15,7 @@ Rifai 2021 (Healthcare 9(2) 180): the Vive Pro Eye's 58.1 ms.
 
 from __future__ import annotations
 
-from hmdrt.tracking.model import Tracker
+from hmdrt.tracking.model import Tracker, preset_named
 
 PRESETS: dict[str, Tracker] = {
     "perfect": Tracker(),
@@ -46,10 +46,4 @@ PRESETS: dict[str, Tracker] = {
 
 def tracker_named(name: str) -> Tracker:
     """The preset of that name; ValueError naming the presets for another."""
-    try:
-        return PRESETS[name]
-    except KeyError:
-        raise ValueError(
-            f"tracker {name!r} is no preset; presets: {', '.join(PRESETS)}, "
-            "or a table of accuracy_deg, precision_deg, rate_hz, loss_rate, loss_ms"
-        ) from None
+    return preset_named(PRESETS, name, "tracker", Tracker)
