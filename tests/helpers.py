@@ -3,6 +3,7 @@ until something holds."""
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import threading
@@ -17,6 +18,7 @@ from numpy.typing import ArrayLike
 
 from hmdrt.api import render_frame
 from hmdrt.bus.messages import Gaze
+from hmdrt.cli import main
 from hmdrt.clock import VirtualClock
 from hmdrt.drivers.base import DeviceLost, Driver, Sample
 from hmdrt.drivers.emulators.base import Emulator
@@ -155,3 +157,11 @@ class ScriptedFoveServer:
         self._done.set()
         self._thread.join(5.0)
         self._listener.close()
+
+
+def eval_results(folder: Path, name: str, config_text: str) -> dict:
+    """results.json of `hmdrt eval` on config_text, written as folder/NAME.toml and run into folder/NAME."""
+    config = folder / f"{name}.toml"
+    config.write_text(config_text)
+    assert main(["eval", str(config), "--out", str(folder / name), "--no-plots"]) == 0
+    return json.loads((folder / name / "results.json").read_text())

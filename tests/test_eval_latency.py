@@ -3,8 +3,6 @@ latency_ms late and held or predicted by the compositor's SampleStore, while the
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
@@ -18,7 +16,7 @@ from hmdrt.foveation import MethodChoice
 from hmdrt.replay.trace import write_trace
 from hmdrt.spatial import Pose, gaze_direction
 from hmdrt.views import sequence_inputs
-from tests.helpers import DATA
+from tests.helpers import DATA, eval_results
 
 RACCOONS = DATA / "traces" / "raccoons.asc"  # EyeLink 1000 Hz: a fixation, a 17 degree saccade, a blink
 START = Pose.looking((0.0, 0.0, 0.0), 0.0, 0.0)
@@ -53,10 +51,7 @@ options = {{ frc = "small" }}
 
 
 def run_eval(tmp_path, name: str, extra: str = "") -> list[dict]:
-    config = tmp_path / f"{name}.toml"
-    config.write_text(EVAL.format(extra=extra, raccoons=RACCOONS))
-    assert main(["eval", str(config), "--out", str(tmp_path / name), "--no-plots"]) == 0
-    return json.loads((tmp_path / name / "results.json").read_text())["rows"]
+    return eval_results(tmp_path, name, EVAL.format(extra=extra, raccoons=RACCOONS))["rows"]
 
 
 def test_no_latency_and_a_perfect_tracker_leave_every_image_column_as_without_the_keys(tmp_path):
@@ -81,10 +76,7 @@ def test_rows_carry_the_latency_the_tracker_and_the_gaze_error_at_photon_time(tm
     # a 10 degree step 50 ms in, seen 80 ms late: the frames at 67 and 100 ms (30 Hz) are rendered 10 degrees off
     step = write_gaze(tmp_path / "step.jsonl", lambda t: 10.0 if t >= 0.05 else 0.0, seconds=0.2)
     text = EVAL.replace("builtin = true", f'path = "{step}"').replace('path = "{raccoons}"', "builtin = true")
-    config = tmp_path / "late.toml"
-    config.write_text(text.format(extra='latency_ms = 80.0\ntracker = "pupil-core"\n'))
-    assert main(["eval", str(config), "--out", str(tmp_path / "late"), "--no-plots"]) == 0
-    rows = json.loads((tmp_path / "late" / "results.json").read_text())["rows"]
+    rows = eval_results(tmp_path, "late", text.format(extra='latency_ms = 80.0\ntracker = "pupil-core"\n'))["rows"]
     assert {r["trace"] for r in rows} == {"step 80 ms pupil-core", "builtin 80 ms pupil-core"}
     for r in rows:
         assert (r["latency_ms"], r["tracker"], r["prediction"]) == (80.0, "pupil-core", "off")

@@ -4,8 +4,6 @@ truths stay at the true pose."""
 
 from __future__ import annotations
 
-import json
-
 import msgspec
 import numpy as np
 import pytest
@@ -21,7 +19,7 @@ from hmdrt.replay.trace import Pose as PoseSample
 from hmdrt.replay.trace import write_trace
 from hmdrt.spatial import Pose, quat_from_yaw_pitch
 from hmdrt.views import sequence_inputs
-from tests.helpers import DATA
+from tests.helpers import DATA, eval_results
 
 CONFIGS = DATA.parents[1] / "configs" / "eval"
 SLOW_HEAD = CONFIGS / "traces" / "kim21_slow_head.jsonl"  # head yaw 2 deg/s, 250 Hz
@@ -57,10 +55,7 @@ options = {{ frc = "small" }}
 
 def run_eval(tmp_path, name: str, extra: str = "") -> tuple[list[dict], dict]:
     """The rows and the truth counts of EVAL with `extra` keys on each trace."""
-    config = tmp_path / f"{name}.toml"
-    config.write_text(EVAL.format(extra=extra))
-    assert main(["eval", str(config), "--out", str(tmp_path / name), "--no-plots"]) == 0
-    results = json.loads((tmp_path / name / "results.json").read_text())
+    results = eval_results(tmp_path, name, EVAL.format(extra=extra))
     return results["rows"], results["truth"]
 
 
