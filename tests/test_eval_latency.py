@@ -13,6 +13,7 @@ from hmdrt.evaluate import gaze
 from hmdrt.evaluate.config import Trace, load_eval_config
 from hmdrt.evaluate.results import image_columns
 from hmdrt.foveation import MethodChoice
+from hmdrt.replay.synthetic import minimum_jerk, saccade_duration_s
 from hmdrt.replay.trace import write_trace
 from hmdrt.spatial import Pose, gaze_direction
 from hmdrt.views import sequence_inputs
@@ -130,6 +131,36 @@ def test_a_gaze_step_is_missed_by_its_size_for_the_latency_after_it(tmp_path):
     assert errors[~late] == pytest.approx(np.zeros((~late).sum()), abs=1e-9)
 
 
+def test_saccade_prediction_lands_the_late_frames_of_a_saccade_nearer_than_extrapolation(tmp_path):
+    """With prediction "saccade" the store turns the gaze along the predicted flight once the predictor has one
+    (late in the saccade, hmdrt.tracking.saccade): those frames are nearer the true gaze than the default's
+    velocity extrapolation, which overshoots as the eye decelerates, and every other frame is the default's."""
+    amplitude, start_s = 15.0, 0.3
+    duration = saccade_duration_s(amplitude)
+    path = write_gaze(tmp_path / "saccade.jsonl", lambda t: amplitude * (minimum_jerk((t - start_s) / duration) - 0.5))
+    extrapolated, _ = errors_and_times(Trace(path=path, latency_ms=15.0, prediction="default"))
+    landed, _ = errors_and_times(Trace(path=path, latency_ms=15.0, prediction="saccade"))
+    differs = np.abs(landed - extrapolated) > 1e-9
+    assert differs.any() and np.all(landed[differs] < extrapolated[differs])
+    assert landed.sum() < extrapolated.sum() - 1.0  # degrees, over the frames in flight
+
+
+def test_a_trace_sweep_stands_for_one_trace_per_combination(tmp_path):
+    config = tmp_path / "sweep.toml"
+    config.write_text(
+        f'[[traces]]\npath = "{RACCOONS}"\ngroup = "raccoons"\ntracker = "pupil-core"\n'
+        'sweep = { latency_ms = [0, 50], prediction = ["off", "saccade"] }\n'
+    )
+    traces = load_eval_config(config).traces
+    assert [(t.latency_ms, t.prediction, t.tracker, t.group) for t in traces] == [
+        (0.0, "off", "pupil-core", "raccoons"),
+        (0.0, "saccade", "pupil-core", "raccoons"),
+        (50.0, "off", "pupil-core", "raccoons"),
+        (50.0, "saccade", "pupil-core", "raccoons"),
+    ]
+    assert [t.label for t in traces][-1] == "raccoons 50 ms pupil-core prediction saccade"
+
+
 def test_the_foveal_radius_is_the_first_knob_a_method_declares_foveal():
     radius = gaze.foveal_radius_deg
     assert radius(MethodChoice.parse("full")) is None and radius(MethodChoice.parse("regular")) is None
@@ -148,6 +179,9 @@ def test_the_foveal_radius_is_the_first_knob_a_method_declares_foveal():
         ("tracker = { loss_rate = 0.1 }", "loss_rate 0.1 needs a dropout length: loss_ms > 0"),
         ('tracker = "tobii"', "tracker 'tobii' is no preset; presets: perfect, eyelink-1000-plus, pupil-core"),
         ('prediction = "kalman"', "Invalid enum value 'kalman' - at `$.traces[0].prediction`"),
+        ("sweep = { latency_ms = [0, -5] }", "sweep latency_ms -5: Expected `float` >= 0.0 - at `$.traces[0]`"),
+        ('sweep = { tracker = ["tobii"] }', "sweep tracker 'tobii': tracker 'tobii' is no preset; presets: perfect"),
+        ("sweep = { seed = [1, 2] }", "Invalid enum value 'seed' - at `key` in `$.traces[0].sweep`"),
         (
             "tracker = { rate_hz = 2000 }",
             "traces[0].tracker (rate_hz=2000): rate_hz 2000 is faster than the recording raccoons.asc, sampled at "

@@ -231,9 +231,9 @@ def test_the_stamp_names_this_checkouts_commit_and_this_machine(monkeypatch):
         provenance.commit.cache_clear()
 
 
-def _latency_row(label: str, ms: float, fovea_db: float) -> dict:
+def _latency_row(label: str, ms: float, fovea_db: float, **more) -> dict:
     return {"scene": "whitted", "trace_group": "raccoons", "tracker": "htc-vive-pro-eye", "prediction": "off",
-            "label": label, "latency_ms": ms, "psnr_fovea": fovea_db}  # fmt: skip
+            "label": label, "latency_ms": ms, "psnr_fovea": fovea_db, **more}  # fmt: skip
 
 
 def test_the_latency_table_gives_the_longest_latency_within_1_db_of_the_methods_own_at_the_least():
@@ -248,3 +248,17 @@ def test_the_latency_table_gives_the_longest_latency_within_1_db_of_the_methods_
     assert lines["kim21"][5:] == ["40.00", "39.50", "39.10", "38.50", "35.00", "50 ms"]
     assert lines["rrm"][-1] == "0 ms"
     assert lines["full"][-1] == "at least 150 ms"
+
+
+def test_the_latency_table_bounds_jod_where_scored_and_keeps_head_trackers_apart():
+    """With JOD in the rows a second bound column: the longest latency within 0.5 JOD. Rows that differ in their
+    head tracker or pose latency are separate lines, the head named in the tracker cell."""
+    jods = [(0, 9.0), (20, 8.8), (50, 8.4), (80, 8.0)]
+    rows = [_latency_row("kim21", ms, 40.0, jod=j) for ms, j in jods]
+    rows += [_latency_row("kim21", ms, 40.0 - ms / 20, jod=9.0, pose_tracker="htc-vive", pose_latency_ms=20.0)
+             for ms, _ in jods]  # fmt: skip
+    table = latency(rows)
+    assert table.splitlines()[0].endswith("| within 1 dB up to | within 0.5 JOD up to |")
+    lines = {line[2]: line for line in _lines(table)}
+    assert lines["htc-vive-pro-eye"][-2:] == ["at least 80 ms", "20 ms"]
+    assert lines["htc-vive-pro-eye; head htc-vive 20 ms"][-2:] == ["20 ms", "at least 80 ms"]

@@ -338,7 +338,10 @@ EVAL_MEANINGS = {
     "`position_mm` and `orientation_deg` (RMS sample to sample, white noise) and `rate_hz`; docs/trackers.md",
     "traces.prediction": "of the gaze and the head pose alike: `off`: the newest sample that has arrived; "
     "`default`: carried on to the photon time as the compositor's SampleStore predicts with the run config's "
-    "default `[prediction]`",
+    "default `[prediction]`; `saccade`: that, and along a predicted saccade's flight to its landing point, as with "
+    "`[gaze] saccade_prediction`",
+    "traces.sweep": "several values of `latency_ms`, `tracker`, `pose_latency_ms`, `pose_tracker` or `prediction`: "
+    "the entry stands for one trace per combination (`[traces.sweep]`, `latency_ms = [0, 20, 50]`)",
     "methods.name": 'a method, with options as in `"weier16?frc=small"`',
     "methods.options": "fixed options; a list is the value of an option of several values (kim21's alpha at its "
     "six band edges: `alpha = [0.5, 0.5, 0.5, 0.5, 0.5, 0.5]`)",

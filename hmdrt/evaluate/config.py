@@ -42,9 +42,11 @@ class Trace(_Table):
     The method sees the gaze as an eye tracker reports it (a preset name or a Tracker table: hmdrt.tracking.model)
     latency_ms late, and the head pose as a head tracker reports it (a preset name or a PoseTracker table:
     hmdrt.tracking.pose) pose_latency_ms late, both held or predicted as the compositor's SampleStore does
-    (prediction "default": the run config's [prediction] defaults); the scores follow the true gaze, against
+    (prediction "default": the run config's [prediction] defaults; "saccade": those and [gaze] saccade_prediction,
+    hmdrt.tracking.saccade); the scores follow the true gaze, against
     truths rendered at the true pose. The defaults, perfect trackers without latency or prediction, give the
-    method the true gaze and pose."""
+    method the true gaze and pose. A sweep gives some of those keys several values: the entry stands for one trace
+    per combination (the latency table's 0-150 ms with two trackers and three predictions is one entry)."""
 
     name: str = ""
     gaze: str = ""  # "YAW,PITCH" in degrees
@@ -57,9 +59,15 @@ class Trace(_Table):
     tracker: str | Tracker = "perfect"
     pose_latency_ms: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_LATENCY_MS)] = 0.0  # sample to photon
     pose_tracker: str | PoseTracker = "perfect"
-    prediction: Literal["off", "default"] = "off"  # the gaze's and the pose's alike, as in the compositor
+    prediction: Literal["off", "default", "saccade"] = "off"  # the gaze's and the pose's alike, as in the compositor
+    sweep: dict[Literal["latency_ms", "tracker", "pose_latency_ms", "pose_tracker", "prediction"], list[Scalar]] = {}
 
     def __post_init__(self) -> None:
+        if self.sweep:
+            count = math.prod(len(values) for values in self.sweep.values())
+            if count > MAX_CELLS:
+                raise ValueError(f"its sweep makes {count} traces, more than {MAX_CELLS}")
+            self.expanded()  # every combination valid: a bad value fails here, naming the key
         if sum((bool(self.gaze), bool(self.path), self.builtin)) != 1:
             raise ValueError("a trace needs exactly one of gaze, path or builtin = true")
         if self.gaze:
@@ -71,6 +79,22 @@ class Trace(_Table):
             tracker_named(self.tracker)
         if isinstance(self.pose_tracker, str):
             pose_tracker_named(self.pose_tracker)
+
+    def expanded(self) -> list[Trace]:
+        """The traces this entry stands for: itself, or one per combination of its sweep's values (a swept key
+        overrides the entry's own); a ValueError naming the key and value for a value the key does not take."""
+        if not self.sweep:
+            return [self]
+        fields = {k: v for k, v in msgspec.structs.asdict(self).items() if k != "sweep"}
+        for key, values in self.sweep.items():
+            for value in values:
+                try:
+                    msgspec.convert({**fields, key: value}, Trace)
+                except msgspec.ValidationError as exc:
+                    raise ValueError(f"sweep {key} {value!r}: {str(exc).partition(' - at ')[0]}") from None
+        keys = list(self.sweep)
+        combos = itertools.product(*(self.sweep[k] for k in keys))
+        return [msgspec.convert({**fields, **dict(zip(keys, combo, strict=True))}, Trace) for combo in combos]
 
     @property
     def tracker_model(self) -> Tracker:
@@ -197,6 +221,7 @@ class EvalConfig(_Table):
     source: str = ""
 
     def __post_init__(self) -> None:
+        msgspec.structs.force_setattr(self, "traces", [t for entry in self.traces for t in entry.expanded()])
         if self.warmup_frames >= self.frames:
             raise ValueError(f"warmup_frames ({self.warmup_frames}) must be fewer than frames ({self.frames})")
         if not (self.scenes and self.profiles and self.traces and self.methods):

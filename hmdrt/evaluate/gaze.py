@@ -9,9 +9,11 @@ at its period the built-in path's head sway or a still head (a fixed gaze, or a 
 gaze sample reaches the compositor's SampleStore latency_ms after it was taken, each pose sample pose_latency_ms
 after, and the store estimates both at the photon time from what has arrived: the newest usable sample
 (prediction "off", a horizon of 0) or that sample carried on at its fitted velocity up to the compositor's default
-horizon (prediction "default", the run config's [prediction]). Before the trace starts the eye and head rest as at
-its first frame, as the held warm-up frames show them, so the trackers have a history by the first frame; where
-no usable gaze has arrived yet, the method is given the view's centre (where the compositor's fallback ends up).
+horizon (prediction "default", the run config's [prediction]), turning along a predicted saccade's flight to its
+landing point where the saccade predictor has one (prediction "saccade", as with [gaze] saccade_prediction).
+Before the trace starts the eye and head rest as at its first frame, as the held warm-up frames show them, so the
+trackers have a history by the first frame; where no usable gaze has arrived yet, the method is given the view's
+centre (where the compositor's fallback ends up).
 """
 
 from __future__ import annotations
@@ -42,7 +44,8 @@ if TYPE_CHECKING:
 
 LEAD_NS = 1_000_000_000  # the trackers run this long (and their latency) before the trace, eye and head at rest
 DEVICE = "tracker"
-HORIZONS_NS = {"off": 0, "default": round(Prediction().horizon_ms * 1e6)}
+HORIZON_NS = round(Prediction().horizon_ms * 1e6)
+HORIZONS_NS = {"off": 0, "default": HORIZON_NS, "saccade": HORIZON_NS}
 CENTRE = np.array(gaze_direction(0.0, 0.0))
 POSE_STREAM = 1  # the head tracker's errors come from a random stream of their own, apart from the eye tracker's
 
@@ -74,7 +77,7 @@ def seen_frames(trace: Trace, frames: list[FrameInput], start: Pose, seed: int) 
         ],
         key=lambda arrival: arrival[0],
     )
-    store = SampleStore(horizon_ns=HORIZONS_NS[trace.prediction])
+    store = SampleStore(horizon_ns=HORIZONS_NS[trace.prediction], saccades=trace.prediction == "saccade")
     seen, k = [], 0
     for inp in frames:
         photon = inp.t_ns - frames[0].t_ns

@@ -196,28 +196,28 @@ def weier2018(rows: list[Row]) -> str:
     return _markdown(header, lines)
 
 
-TOLERANCE_DB = 1.0  # the latency table's bound: foveal PSNR within this of the method's own at the least latency
+TOLERANCE_DB = 1.0  # the latency table's bounds: foveal PSNR within this of the method's own at the least latency,
+TOLERANCE_JOD = 0.5  # and its JOD (where scored) within this
 
 
 def latency(rows: list[Row]) -> str:
-    """Foveal PSNR (scored at the true gaze) against the tracker's latency, per scene, trace group, tracker and
-    prediction, and the longest latency up to which the foveal PSNR stays within TOLERANCE_DB of the method's own
-    at the least latency ("at least" where it holds at every latency run) (configs/eval/latency.toml)."""
+    """Foveal PSNR (scored at the true gaze) against the eye tracker's latency, per scene, trace group, trackers
+    (eye, and head where one is modelled) and prediction, and the longest latency up to which the foveal PSNR stays
+    within TOLERANCE_DB of the method's own at the least latency ("at least" where it holds at every latency run);
+    where the rows have JOD, the same for JOD within TOLERANCE_JOD (configs/eval/latency.toml)."""
     cells: dict[tuple, dict[str, dict[float, Row]]] = {}
     for r in rows:
         if "latency_ms" in r:
-            key = (r["scene"], r["trace_group"], r["tracker"], r["prediction"])
+            key = (r["scene"], r["trace_group"], _trackers(r), r["prediction"])
             cells.setdefault(key, {}).setdefault(r["label"], {})[r["latency_ms"]] = r
     latencies = sorted({r["latency_ms"] for r in rows if "latency_ms" in r})
-    header = ["scene", "trace", "tracker", "prediction", "method", *(f"{ms:g} ms" for ms in latencies),
-              f"within {TOLERANCE_DB:g} dB up to"]  # fmt: skip
+    jod = any("jod" in r for r in rows)
+    bounds = [f"within {TOLERANCE_DB:g} dB up to", *([f"within {TOLERANCE_JOD:g} JOD up to"] if jod else [])]
+    header = ["scene", "trace", "tracker", "prediction", "method", *(f"{ms:g} ms" for ms in latencies), *bounds]
     lines = []
     for (scene, trace, tracker, prediction), methods in cells.items():
         for label, by_latency in methods.items():
-            run = sorted(by_latency)
-            least = by_latency[run[0]]["psnr_fovea"]
-            within = [by_latency[ms]["psnr_fovea"] >= least - TOLERANCE_DB for ms in run]
-            held = run[within.index(False) - 1] if False in within else run[-1]
+            held = [_held(by_latency, "psnr_fovea", TOLERANCE_DB)] + ([_held(by_latency, "jod", TOLERANCE_JOD)] * jod)
             lines.append(
                 [
                     scene,
@@ -226,10 +226,29 @@ def latency(rows: list[Row]) -> str:
                     prediction,
                     label,
                     *(_db(by_latency[ms]["psnr_fovea"]) if ms in by_latency else "-" for ms in latencies),
-                    f"{held:g} ms" if False in within else f"at least {held:g} ms",
+                    *held,
                 ]  # fmt: skip
             )
     return _markdown(header, lines)
+
+
+def _trackers(r: Row) -> str:
+    """The latency table's tracker cell: the eye tracker, and the head tracker and its latency where modelled."""
+    pose = [r.get("pose_tracker", "perfect"), f"{r['pose_latency_ms']:g} ms" if r.get("pose_latency_ms") else ""]
+    return r["tracker"] + (f"; head {' '.join(p for p in pose if p)}" if pose != ["perfect", ""] else "")
+
+
+def _held(by_latency: dict[float, Row], column: str, tolerance: float) -> str:
+    """The longest latency up to which `column` stays within `tolerance` of its value at the least latency, from
+    the least up without a gap ("at least" where it holds at every latency run; "-" where a row lacks it)."""
+    run = sorted(by_latency)
+    if any(column not in by_latency[ms] for ms in run):
+        return "-"
+    least = by_latency[run[0]][column]
+    within = [by_latency[ms][column] >= least - tolerance for ms in run]
+    if False in within:
+        return f"{run[within.index(False) - 1]:g} ms"
+    return f"at least {run[-1]:g} ms"
 
 
 SCORED = ("kim2021", "latency")  # the tables that show PSNR: their headings say in which space it was scored
