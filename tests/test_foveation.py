@@ -358,6 +358,7 @@ def test_bad_method_options_are_refused(spec, message):
         ("rrm?group_w=2&fovea_deg=8", "rrm?fovea_deg=8.0&group_w=2"),  # field order, typed values
         ("weier16?frc=small&post=false", "weier16?frc=small&post=false"),
         ("regular?spp=4", "regular?spp=4"),
+        ("kim21?alpha=0.5,0.5,0.5,0.5,0.5,0.4", "kim21?alpha=0.5,0.5,0.5,0.5,0.5,0.4"),  # a list: its values
     ],
 )
 def test_a_method_choice_is_parsed_once_and_written_back_as_it_reads(spec, written):

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from urllib.parse import parse_qsl
 
 import msgspec
+import msgspec.inspect
 
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import FrameRequest, Method
@@ -24,7 +25,20 @@ __all__ = ["METHODS", "FrameRequest", "Method", "MethodChoice", "make_method"]
 
 
 def _text(value) -> str:
+    """An option's value as a spec writes it: true/false, a list's values joined by commas."""
+    if isinstance(value, (list, tuple)):
+        return ",".join(_text(v) for v in value)
     return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def _split_lists(fields: dict, params_type: type[msgspec.Struct]) -> dict:
+    """The fields with each string given to a list-valued option split at its commas, as _text writes lists."""
+    listed = {
+        f.name
+        for f in msgspec.inspect.type_info(params_type).fields
+        if isinstance(f.type, (msgspec.inspect.ListType, msgspec.inspect.TupleType, msgspec.inspect.VarTupleType))
+    }
+    return {k: v.split(",") if k in listed and isinstance(v, str) else v for k, v in fields.items()}
 
 
 @dataclass(frozen=True)
@@ -52,7 +66,7 @@ class MethodChoice:
             raise ConfigError(f"unknown method {name!r}; methods: {', '.join(METHODS)}")
         params_type = METHODS[name].Params
         try:
-            return cls(name, msgspec.convert(fields, params_type, strict=False))
+            return cls(name, msgspec.convert(_split_lists(fields, params_type), params_type, strict=False))
         except msgspec.ValidationError as exc:
             names = ", ".join(params_type.__struct_fields__) or "none"
             raise ConfigError(f"method {name!r}: {exc} (options: {names})") from None
