@@ -4,16 +4,35 @@ context, the runtime folder and the compositors come from hmdrt's pytest plugin 
 
 from __future__ import annotations
 
+import logging
 import signal
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 import zmq
 
+from hmdrt.api import render_frame
+from hmdrt.foveation import METHODS
 from hmdrt.scene import Scene, load_scene
 
+log = logging.getLogger(__name__)
+
 TEST_TIMEOUT_S = 300  # the slowest default test takes ~15 s on a cold cache; the soak (-m slow) ~100 s
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Compile (or load from numba's cache) every method's kernels before the first test, in each process that runs
+    tests, so that --durations blames each test for its own time and not for the compiles it happened to do first
+    (on a cold cache about 3 minutes, 1-2 s warm)."""
+    if getattr(session.config.option, "numprocesses", None) and not hasattr(session.config, "workerinput"):
+        return  # the xdist controller runs no tests
+    started = time.perf_counter()
+    scene = load_scene("whitted")
+    for name in METHODS:
+        render_frame(scene, "sim-cpu", name, resolution=(32, 36), threads=1)
+    log.info("kernels ready in %.1f s", time.perf_counter() - started)
 
 
 @pytest.fixture(scope="session")
