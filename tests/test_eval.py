@@ -15,6 +15,7 @@ import pytest
 
 from hmdrt.cli import main
 from hmdrt.errors import ConfigError
+from hmdrt.evaluate import results
 from hmdrt.evaluate.config import MethodSweep, load_eval_config
 from hmdrt.evaluate.quality import BANDS
 from hmdrt.foveation import MethodChoice
@@ -268,8 +269,49 @@ def test_full_and_regular_skip_the_warm_up_frames(tmp_path, render_calls):
     from hmdrt.evaluate import runner
 
     runner.evaluate(load, progress=False)
-    assert render_calls["full"] == 2 * 2  # two traces x the two timed frames
-    assert render_calls["rrm?fovea_deg=5.0&group_w=1&group_h=1"] == 2 * 5
+    assert render_calls["full"] == 3 * 2 * 2  # three timing rounds x two traces x the two timed frames
+    assert render_calls["rrm?fovea_deg=5.0&group_w=1&group_h=1"] == 3 * 2 * 5
+
+
+def test_timing_rounds_measure_each_cell_afresh_and_a_noisy_speed_up_is_marked_and_left_out(tmp_path, monkeypatch):
+    """Each timing round renders the warm-up and the timed frames from a fresh method; ms_per_frame is the median
+    of the rounds' means, so one slow round moves it little, but the speed-up's spread over the rounds shows it:
+    above 15% the cell is marked noisy, and the summary leaves it out of its best cells and says so."""
+    from hmdrt.evaluate import runner
+
+    made: list[str] = []
+    real = MethodChoice.make
+    slow_round = 2  # the third round of an rrm cell
+
+    def making(choice, tracer):
+        method = real(choice, tracer)
+        made.append(str(choice))
+        if str(choice) == "rrm?fovea_deg=20.0&group_w=1&group_h=1" and made.count(str(choice)) == slow_round + 1:
+            render = method.render
+
+            def slow(request, stats):
+                time.sleep(0.2)
+                return render(request, stats)
+
+            method.render = slow
+        return method
+
+    monkeypatch.setattr(MethodChoice, "make", making)
+    config = tmp_path / "e.toml"
+    config.write_text(EVAL.replace('[[traces]]\nname = "path"\nbuiltin = true\n', ""))
+    evaluation = runner.evaluate(load_eval_config(config), progress=False)
+    assert made.count("full") == 3  # the scored round's method, then two fresh ones
+    rows = {r["label"]: r for r in evaluation.rows}
+    slowed, steady = rows["rrm?fovea_deg=20.0&group_w=1&group_h=1"], rows["full"]
+    assert slowed["timing_rounds"] == 3 and slowed["speedup_spread"] > 0.5 and slowed["timing_noisy"]
+    assert slowed["ms_per_frame"] < 200.0  # the median round: the slow one moved the speed-up's spread, not it
+    assert steady["speedup_spread"] == 0.0 and not steady["timing_noisy"]  # full against itself
+    assert all(r["cpu_ms_per_frame"] > 0 for r in evaluation.rows)
+    [summary] = evaluation.summary
+    assert "rrm?fovea_deg=20.0&group_w=1&group_h=1" in summary["noisy"]
+    assert summary["best"] != "rrm?fovea_deg=20.0&group_w=1&group_h=1"
+    [line] = [line for line in results.table(evaluation).splitlines() if "left out, their speed-ups noisy:" in line]
+    assert "rrm?fovea_deg=20.0&group_w=1&group_h=1" in line.partition("noisy:")[2]
 
 
 @pytest.mark.parametrize("path", sorted((DATA.parents[1] / "configs" / "eval").glob("*.toml")), ids=lambda p: p.name)
@@ -382,7 +424,8 @@ def test_each_method_warms_up_for_the_history_it_declares_and_is_compared_with_i
     # rrm's N = 2 x 2 frames refresh its whole buffer: the warm-up grows from 1 to 4 frames, full skips it
     assert (full["warmup_frames"], rrm["warmup_frames"], small["warmup_frames"]) == (0, 4, 4)
     cells = ("full", "rrm?group_w=2&group_h=2", "rrm?fovea_deg=5.0&group_w=2&group_h=2")
-    assert [render_calls[c] for c in cells] == [2, 4 + 2, 4 + 2]  # the truth's regular renders apart
+    # the truth's regular renders apart, in each of the three timing rounds
+    assert [render_calls[c] for c in cells] == [3 * 2, 3 * (4 + 2), 3 * (4 + 2)]
     assert all(r["frames"] == 2 for r in result["rows"])
     assert rrm["psnr_image"] == pytest.approx(full["psnr_image"], abs=1e-6)  # no pixel left black
     assert small["baseline"] == "rrm" and rrm["baseline"] == "full"

@@ -16,6 +16,7 @@ import msgspec
 from hmdrt.errors import ConfigError
 from hmdrt.evaluate import perceptual
 from hmdrt.evaluate.gaze import check_rates
+from hmdrt.evaluate.groups import check_work
 from hmdrt.evaluate.quality import ScoreSpace
 from hmdrt.files.configfile import convert, read_toml
 from hmdrt.foveation import MethodChoice
@@ -208,6 +209,8 @@ class EvalConfig(_Table):
     eye: Literal["left", "right"] = "left"
     frames: Annotated[int, msgspec.Meta(ge=1, le=100_000)] = 8  # per cell
     warmup_frames: Annotated[int, msgspec.Meta(ge=0, le=100_000)] = 2  # rendered, neither timed nor scored
+    # the frames rendered again this many times in all, from fresh methods, for their times (hmdrt.evaluate.runner)
+    timing_rounds: Annotated[int, msgspec.Meta(ge=1, le=100)] = 3
     truth_spp: Annotated[int, msgspec.Meta(ge=1, le=1024)] = 36  # the ground truth: regular at this many spp
     seed: int = 0
     threads: Annotated[int, msgspec.Meta(ge=0, le=256)] = 0  # tracing threads (0: all cores)
@@ -261,6 +264,7 @@ def load_eval_config(path: str | Path, **overrides) -> EvalConfig:
     data = read_toml(path)
     data.update({k: v for k, v in overrides.items() if v is not None})
     config = convert(data, EvalConfig, path)
+    check_work(config)  # sizes that cannot fit, before anything is built
     base = Path(path).resolve().parent
     traces = [
         msgspec.structs.replace(t, path=str(base / t.path)) if t.path and not Path(t.path).is_absolute() else t

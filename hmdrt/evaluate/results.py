@@ -63,14 +63,14 @@ def table(evaluation: Evaluation) -> str:
     """The rows as a plain-text table, then each group's best foveated setting against each baseline."""
     bands = ("fovea", "image")
     lines = [
-        f"{'scene':12s} {'profile':8s} {'trace':14s} {'method':40s} {'ms':>8s} {'vs':12s} {'x':>7s} {'rays':>10s} "
-        + " ".join(f"{b[:6] + ' dB':>9s}" for b in bands)
-        + " pareto"
+        f"{'scene':12s} {'profile':8s} {'trace':14s} {'method':40s} {'ms':>8s} {'vs':12s} {'x':>7s} {'spread':>11s} "
+        f"{'rays':>10s} " + " ".join(f"{b[:6] + ' dB':>9s}" for b in bands) + " pareto"
     ]
     for r in evaluation.rows:
         lines.append(
             f"{r['scene'][:12]:12s} {r['profile'][:8]:8s} {r['trace'][:14]:14s} {r['label'][:40]:40s} "
             f"{r['ms_per_frame']:8.1f} {(r['baseline'] or '-')[:12]:12s} {_cell(r['speedup_vs_baseline'], '7.2f'):>7s} "
+            f"{_spread(r):>11s} "
             f"{r['rays_per_frame']:10,d} "
             + " ".join(f"{_cell(r[f'psnr_{b}'], '9.2f'):>9s}" for b in bands)
             + ("  *" if r["pareto"] else "")
@@ -85,15 +85,24 @@ def table(evaluation: Evaluation) -> str:
     return "\n".join(lines)
 
 
+def _spread(r: dict) -> str:
+    """The speed-up's round-to-round spread (as a percentage of it), marked where noisy; "-" with one round."""
+    if r["speedup_spread"] is None:
+        return "-"
+    return f"{r['speedup_spread']:.0%}" + (" noisy" if r["timing_noisy"] else "")
+
+
 def _summary_line(s: dict) -> str:
-    """One summary entry in words: the best foveated cell against its baseline, or why there is none."""
+    """One summary entry in words: the best foveated cell against its baseline, or why there is none, and which
+    cells were left out for noisy timings."""
     where = f"{s['scene']} at {s['profile']}, {s['trace']}"
+    noisy = f" (left out, their speed-ups noisy: {', '.join(s['noisy'])})" if s.get("noisy") else ""
     if s["baseline"] is None:
         return f"{where}: no full cell to compare with"
     if s["best"] is None:
-        return f"{where}: no foveated setting compared with {s['baseline']} reaches its foveal PSNR"
+        return f"{where}: no foveated setting compared with {s['baseline']} reaches its foveal PSNR{noisy}"
     return (
         f"{where}: best foveated {s['best']} runs {s['best_speedup']:.2f}x as fast as {s['baseline']} with foveal PSNR "
         f"{s['best_psnr_fovea']:.2f} dB ({s['baseline']} {s['baseline_psnr_fovea']:.2f} dB, "
-        f"{_cell(s['best_psnr_fovea_delta'], '+.2f')} dB)"
+        f"{_cell(s['best_psnr_fovea_delta'], '+.2f')} dB){noisy}"
     )

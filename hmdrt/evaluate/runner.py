@@ -1,22 +1,26 @@
-"""Error against run time: every cell of an eval config (scene x profile x trace x method setting) rendered in
-virtual time, timed per frame, and scored per eccentricity band against the cached ground truth.
+"""Error against run time: every cell of an eval config (scene x profile x trace x method setting) rendered in virtual
+time, timed per frame, and scored per eccentricity band against the cached ground truth.
 
-Within a scene, profile and trace the methods render frame by frame in turn, so that load on a shared machine
-hits every method alike. Warm-up frames come first, rendered but neither timed nor scored: the trace's first
-warmup_frames frames, and where a method of the group declares a longer history (Method.warmup_frames: RRM's
-refresh cycle) as many more frames before them holding the trace's first frame, so that no method is scored
-before its images are steady and every group scores the same frames of the trace; methods without history
-(warmup_frames 0: full, regular) skip them. The trace's frames after its first warmup_frames follow, timed and
-scored; ms_per_frame is their median. Each number a method reports per frame (FrameStats.metrics: sample_fraction,
-reused_pixels, ...) is averaged over the scored frames that report it into the row's metrics. Each cell is
-compared with a baseline cell (its compare_to, else full): speed-up and foveal PSNR delta. The rows say when, at
-which commit and on which machine they were rendered (provenance).
+Within a scene, profile and trace the methods render frame by frame in turn, so that load on a shared machine hits
+every method alike. Warm-up frames come first, rendered but neither timed nor scored: the trace's first
+warmup_frames frames, and where a method of the group declares a longer history (Method.warmup_frames: RRM's refresh
+cycle) as many more frames before them holding the trace's first frame, so that no method is scored before its
+images are steady and every group scores the same frames of the trace; methods without history (warmup_frames 0:
+full, regular) skip them. The trace's frames after its first warmup_frames follow, timed and scored. Timing rounds
+repeat that from fresh method instances, timed and not scored (timing_rounds, the first round being the scored one):
+ms_per_frame is the median over the rounds of each round's mean (a mean over the frames, so that a frame shorter
+than the scheduler's time slice counts its share of preemption rather than all or none of it), cpu_ms_per_frame the
+same of the process's CPU time, and a speed-up whose round-by-round ratios spread by more than NOISY_SPREAD of their
+median is marked noisy and left out of the summary's best cells. Each number a method reports per frame
+(FrameStats.metrics: sample_fraction, reused_pixels, ...) is averaged over the scored frames that report it into the
+row's metrics. Each cell is compared with a baseline cell (its compare_to, else full): speed-up and foveal PSNR
+delta. The rows say when, at which commit and on which machine they were rendered (provenance).
 
-A method renders each frame around the gaze its trace's eye tracker reported and from the head pose its head
-tracker reported, each late and predicted (hmdrt.evaluate.gaze; the true gaze and pose themselves by default); the
-scores follow the true gaze, against ground truths rendered at the true pose. The rows give the latencies, the
-trackers, the gaze and head orientation errors at photon time over the scored frames, and the share of them whose
-gaze error exceeds the method's foveal radius.
+A method renders each frame around the gaze its trace's eye tracker reported and from the head pose its head tracker
+reported, each late and predicted (hmdrt.evaluate.gaze; the true gaze and pose themselves by default); the scores
+follow the true gaze, against ground truths rendered at the true pose. The rows give the latencies, the trackers,
+the gaze and head orientation errors at photon time over the scored frames, and the share of them whose gaze error
+exceeds the method's foveal radius.
 """
 
 from __future__ import annotations
@@ -54,6 +58,7 @@ from hmdrt.trace.integrator import Whitted
 from hmdrt.views import FrameInput, eye_cameras, frame_requests, sequence_inputs
 
 REFERENCES = ("full", "regular")  # not foveated: never the "best foveated" cell of the summary
+NOISY_SPREAD = 0.15  # a speed-up whose per-round ratios range over more than this of their median is noisy
 log = logging.getLogger(__name__)
 
 
@@ -64,7 +69,8 @@ class _Cell:
     compare_to: str  # the label of the baseline cell ("": full)
     method: Method
     scores: BandScores
-    ms: list[float] = field(default_factory=list)
+    ms: list[list[float]] = field(default_factory=list)  # per timing round, each timed frame's wall ms
+    cpu_ms: list[list[float]] = field(default_factory=list)  # and the process's CPU ms
     rays: list[int] = field(default_factory=list)
     fractions: list[float] = field(default_factory=list)
     metrics: dict[str, list[float]] = field(default_factory=dict)  # each metric's finite values, frame by frame
@@ -109,6 +115,7 @@ class Group:
 
     key: GroupKey
     profile: HmdProfile
+    tracer: Whitted  # of the group's scene: the timing rounds build their fresh methods on it
     ids: dict[str, str]  # scene, profile, trace: the columns that name the group in every row
     cells: list[_Cell]
     warmup: int
@@ -123,7 +130,7 @@ def evaluate(config: EvalConfig, progress: bool = True, saved: PartialResults | 
     cache = TruthCache(config.cache_dir, config.truth_spp, config.seed)
     results = dict(saved.done) if saved else {}
     todo = [key for key in groups(config) if group_id(config, key) not in results]
-    total = config.frames * sum(len(config.cells(key.scene, key.trace)) for key in todo)
+    total = config.timing_rounds * config.frames * sum(len(config.cells(key.scene, key.trace)) for key in todo)
     with tqdm(total=total, unit="frame", disable=None if progress else True, leave=False) as bar:
         for scene_name, keys in itertools.groupby(todo, key=lambda k: k.scene):
             scene = load_scene(scene_name)
@@ -131,7 +138,7 @@ def evaluate(config: EvalConfig, progress: bool = True, saved: PartialResults | 
                 truth = partial(cache.get, tracer, scene_digest(scene))
                 for key in keys:
                     group = plan_group(config, tracer, key, trace_frames(config, scene, key))
-                    bar.total += (group.warmup - config.warmup_frames) * len(group.cells)
+                    bar.total += config.timing_rounds * (group.warmup - config.warmup_frames) * len(group.cells)
                     bar.set_description(" ".join(group.ids.values()))
                     result = run_group(group, config, truth, bar.update)
                     results[group_id(config, key)] = result
@@ -170,7 +177,7 @@ def plan_group(config: EvalConfig, tracer: Whitted, key: GroupKey, frames: gaze.
     ]
     warmup = group_warmup(config.warmup_frames, cells, ids)
     true, seen = (held_start(f, warmup - config.warmup_frames, profile.period_ns) for f in (frames.true, frames.seen))
-    return Group(key, profile, ids, cells, warmup, true, seen)
+    return Group(key, profile, tracer, ids, cells, warmup, true, seen)
 
 
 def truth_cameras(group: Group, config: EvalConfig) -> list[EyeCamera]:
@@ -186,6 +193,8 @@ def run_group(
     the date, the commit and the machine of the process that rendered it (provenance.stamp)."""
     started = time.perf_counter()
     last, scored = _render(group, config, truth_of, tick or (lambda: None))
+    for _ in range(config.timing_rounds - 1):
+        _time_round(group, config, tick or (lambda: None))
     jod = _jod(group.cells, scored, JodScorer(group.profile, config.eye)) if config.jod else {}
     seconds = round(time.perf_counter() - started, 3)
     true, seen = group.inputs[group.warmup :], group.seen[group.warmup :]
@@ -237,16 +246,33 @@ def _request(inp: FrameInput, profile: HmdProfile, config: EvalConfig) -> FrameR
     return request
 
 
+def _shown(group: Group, config: EvalConfig) -> list[tuple[FrameRequest, FrameRequest]]:
+    """Each frame's request as scored (the true gaze and pose) and as rendered (the tracked gaze and pose)."""
+    out = []
+    for inp, seen in zip(group.inputs, group.seen, strict=True):
+        request = _request(inp, group.profile, config)
+        camera = eye_cameras(group.profile, seen.pose, (config.eye,))[config.eye]
+        out.append((request, dataclasses.replace(request, camera=camera, gaze=seen.gaze[config.eye])))
+    return out
+
+
+def _timed(method: Method, request: FrameRequest, stats: FrameStats) -> tuple[np.ndarray, float, float]:
+    """The method's image of `request`, its wall ms and the process's CPU ms (every tracing thread's) in it."""
+    wall, cpu = time.perf_counter_ns(), time.process_time_ns()
+    image = method.render(request, stats)
+    return image, (time.perf_counter_ns() - wall) * 1e-6, (time.process_time_ns() - cpu) * 1e-6
+
+
 def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dict]:
-    """Each input frame through every cell's method in turn; the frames after the warm-up timed and scored.
-    Returns the last scored frame's truth and gaze pixel, and (with jod) every scored truth, encoded, and gaze."""
+    """Each input frame through every cell's method in turn; the frames after the warm-up timed and scored (the
+    first timing round). Returns the last scored frame's truth and gaze pixel, and (with jod) every scored truth,
+    encoded, and gaze."""
     last: dict = {}
     truths, gazes = [], []
-    for inp, seen in zip(group.inputs, group.seen, strict=True):
-        request = _request(inp, group.profile, config)  # the true gaze and pose: what the frame is scored around
-        # the tracked gaze and pose: what it is rendered for
-        camera = eye_cameras(group.profile, seen.pose, (config.eye,))[config.eye]
-        shown = dataclasses.replace(request, camera=camera, gaze=seen.gaze[config.eye])
+    for cell in group.cells:
+        cell.ms.append([])
+        cell.cpu_ms.append([])
+    for inp, (request, shown) in zip(group.inputs, _shown(group, config), strict=True):
         scored = inp.frame >= group.warmup
         if scored:
             truth = truth_of(request.camera)
@@ -260,12 +286,11 @@ def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dic
                 tick()  # no history: nothing to warm up
                 continue
             stats = FrameStats()
-            t = time.perf_counter()
-            image = cell.method.render(shown, stats)
-            ms = (time.perf_counter() - t) * 1e3
+            image, ms, cpu_ms = _timed(cell.method, shown, stats)
             if scored:
                 pixels = image.shape[0] * image.shape[1]
-                cell.ms.append(ms)
+                cell.ms[-1].append(ms)
+                cell.cpu_ms[-1].append(cpu_ms)
                 cell.rays.append(sum(stats.rays.values()))
                 for kind, n in stats.rays.items():
                     cell.rays_by_kind[kind] += n
@@ -284,9 +309,28 @@ def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dic
     return last, {"truths": truths, "gazes": gazes}
 
 
+def _time_round(group: Group, config: EvalConfig, tick) -> None:
+    """One more timing round: every cell's method afresh through the warm-up and the scored frames, frame by frame
+    in turn as in _render, the scored frames timed into a new round of the cell's times and not scored."""
+    methods = [cell.choice.make(group.tracer) for cell in group.cells]
+    for cell in group.cells:
+        cell.ms.append([])
+        cell.cpu_ms.append([])
+    for inp, (_, shown) in zip(group.inputs, _shown(group, config), strict=True):
+        scored = inp.frame >= group.warmup
+        for cell, method in zip(group.cells, methods, strict=True):
+            if scored or method.warmup_frames:
+                _, ms, cpu_ms = _timed(method, shown, FrameStats())
+                if scored:
+                    cell.ms[-1].append(ms)
+                    cell.cpu_ms[-1].append(cpu_ms)
+            tick()
+
+
 def _rows(group: dict, cells: list[_Cell], profile, warmup: int, space: ScoreSpace) -> list[dict]:
     rows = []
     for cell in cells:
+        frames = len(cell.ms[0])
         rows.append(
             {
                 **group,
@@ -296,27 +340,45 @@ def _rows(group: dict, cells: list[_Cell], profile, warmup: int, space: ScoreSpa
                 "params": str(cell.choice),
                 "options": msgspec.to_builtins(cell.choice.params),
                 "label": cell.label,
-                "frames": len(cell.ms),
+                "frames": frames,
                 "warmup_frames": warmup if cell.method.warmup_frames else 0,
-                "ms_per_frame": round(statistics.median(cell.ms), 3),
+                "timing_rounds": len(cell.ms),
+                "ms_per_frame": round(statistics.median(_means(cell.ms)), 3),
+                "cpu_ms_per_frame": round(statistics.median(_means(cell.cpu_ms)), 3),
                 "rays_per_frame": round(float(np.mean(cell.rays))),
-                **{f"rays_{k}": round(n / len(cell.ms)) for k, n in cell.rays_by_kind.items()},
+                **{f"rays_{k}": round(n / frames) for k, n in cell.rays_by_kind.items()},
                 "sample_fraction": round(float(np.mean(cell.fractions)), 5),
                 "metrics": {k: round(statistics.fmean(v), 5) for k, v in cell.metrics.items()},
                 "score_space": space,
                 **{k: _round(v) for k, v in cell.scores.result().items()},
-                "stages_ms": {k: round(v / len(cell.ms), 3) for k, v in cell.stages_ms.items()},
+                "stages_ms": {k: round(v / frames, 3) for k, v in cell.stages_ms.items()},
             }
         )
+    by_label = {cell.label: cell for cell in cells}
     full = next((r for r in rows if r["method"] == "full"), None)
     for row, cell in zip(rows, cells, strict=True):
         row["speedup_vs_full"] = round(full["ms_per_frame"] / row["ms_per_frame"], 3) if full else None
         baseline = next((r for r in rows if r["label"] == cell.compare_to), None) if cell.compare_to else full
         row.update(_comparison(row, baseline))
+        row.update(_spread(cell, by_label[baseline["label"]] if baseline else None))
     front = pareto_front([(r["ms_per_frame"], r["psnr_fovea"]) for r in rows])
     for row, on in zip(rows, front, strict=True):
         row["pareto"] = on
     return rows
+
+
+def _means(rounds: list[list[float]]) -> list[float]:
+    return [statistics.fmean(times) for times in rounds]
+
+
+def _spread(cell: _Cell, baseline: _Cell | None) -> dict:
+    """How far the cell's speed-up over its baseline moves from round to round: the range of the per-round ratios
+    over their median (None with one round or no baseline), and whether that exceeds NOISY_SPREAD."""
+    if baseline is None or len(cell.ms) < 2:
+        return {"speedup_spread": None, "timing_noisy": False}
+    ratios = [b / c for b, c in zip(_means(baseline.ms), _means(cell.ms), strict=True)]
+    spread = (max(ratios) - min(ratios)) / statistics.median(ratios)
+    return {"speedup_spread": round(spread, 4), "timing_noisy": spread > NOISY_SPREAD}
 
 
 def _comparison(row: dict, baseline: dict | None) -> dict:
@@ -381,6 +443,8 @@ def _best_against(group: list[dict], name: str | None) -> dict:
         and floor is not None
         and r["psnr_fovea"] >= floor
     ]
+    noisy = [r["label"] for r in candidates if r["timing_noisy"]]
+    candidates = [r for r in candidates if not r["timing_noisy"]]
     best = min(candidates, key=lambda r: (r["ms_per_frame"], -r["psnr_fovea"]), default=None)
     return {
         "baseline": name,
@@ -391,4 +455,5 @@ def _best_against(group: list[dict], name: str | None) -> dict:
         "best_psnr_fovea": None if best is None else best["psnr_fovea"],
         "best_speedup": None if best is None else best["speedup_vs_baseline"],
         "best_psnr_fovea_delta": None if best is None else best["psnr_fovea_vs_baseline"],
+        "noisy": noisy,  # cells that reach the baseline's foveal PSNR but whose speed-up is noisy: left out
     }

@@ -16,8 +16,9 @@ import msgspec
 
 from hmdrt.errors import ConfigError
 from hmdrt.files.configfile import parse_toml, read_limited
+from hmdrt.ranges import MAX_EYE_PIXELS, refuse_large
 
-Pixels = Annotated[int, msgspec.Meta(ge=1, le=16384)]
+Pixels = Annotated[int, msgspec.Meta(ge=1)]  # at most MAX_EYE_PIXELS per eye in all (HmdProfile.__post_init__)
 HalfAngle = Annotated[float, msgspec.Meta(gt=-89.0, lt=89.0)]
 
 
@@ -56,6 +57,9 @@ class HmdProfile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     refresh_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)]
     ipd_mm: Annotated[float, msgspec.Meta(ge=0, le=100)] = 63.5
 
+    def __post_init__(self) -> None:
+        _check_pixels("width x height", self.width, self.height, ValueError)
+
     def eye_fov(self, eye: str) -> Fov:
         return self.fov if eye == "left" else self.fov.mirrored()
 
@@ -69,13 +73,19 @@ class HmdProfile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
             w, h = (int(v) for v in text.lower().split("x"))
         except ValueError:
             raise ConfigError(f"{name} must be WIDTHxHEIGHT, e.g. 640x720, got {text!r}") from None
-        return self.with_resolution(w, h)
+        return self.with_resolution(w, h, name)
 
-    def with_resolution(self, width: int, height: int) -> HmdProfile:
-        """The same optics at another per-eye pixel count."""
+    def with_resolution(self, width: int, height: int, name: str = "resolution") -> HmdProfile:
+        """The same optics at another per-eye pixel count (given as `name`, which an error names)."""
         if width < 1 or height < 1:
-            raise ConfigError(f"resolution must be at least 1x1 pixels, got {width}x{height}")
+            raise ConfigError(f"{name} must be at least 1x1 pixels, got {width}x{height}")
+        _check_pixels(name, width, height)
         return msgspec.structs.replace(self, width=width, height=height)
+
+
+def _check_pixels(name: str, width: int, height: int, error: type[Exception] = ConfigError) -> None:
+    """Refuse a per-eye resolution past MAX_EYE_PIXELS before any buffer of it is made."""
+    refuse_large(f"{name} {width}x{height} has", width * height, MAX_EYE_PIXELS, "pixels per eye", error)
 
 
 PROFILES: dict[str, HmdProfile] = {

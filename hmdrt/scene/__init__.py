@@ -14,7 +14,7 @@ from urllib.parse import parse_qsl
 import msgspec
 
 from hmdrt.errors import SceneError
-from hmdrt.scene.builtin import BUILTINS, builtin_parameters
+from hmdrt.scene.builtin import BUILTINS, KNOB_MINIMA, builtin_parameters, check_builtin_size
 from hmdrt.scene.files import MESH_SUFFIXES, load_scene_file, mesh_scene
 from hmdrt.scene.model import AreaLight, Mesh, Scene
 
@@ -25,7 +25,7 @@ COMMON_OPTIONS = {
     "area_samples": (int, 1, 1024),
 }
 
-__all__ = ["BUILTINS", "Mesh", "Scene", "load_scene"]
+__all__ = ["BUILTINS", "Mesh", "Scene", "check_scene", "load_scene"]
 
 
 def _parse_value(scene: str, key: str, text: str, kind: type, lo: float | None = None, hi: float | None = None):
@@ -40,10 +40,8 @@ def _parse_value(scene: str, key: str, text: str, kind: type, lo: float | None =
     return value
 
 
-def _apply_common(scene: Scene, name: str, options: dict[str, str]) -> Scene:
-    for key, text in options.items():
-        kind, lo, hi = COMMON_OPTIONS[key]
-        value = _parse_value(name, key, text, kind, lo, hi)
+def _apply_common(scene: Scene, common: dict[str, object]) -> Scene:
+    for key, value in common.items():
         if key == "area_samples":
             scene.lights = [
                 msgspec.structs.replace(l, samples=value) if isinstance(l, AreaLight) else l for l in scene.lights
@@ -53,35 +51,62 @@ def _apply_common(scene: Scene, name: str, options: dict[str, str]) -> Scene:
     return scene
 
 
-def load_scene(spec: str) -> Scene:
-    """A scene from a built-in name (with ?options), a .toml description or a mesh file."""
+def _builtin_knobs(name: str, options: dict[str, str]) -> dict[str, object]:
+    """A built-in scene's knobs from its options, each parsed and in range, the scene within the size limit."""
+    params = builtin_parameters(name)
+    unknown = set(options) - set(params)
+    if unknown:
+        known = ", ".join([*params, *COMMON_OPTIONS])
+        raise SceneError(f"scene {name!r} has no option {sorted(unknown)[0]!r}; options: {known}")
+    minima = KNOB_MINIMA.get(name, {})
+    knobs = {
+        k: _parse_value(name, k, v, type(params[k]), minima.get(k), math.inf if k in minima else None)
+        for k, v in options.items()
+    }
+    check_builtin_size(name, knobs)
+    return knobs
+
+
+def _checked(spec: str) -> tuple[str, dict[str, object] | None, dict[str, object]]:
+    """A scene spec's name, its built-in knobs (None: a file) and its common options, each checked; nothing built."""
     name, _, query = spec.partition("?")
     try:
         options = dict(parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)))
     except ValueError:
         raise SceneError(f"scene options must look like ?key=value&key=value, got {query!r}") from None
-    common = {k: options.pop(k) for k in list(options) if k in COMMON_OPTIONS}
-    path = Path(name)
+    common = {
+        k: _parse_value(name, k, options.pop(k), *COMMON_OPTIONS[k]) for k in list(options) if k in COMMON_OPTIONS
+    }
     if name in BUILTINS:
-        params = builtin_parameters(name)
-        unknown = set(options) - set(params)
-        if unknown:
-            known = ", ".join([*params, *COMMON_OPTIONS])
-            raise SceneError(f"scene {name!r} has no option {sorted(unknown)[0]!r}; options: {known}")
-        kwargs = {k: _parse_value(name, k, v, type(params[k])) for k, v in options.items()}
-        try:
-            scene = BUILTINS[name](**kwargs)
-        except (ValueError, MemoryError) as exc:
-            raise SceneError(f"scene {name!r}: {exc}") from None
-    elif path.suffix.lower() == ".toml" or path.suffix.lower() in MESH_SUFFIXES:
+        return name, _builtin_knobs(name, options), common
+    suffix = Path(name).suffix.lower()
+    if suffix == ".toml" or suffix in MESH_SUFFIXES:
         if options:
             raise SceneError(
                 f"scene files take only {', '.join(COMMON_OPTIONS)} as options, not {sorted(options)[0]!r}"
             )
-        scene = load_scene_file(path) if path.suffix.lower() == ".toml" else mesh_scene(path)
+        return name, None, common
+    raise SceneError(
+        f"unknown scene {name!r}; built-in scenes: {', '.join(BUILTINS)}, "
+        f"or a path to a .toml scene or a mesh file ({', '.join(MESH_SUFFIXES)})"
+    )
+
+
+def check_scene(spec: str) -> None:
+    """A SceneError for a scene spec that load_scene would refuse by its name or options, or a built-in scene past
+    the size limit, without building anything (a file's content is checked as it loads)."""
+    _checked(spec)
+
+
+def load_scene(spec: str) -> Scene:
+    """A scene from a built-in name (with ?options), a .toml description or a mesh file."""
+    name, knobs, common = _checked(spec)
+    path = Path(name)
+    if knobs is not None:
+        try:
+            scene = BUILTINS[name](**knobs)
+        except (ValueError, MemoryError) as exc:
+            raise SceneError(f"scene {name!r}: {exc}") from None
     else:
-        raise SceneError(
-            f"unknown scene {name!r}; built-in scenes: {', '.join(BUILTINS)}, "
-            f"or a path to a .toml scene or a mesh file ({', '.join(MESH_SUFFIXES)})"
-        )
-    return _apply_common(scene, name, common)
+        scene = load_scene_file(path) if path.suffix.lower() == ".toml" else mesh_scene(path)
+    return _apply_common(scene, common)

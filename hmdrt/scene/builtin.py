@@ -12,11 +12,14 @@ area-light sampling (kim2021's Interior role). bunny: smith2013's high-polygon S
 from __future__ import annotations
 
 import inspect
+import math
 from collections.abc import Callable
 from importlib import resources
 
 import numpy as np
 
+from hmdrt.errors import SceneError
+from hmdrt.ranges import MAX_SCENE_TRIANGLES, refuse_large
 from hmdrt.scene import shapes
 from hmdrt.scene.model import AreaLight, Checker, Light, Material, Mesh, Noise, PointLight, Scene
 from hmdrt.scene.noise import fbm_points
@@ -26,6 +29,10 @@ SKY = (0.35, 0.55, 0.85)
 # smith2013's spheres: a mirror and a glass ball
 MIRROR = Material(diffuse=(0.1, 0.1, 0.1), specular=0.6, shininess=80, reflectance=0.85)
 GLASS = Material(diffuse=(0.0, 0.0, 0.0), specular=0.6, shininess=160, transmittance=0.95, ior=1.5)
+MAPS_SEGMENTS, MAPS_RINGS = 96, 12  # per tunnel_maps section
+GEOM_SEGMENTS, GEOM_RINGS_PER_M = 256, 10  # of tunnel_geom at detail 1
+# voxel_city's plots hold 1-3 x 1-3 voxels of 1-16 high, 12 triangles each: 2 x 2 x 8.5 x 12 on average
+PLOT_TRIANGLES = 408
 
 
 def _under_sky(
@@ -78,8 +85,8 @@ def tunnel_maps(length: float = 60.0, section: float = 6.0) -> Scene:
             radius,
             section,
             "checker" if i % 2 == 0 else "noise",
-            segments=96,
-            rings=12,
+            segments=MAPS_SEGMENTS,
+            rings=MAPS_RINGS,
             z0=2.0 - i * section,
             uv_scale=(16, section),
         )
@@ -97,7 +104,7 @@ def tunnel_geom(length: float = 60.0, detail: int = 1) -> Scene:
         pts = np.stack([np.cos(theta) * 1.5, np.sin(theta) * 1.5, z * 0.75], axis=1)
         return radius + 0.45 * fbm_points(pts, octaves=5, seed=7)
 
-    segments, rings = 256 * detail, int(10 * length) * detail
+    segments, rings = GEOM_SEGMENTS * detail, int(GEOM_RINGS_PER_M * length) * detail
     meshes = [shapes.tunnel("wall", radius, length, "rock", segments, rings, radius_fn=bumpy, z0=2.0)]
     return _tunnel_scene("tunnel_geom", meshes, mats, length)
 
@@ -251,6 +258,35 @@ BUILTINS: dict[str, Callable[..., Scene]] = {
 }
 
 
+# the triangles a built-in scene's size knobs make (voxel_city's on average): checked before it is built
+TRIANGLES: dict[str, Callable[..., float]] = {
+    "tunnel_maps": lambda length, section: 2 * MAPS_SEGMENTS * MAPS_RINGS * max(1.0, length / section),
+    "tunnel_geom": lambda length, detail: 2 * GEOM_SEGMENTS * GEOM_RINGS_PER_M * length * detail**2,
+    "voxel_city": lambda size: PLOT_TRIANGLES * size**2,
+}
+# the least value of each size knob: below it the scene is empty or not built
+KNOB_MINIMA: dict[str, dict[str, float]] = {
+    "tunnel_maps": {"length": 1.0, "section": 0.1},
+    "tunnel_geom": {"length": 1.0, "detail": 1},
+    "voxel_city": {"size": 1},
+}
+
+
 def builtin_parameters(name: str) -> dict[str, object]:
     """The knobs of a built-in scene and their defaults."""
     return {k: p.default for k, p in inspect.signature(BUILTINS[name]).parameters.items()}
+
+
+def check_builtin_size(name: str, knobs: dict[str, object]) -> None:
+    """A SceneError, before anything is built, where the built-in scene's size knobs (`knobs` and the defaults of
+    the rest) make more triangles than MAX_SCENE_TRIANGLES."""
+    if name not in TRIANGLES:
+        return
+    values = {**builtin_parameters(name), **knobs}
+    size = {k: values[k] for k in inspect.signature(TRIANGLES[name]).parameters}
+    try:
+        triangles = TRIANGLES[name](**size)
+    except OverflowError:  # a knob of hundreds of digits
+        triangles = math.inf
+    given = ", ".join(f"{k}={str(v)[:24]}" for k, v in size.items())  # a knob of many digits cut short
+    refuse_large(f"scene {name!r} with {given} makes about", triangles, MAX_SCENE_TRIANGLES, "triangles", SceneError)

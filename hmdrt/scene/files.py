@@ -16,6 +16,7 @@ from PIL import UnidentifiedImageError
 
 from hmdrt.errors import SceneError
 from hmdrt.files.configfile import MAX_TOML_BYTES, parse_toml, read_limited
+from hmdrt.ranges import MAX_SCENE_TRIANGLES, refuse_large
 from hmdrt.scene import shapes
 from hmdrt.scene.model import Checker, Colour, Finite, Image, Light, Material, Mesh, PointLight, Radiance, Scene, Vec3
 from hmdrt.spatial import Pose
@@ -202,7 +203,21 @@ def load_mesh_file(
         raise SceneError(f"cannot load mesh file {path}: {exc}") from None
     if not meshes:
         raise SceneError(f"mesh file {path} holds no triangles")
+    _check_triangles(f"mesh file {path} has", meshes)
     return meshes, materials, images
+
+
+def _check_triangles(what: str, meshes: list[Mesh], planned: int = 0) -> None:
+    """Refuse meshes (and `planned` triangles still to build) past MAX_SCENE_TRIANGLES before they are packed."""
+    triangles = planned + sum(len(m.faces) for m in meshes)
+    refuse_large(what, triangles, MAX_SCENE_TRIANGLES, "triangles", SceneError)
+
+
+def _planned_triangles(spec: SphereSpec | BoxSpec | QuadSpec | MeshSpec) -> int:
+    """The triangles a sphere, box or quad of a scene file makes; a mesh file's count once it is loaded."""
+    if isinstance(spec, SphereSpec):
+        return 20 * 4**spec.subdivisions  # an icosahedron, each face split in four per subdivision
+    return {BoxSpec: 12, QuadSpec: 2}.get(type(spec), 0)
 
 
 def _checked(mesh: Mesh, path: Path) -> Mesh:
@@ -270,11 +285,17 @@ def load_scene_file(path: Path) -> Scene:
             scene.materials[name] = msgspec.structs.replace(
                 mat, texture=msgspec.structs.replace(mat.texture, image=key)
             )
+    planned = sum(_planned_triangles(obj) for obj in spec.objects)
+    what = f"scene file {path} with {len(spec.objects)} objects makes"
+    _check_triangles(what, [], planned)
     for i, obj in enumerate(spec.objects):
+        planned -= _planned_triangles(obj)
         try:
             scene.meshes.extend(_object_meshes(obj, path.parent, scene))
         except SceneError as exc:
             raise SceneError(f"scene file {path}: objects[{i}]: {exc}") from None
+        if isinstance(obj, MeshSpec):  # its triangles are known now
+            _check_triangles(what, scene.meshes, planned)
     return scene
 
 
