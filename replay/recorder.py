@@ -21,6 +21,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from hmdrt.bus.messages import MAX_PAYLOAD_BYTES, MalformedMessage, Status, decode
 from hmdrt.errors import ConfigError
+from hmdrt.files.atomic import open_replacing
 from hmdrt.replay.trace import TraceWriter
 
 POLL_MS = 50
@@ -116,7 +117,7 @@ class Recorder:
         poller.register(self._socket, zmq.POLLIN)
         poller.register(self._monitor, zmq.POLLIN)
         try:
-            with self.out_path.open("wb") as stream:
+            with open_replacing(self.out_path, buffering=-1) as stream:  # a link there is replaced, not followed
                 out = TraceWriter(stream)
                 if self.device is not None:
                     out.header(self.device)

@@ -1,5 +1,6 @@
 """Files written whole or not at all (hmdrt.files.atomic): exact modes, and never overwriting when asked not to."""
 
+import os
 import stat
 
 import pytest
@@ -25,3 +26,13 @@ def test_a_folder_that_cannot_be_written_is_an_error_naming_the_path(tmp_path):
     blocker.write_bytes(b"")
     with pytest.raises(HmdrtError, match=f"cannot write {blocker}/x"):
         write_atomic(blocker / "x", b"data")
+
+
+def test_a_file_without_a_mode_gets_the_one_open_would_give_it(tmp_path):
+    """0666 less the umask, as open() would make it: frames, plots and logs stay as readable as they were."""
+    umask = os.umask(0o027)
+    try:
+        write_atomic(tmp_path / "report.json", b"{}")
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "report.json").stat().st_mode) == 0o640

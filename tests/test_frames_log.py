@@ -241,8 +241,7 @@ def test_the_reader_leaves_out_a_cut_last_line_and_names_a_bad_one(tmp_path):
         (lines[3].replace(b'"rays":1000', b'"rays":' + b"9" * 30), "integer beyond"),
         (lines[3].replace(b'"vsync":1,"left', b'"vsync":3,"left'), "vsync 3, neither this VSync nor an earlier"),
         (lines[3].replace(b'"left_deg":0.5', b'"left_deg":-0.5'), "left_deg = -0.5 is not an angle"),
-        (b"{" + lines[3], "malformed"),
-        (b"\n", "an empty line"),
+        (b"[]\n", "Expected `object`, got `array`"),
     ):
         path.write_bytes(b"".join([*lines[:3], bad, *lines[4:]]))
         with pytest.raises(HmdrtError, match=f"^{path}:4: not a frame record: .*{reason}"):

@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
+import sys
 import textwrap
 import threading
+import time
 from itertools import chain
 from pathlib import Path
 
+from hmdrt.bus.local import check_private, runtime_dir
 from hmdrt.cli.common import (
     UNTIL,
     client_keys,
@@ -72,8 +76,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             report = compositor.run()
     finally:
         compositor.close()
-    if report_path:
-        write_json(report_path, report)
+    saved = _save_report(report_path, report) if report_path else ""
     gaze, levels = report["latency_ms"]["gaze_to_photon"], report["controller_level"]
     print(
         f"{report['vsyncs']} VSyncs: {report['presented']} frames shown ({report['late']} late), "
@@ -81,9 +84,31 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"frame p99 {report['frame_ms']['p99']} ms; gaze-to-photon p99 {gaze['p99']} ms"
         + _gaze_error(report.get("gaze_error_at_photon_deg") or {})
         + (f"; controller level p50 {levels['p50']}" if levels and "controller" in report else "")
-        + (f"; report {report_path}" if report_path else "")
+        + (f"; report {saved}" if saved else "")
     )
-    return 0
+    return 0 if saved == report_path else 1
+
+
+def _save_report(path: str, report: dict) -> str:
+    """Write the run report to `path`, or when that fails (a full disk) to the runtime folder, else as one line of
+    JSON on stderr, saying so in one line: where it is, so that the run is not lost with it."""
+    try:
+        write_json(path, report)
+        return path
+    except HmdrtError as exc:
+        failed = f"hmdrt: error: {exc}; the run report is"
+    folder = runtime_dir()
+    fallback = folder / f"report-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.json"
+    try:
+        folder.mkdir(mode=0o700, exist_ok=True)
+        check_private(folder)
+        write_json(fallback, report)
+    except (HmdrtError, OSError):
+        print(f"{failed} on the next line instead", file=sys.stderr)
+        print(json.dumps(report), file=sys.stderr)
+        return "on stderr"
+    print(f"{failed} in {fallback} instead", file=sys.stderr)
+    return str(fallback)
 
 
 def _gaze_error(errors: dict) -> str:

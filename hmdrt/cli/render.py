@@ -12,7 +12,8 @@ import numpy as np
 from tqdm import tqdm
 
 from hmdrt.cli.common import count, write_json
-from hmdrt.errors import ConfigError, HmdrtError
+from hmdrt.errors import ConfigError
+from hmdrt.files.atomic import write_atomic
 from hmdrt.foveation import METHODS, MethodChoice
 from hmdrt.optics import get_profile
 from hmdrt.present.encode import linear_to_srgb8, write_png
@@ -38,7 +39,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     """Render a frame or a sequence of a scene through an HMD profile with a method; PNGs and stats JSON."""
     profile = get_profile(args.profile)
     if args.resolution:
-        profile = profile.with_resolution_text(args.resolution)
+        profile = profile.with_resolution_text(args.resolution, "--resolution")
     choice = MethodChoice.parse(args.method)
     if args.spp is not None:
         if choice.name != "regular":
@@ -77,11 +78,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             bar.update()
         bar.close()
     if sequence:
-        try:
-            with (out / "frames.jsonl").open("w") as f:
-                f.writelines(json.dumps(r) + "\n" for r in records)
-        except OSError as exc:
-            raise HmdrtError(f"cannot write {out / 'frames.jsonl'}: {exc.strerror}") from None
+        write_atomic(out / "frames.jsonl", "".join(json.dumps(r) + "\n" for r in records).encode())
     summary = _summary(records) if sequence else records[0]
     summary.update(
         method_spec=str(choice),

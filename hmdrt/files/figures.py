@@ -3,6 +3,7 @@ eval's plots (hmdrt.evaluate.plots) and a run's plots (hmdrt.telemetry.plot) sha
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import matplotlib
@@ -11,6 +12,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib import ticker  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+
+from hmdrt.files.atomic import write_atomic  # noqa: E402
 
 DPI = 120
 
@@ -23,8 +26,11 @@ class PlainLogFormatter(ticker.LogFormatter):
 
 
 def save(fig: Figure, path: Path) -> Path:
-    """Lay out, write as PNG and close `fig` (pyplot keeps every open figure); returns `path`."""
+    """Lay out, write as PNG (whole or not at all, never through a link: hmdrt.files.atomic) and close `fig` (pyplot
+    keeps every open figure); returns `path`. HmdrtError naming the path when it cannot be written."""
+    png = io.BytesIO()
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
+    fig.savefig(png, dpi=DPI, format="png")
     plt.close(fig)
+    write_atomic(path, png.getvalue(), sync=False)
     return path

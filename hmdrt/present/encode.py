@@ -7,6 +7,7 @@ quantisation, not input clamping.
 
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Callable
 from functools import cache
@@ -17,6 +18,7 @@ import numpy as np
 from PIL import Image
 
 from hmdrt.errors import HmdrtError
+from hmdrt.files.atomic import write_atomic
 from hmdrt.kernels.jit import inline, kernel
 
 PREVIEW_LEVELS = 16384  # linear levels of preview_srgb8's table: steps of at most one sRGB code
@@ -110,14 +112,12 @@ def linear_to_srgb8(image: np.ndarray) -> np.ndarray:
 
 
 def write_png(path: str | Path, srgb8: np.ndarray, replace: bool = True) -> None:
-    """Write an (h, w, 3) uint8 image as PNG, creating parent folders. replace=False: FileExistsError when
-    something (also a link) has the name, checked and created in one step (O_EXCL), so nothing is overwritten."""
-    path = Path(path)
+    """Write an (h, w, 3) uint8 image as PNG, creating parent folders, whole or not at all and never through a link
+    (hmdrt.files.atomic). replace=False: FileExistsError when something (also a link) has the name, checked and
+    created in one step, so nothing is overwritten."""
+    png = io.BytesIO()
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with path.open("wb" if replace else "xb") as f:
-            Image.fromarray(srgb8, mode="RGB").save(f, format="PNG")
+        Image.fromarray(srgb8, mode="RGB").save(png, format="PNG")
     except (OSError, ValueError) as exc:
-        if isinstance(exc, FileExistsError) and exc.filename == str(path):  # the name is taken, not the folder's
-            raise
         raise HmdrtError(f"cannot write {path}: {exc}") from None
+    write_atomic(path, png.getvalue(), replace=replace, sync=False)

@@ -2,17 +2,20 @@
 
 Written through imageio's ffmpeg plugin (the `video` extra: imageio and imageio-ffmpeg, which brings a static
 ffmpeg) as H.264 in yuv420p, which any player opens. yuv420p needs even sides, so an odd one gets its last
-row or column repeated (in a buffer kept for the run) rather than the frame resized.
+row or column repeated (in a buffer kept for the run) rather than the frame resized. ffmpeg writes a new hidden file
+beside the video (hmdrt.files.atomic), renamed to the video's name when it is finished: a link at that name is
+replaced, never written through, and a video that cannot be finished leaves no file.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
 from hmdrt.errors import ConfigError, HmdrtError
-from hmdrt.files.atomic import check_writable
+from hmdrt.files.atomic import temporary_beside
 
 INSTALL = "pip install -e '.[video]'"
 
@@ -28,14 +31,19 @@ class VideoWriter:
         except ImportError:
             raise ConfigError(f"output.video needs imageio and imageio-ffmpeg: {INSTALL}") from None
         self.path = Path(path)
+        self._tmp: Path | None = None
         try:
-            check_writable(self.path.parent)
+            fd, self._tmp = temporary_beside(self.path, suffix=self.path.suffix)  # ffmpeg's container: by the suffix
+            os.close(fd)
             self._writer = imageio.get_writer(
-                self.path, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
+                self._tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
                 macro_block_size=1, quality=8,
             )  # fmt: skip
-        except (HmdrtError, OSError, ValueError, RuntimeError) as exc:
-            raise ConfigError(f"output.video: cannot write {self.path}: {exc}") from None
+        except (OSError, ValueError, RuntimeError) as exc:
+            self._discard()
+            raise ConfigError(
+                f"output.video: cannot write {self.path}: {getattr(exc, 'strerror', None) or exc}"
+            ) from None
         self.frames = 0
         self._padded: np.ndarray | None = None  # frames with an odd side, padded to even ones
 
@@ -58,7 +66,19 @@ class VideoWriter:
         self.frames += 1
 
     def close(self) -> None:
+        """Finish the video and put it in place (none when no frame was added); HmdrtError when it cannot be."""
         try:
             self._writer.close()
+            if self.frames:
+                os.replace(self._tmp, self.path)
+                self._tmp = None
         except (OSError, ValueError, RuntimeError) as exc:
-            raise HmdrtError(f"cannot finish {self.path}: {exc}") from None
+            raise HmdrtError(f"cannot finish {self.path}: {getattr(exc, 'strerror', None) or exc}") from None
+        finally:
+            self._discard()
+
+    def _discard(self) -> None:
+        """Remove the unfinished video's file, if there is one."""
+        if self._tmp is not None:
+            self._tmp.unlink(missing_ok=True)
+            self._tmp = None

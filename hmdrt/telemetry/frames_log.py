@@ -7,16 +7,21 @@ is not on its own line, written at the VSync: it is on the line of the later VSy
 `gaze_errors`, naming its VSync (FramesLogReading.gaze_errors joins them back). A VSync without one was not resolved
 (the run report counts why: hmdrt.compositor.gaze_error).
 
-The log is written append-only on a thread of its own (hmdrt.files.background), each line with one write to the file
-(no buffer in between), so a run killed with SIGKILL keeps every frame up to its last line. In real time a full
-queue drops the record and counts it; in virtual time the display waits, so every frame is logged. The reader
-is for `hmdrt export` and `hmdrt report plot`: it refuses oversized files and lines and names the file and line
-of anything that is not a frame record; only a last line cut short (a run killed mid-write) is left out.
+The log is written append-only on a thread of its own (hmdrt.files.background), each line straight to the file (no
+buffer in between), so a run killed with SIGKILL keeps every frame up to its last line. In real time a full
+queue drops the record and counts it; in virtual time the display waits, so every frame is logged. A record that
+cannot be written (a full disk) is counted and leaves no part of its line: the log goes on with whole lines once
+there is room. The reader is for `hmdrt export` and `hmdrt report plot`: it refuses oversized files and lines and
+names the file and line of anything that is not a frame record. It leaves out a last line cut short (a run killed
+mid-write), and skips and counts lines that are not JSON at all (the torn lines an older writer left on a disk that
+filled up), with one warning.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -24,6 +29,7 @@ from typing import Annotated
 import msgspec
 
 from hmdrt.errors import ConfigError, HmdrtError
+from hmdrt.files.atomic import open_replacing
 from hmdrt.files.background import BackgroundWriter
 from hmdrt.telemetry.report import SHOWN, FrameRecord, GazeError
 
@@ -62,36 +68,59 @@ _record_decoder = msgspec.json.Decoder(FrameRecord)
 
 
 class FramesLog(BackgroundWriter[dict]):
-    """Writes the header at once (ConfigError when the file cannot be written), then each offered record."""
+    """Writes the header at once (ConfigError when the file cannot be written), then each offered record.
+
+    The file is made new (hmdrt.files.atomic.open_replacing: a link at the name is replaced, never written through)
+    and holds whole lines only: a line that fails part-way (a full disk) is cut off again and counted, and the next
+    one is tried in its place, so once there is room again the log goes on whole."""
 
     def __init__(self, path: str | Path, header: FramesHeader, block: bool = False):
         super().__init__("frames-log", QUEUE, block)
         self.path = Path(path)
-        self._file = None
+        first = _encoder.encode(header) + b"\n"
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = self.path.open("wb", buffering=0)  # a run's log starts afresh, then only grows
-            self._line(_encoder.encode(header))
+            self._file = open_replacing(self.path, first)  # a run's log starts afresh, then only grows
         except OSError as exc:
-            if self._file is not None:
-                self._file.close()
             raise ConfigError(f"output.frames_log: cannot write {self.path}: {exc.strerror or exc}") from None
+        self._end = len(first)  # where the next line goes: the end of the last whole line
+        self._torn = False  # a failed write may have left part of a line after _end
+        self._failing = False
 
     def offer(self, record: dict) -> None:
         """Queue a frame record (FrameRecord.to_dict()); called on the display thread."""
         self._put(record)
 
     def _line(self, data: bytes) -> None:
-        """Append one line, all of it, before the next: a short write goes on from where it stopped."""
-        view = memoryview(data + b"\n")
-        while view:
-            view = view[self._file.write(view) :]
+        """Write one line after the last whole one, all of it, with no buffer in between: a short write goes on
+        from where it stopped; one that fails leaves the file ending on the last whole line (or cut back to it
+        before the next line, when even that failed)."""
+        fd, line, done = self._file.fileno(), memoryview(data + b"\n"), 0
+        try:
+            self._trim()
+            while done < len(line):
+                done += os.pwrite(fd, line[done:], self._end + done)
+        except OSError:
+            self._torn = self._torn or done > 0
+            with contextlib.suppress(OSError):
+                self._trim()
+            raise
+        self._end += len(line)
+
+    def _trim(self) -> None:
+        """Cut off what a failed write left after the last whole line."""
+        if self._torn:
+            os.ftruncate(self._file.fileno(), self._end)
+            self._torn = False
 
     def _write(self, record: dict) -> None:
         try:
             self._line(_encoder.encode(record))
         except OSError as exc:
+            self._failing = True
             raise HmdrtError(f"cannot write {self.path}: {exc.strerror or exc}") from None
+        if self._failing:
+            self._failing = False
+            log.warning("%s: writing again; %d records could not be written (in the report)", self.path, self.failed)
 
     def close(self) -> None:
         """Write what is queued and close the file; safe to call more than once."""
@@ -107,6 +136,7 @@ class FramesLogReading:
     header: FramesHeader
     records: list[FrameRecord]
     cut: bool = False  # its last line was cut short (a run killed mid-write) and left out
+    corrupt: int = 0  # lines in the middle that are not JSON (torn by a full disk), left out
 
     def gaze_errors(self) -> dict[int, GazeError]:
         """Each resolved VSync's gaze error at photon time, by VSync (each is on the line of a later VSync)."""
@@ -139,6 +169,17 @@ def _fault(record: FrameRecord) -> str | None:
     return None
 
 
+def _is_json(line: bytes) -> bool:
+    """Whether a line is JSON of any shape; a line that a full disk cut off, joined to the next one, is not."""
+    try:
+        msgspec.json.decode(line)
+    except (msgspec.ValidationError, RecursionError):  # a number out of range, nesting too deep: JSON all the same
+        return True
+    except msgspec.DecodeError:
+        return False
+    return True
+
+
 def read_frames_log(path: str | Path) -> FramesLogReading:
     """Read a frames log; HmdrtError naming the file (and line) when it is too large or not a frames log."""
     path = Path(path)
@@ -157,7 +198,8 @@ def read_frames_log(path: str | Path) -> FramesLogReading:
 
 
 def _read(path: Path, stream) -> FramesLogReading:
-    header, records, total, number = None, [], 0, 0
+    header, records, total, number, cut = None, [], 0, 0, False
+    corrupt, first_corrupt = 0, 0
     while line := stream.readline(MAX_LINE_BYTES + 1):
         number += 1
         total += len(line)
@@ -171,7 +213,12 @@ def _read(path: Path, stream) -> FramesLogReading:
         except (msgspec.DecodeError, RecursionError) as exc:
             if not line.endswith(b"\n") and header is not None:  # the last line, cut by a kill: the rest stands
                 log.warning("%s: the last line is cut short (a run killed mid-write?); left out", where)
-                return FramesLogReading(path, header, records, cut=True)
+                cut = True
+                break
+            if header is not None and not _is_json(line):  # torn by a full disk: the lines around it stand
+                corrupt += 1
+                first_corrupt = first_corrupt or number
+                continue
             what = "a frames log header" if header is None else "a frame record"
             reason = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
             reason = "an empty line" if not line.strip() else reason
@@ -191,4 +238,7 @@ def _read(path: Path, stream) -> FramesLogReading:
         records.append(decoded)
     if header is None:
         raise HmdrtError(f"{path}: empty, not a frames log")
-    return FramesLogReading(path, header, records)
+    if corrupt:
+        lines = "a line" if corrupt == 1 else f"{corrupt} lines"
+        log.warning("%s: %s not JSON (torn by a full disk?) left out, the first at line %d", path, lines, first_corrupt)
+    return FramesLogReading(path, header, records, cut, corrupt)

@@ -1,7 +1,10 @@
 """Fuzzing bytes from outside, the frames log reader (hmdrt.telemetry.frames_log) behind `hmdrt export perfetto` and
-`hmdrt report plot`: a bad line is an error naming the file and line, never a crash, and whatever reads exports."""
+`hmdrt report plot`: a bad line is an error naming the file and line, or a line that is not JSON skipped and counted,
+never a crash, and whatever reads exports."""
 
 from __future__ import annotations
+
+import json
 
 import msgspec
 from hypothesis import strategies as st
@@ -65,15 +68,33 @@ def test_a_mutated_frames_log_reads_or_is_an_error_naming_the_file(data):
     trace_events(reading)
 
 
+def is_json(text: bytes) -> bool:
+    """Whether a line is JSON (UTF-8, no NaN or Infinity), by the standard library's parser."""
+
+    def constant(name: str) -> None:
+        raise ValueError(name)
+
+    try:
+        json.loads(text.decode("utf-8"), parse_constant=constant)
+    except ValueError:  # also UnicodeDecodeError and json.JSONDecodeError
+        return False
+    except RecursionError:
+        pass
+    return True
+
+
 @fuzz(80, lines=st.lists(st.one_of(st.none(), BAD_LINES), max_size=8))
-def test_the_first_bad_line_is_named_by_its_number(lines):
-    """Good records (None) and bad lines after the header: the records when no line is bad, else an HmdrtError
-    naming the file and the first bad line's number."""
+def test_the_first_bad_line_is_named_by_its_number_and_lines_not_json_are_skipped(lines):
+    """Good records (None) and bad lines after the header: an HmdrtError naming the file and the first bad line that
+    is JSON (or too long), else the good records, with the lines that are not JSON at all (as a full disk tears
+    them) counted."""
     body = [line(i) if text is None else text for i, text in enumerate(lines)]
     path = scratch("fuzz.jsonl", b"\n".join([HEADER, *body]) + b"\n")
-    bad = [i for i, text in enumerate(lines) if text is not None]
+    bad = [i for i, text in enumerate(lines) if text is not None and (len(text) > MAX_LINE_BYTES or is_json(text))]
     if not bad:
-        assert [r.vsync for r in read_frames_log(path).records] == list(range(len(lines)))
+        reading = read_frames_log(path)
+        assert [r.vsync for r in reading.records] == [i for i, text in enumerate(lines) if text is None]
+        assert reading.corrupt == sum(text is not None for text in lines)
         return
     try:
         reading = read_frames_log(path)
