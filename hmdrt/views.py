@@ -7,6 +7,7 @@ blinks keep the last valid gaze and are counted). Trace poses are relative to th
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -138,6 +139,14 @@ def frame_requests(inp: FrameInput, cameras: dict[str, EyeCamera], seed: int) ->
         head_r = rot.T @ (cameras["right"].position - inp.pose.position)
         depth = vergence_depth(head_l, inp.gaze["left"], head_r, inp.gaze["right"])
     return [FrameRequest(cam, inp.gaze[eye], inp.frame, seed, eye, depth) for eye, cam in cameras.items()]
+
+
+def held_start(inputs: list[FrameInput], extra: int, period_ns: int) -> list[FrameInput]:
+    """The trace's frames after `extra` frames that hold its first one, all renumbered from 0: a longer warm-up
+    comes before the trace starts (a temporal method's history: an eval group scores the same stretch of the trace
+    whatever its warm-up, and `hmdrt render` shows a method's steady image of a view)."""
+    held = [inputs[0]] * extra + inputs
+    return [dataclasses.replace(inp, frame=k, t_ns=k * period_ns) for k, inp in enumerate(held)]
 
 
 def render_frames(

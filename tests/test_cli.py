@@ -124,3 +124,38 @@ def test_the_console_script_and_python_m_hmdrt_reach_the_same_main():
     assert script.value == "hmdrt.cli:main" and script.load() is cli.main
     r = hmdrt("--version")
     assert r.returncode == 0 and r.stdout.startswith("hmdrt "), r.stderr
+
+
+def _eccentricity(width: int, height: int, yaw: float, pitch: float) -> np.ndarray:
+    """Each pixel's angle from the gaze (degrees) in sim-cpu's left eye at this resolution, looking from the start."""
+    from hmdrt.optics import get_profile
+    from hmdrt.scene import load_scene
+    from hmdrt.spatial import gaze_direction
+    from hmdrt.views import eye_cameras
+
+    profile = get_profile("sim-cpu").with_resolution(width, height)
+    camera = eye_cameras(profile, load_scene("whitted").start, ("left",))["left"]
+    return camera.eccentricity(np.array(gaze_direction(yaw, pitch)))
+
+
+def test_a_temporal_methods_single_frame_is_its_steady_image_after_its_declared_warm_up(tmp_path, capsys):
+    """One frame of rrm (the default method) is what it shows once its refresh cycle has passed: on a still view
+    its fovea and periphery equal full's, where without the warm-up most of its periphery is still black. A
+    negative gaze after --gaze reads as the gaze."""
+    from hmdrt.cli import main
+
+    common = "render --scene whitted --profile sim-cpu --resolution 96x108 --gaze -10,5".split()
+    images = {}
+    for name, extra in (("rrm", []), ("full", []), ("cold", ["--warmup", "0"])):
+        method = "full" if name == "full" else "rrm"
+        assert main([*common, "--method", method, "--out", str(tmp_path / f"{name}.png"), *extra]) == 0
+        images[name] = np.asarray(Image.open(tmp_path / f"{name}.png")).astype(float)
+    printed = capsys.readouterr().out
+    assert "after 12 warm-up frames of the same view (rrm's history)" in printed  # group 4 x 3
+    eccentricity = _eccentricity(96, 108, -10.0, 5.0)
+    fovea, periphery = eccentricity <= 10.0, eccentricity > 20.0
+    assert fovea.sum() > 100 and periphery.sum() > 1000  # the gaze is where -10,5 puts it
+    difference = np.abs(images["rrm"] - images["full"]).mean(axis=2)
+    assert difference[fovea].mean() < 1.0 and difference[periphery].mean() < 1.0  # 8-bit levels
+    black = (images["cold"].max(axis=2) == 0)[periphery].mean()
+    assert black > 0.5, f"one cold rrm frame leaves {black:.0%} of the periphery black"

@@ -5,6 +5,7 @@ errors reach the user as one line, never a traceback."""
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 
 from hmdrt.cli import compositor, devices, render, results
@@ -31,8 +32,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+NEGATIVE = re.compile(r"-\d[\d.]*(,-?\d[\d.]*)*")  # "-10,5", "-2.5": a value, though argparse takes it for a flag
+
+
+def _negative_values(argv: list[str]) -> list[str]:
+    """`--option -10,5` as `--option=-10,5`, so that a negative gaze or number after an option reads as its value."""
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1].startswith("--") and "=" not in out[-1] and NEGATIVE.fullmatch(arg):
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(_negative_values(sys.argv[1:] if argv is None else argv))
     logs.configure(args.log_level)
     try:
         return args.run(args)

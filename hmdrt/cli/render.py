@@ -21,7 +21,7 @@ from hmdrt.scene import load_scene
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
 from hmdrt.version import __version__
-from hmdrt.views import render_frames, sequence_inputs
+from hmdrt.views import held_start, render_frames, sequence_inputs
 
 
 def _record(stats: FrameStats, ms: float, width: int, height: int, method: str, scene: str) -> dict:
@@ -33,6 +33,11 @@ def _record(stats: FrameStats, ms: float, width: int, height: int, method: str, 
         "method": method,
         "scene": scene,
     }
+
+
+def _warmup(text: str) -> int:
+    """A number of warm-up frames: 0, or a count."""
+    return 0 if text.strip() == "0" else count(text)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -55,6 +60,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     records, out = [], Path(args.out)
     with Whitted(scene, threads=args.threads) as tracer:
         method = choice.make(tracer)
+        # a temporal method's single frame after the history it declares (RRM: its refresh cycle), as it shows a
+        # view it has been looking at; a sequence shows its start as it is, unless asked
+        warmup = args.warmup if args.warmup is not None else 0 if sequence else method.warmup_frames
+        inputs = held_start(inputs, warmup, profile.period_ns)
         setup_ms = (time.perf_counter() - t0) * 1e3
         frames = render_frames(method, profile, inputs, eyes, args.seed)
         bar = tqdm(total=len(inputs), unit="frame", disable=not sequence or None, file=sys.stderr)
@@ -67,15 +76,18 @@ def cmd_render(args: argparse.Namespace) -> int:
             with stats.stage("present"):
                 srgb = linear_to_srgb8(np.concatenate(images, axis=1))
             ms = (time.perf_counter() - t1) * 1e3
-            write_png(out / f"frame_{inp.frame:05d}.png" if sequence else out, srgb)
+            bar.update()
+            frame = inp.frame - warmup
+            if frame < 0:
+                continue
+            write_png(out / f"frame_{frame:05d}.png" if sequence else out, srgb)
             records.append(
                 {
-                    "frame": inp.frame,
-                    "t_ns": inp.t_ns,
+                    "frame": frame,
+                    "t_ns": inp.t_ns - warmup * profile.period_ns,
                     **_record(stats, ms, srgb.shape[1], srgb.shape[0], method.name, scene.name),
                 }
             )
-            bar.update()
         bar.close()
     if sequence:
         write_atomic(out / "frames.jsonl", "".join(json.dumps(r) + "\n" for r in records).encode())
@@ -88,6 +100,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         triangles=scene.triangle_count,
         threads=tracer.tracer.threads,
         setup_ms=round(setup_ms, 3),
+        warmup_frames=warmup,
         hmdrt=__version__,
         spp=getattr(method, "spp", 1),
     )
@@ -100,6 +113,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         f"{where}: {summary['width']}x{summary['height']} {method.name} on {scene.name} ({profile.name}), "
         f"{summary['ms_total']:.1f} ms{'/frame' if sequence else ''}, {summary['rays']['total']:,} rays"
         f"{'/frame' if sequence else ''}"
+        + (f", after {warmup} warm-up frames of the same view ({method.name}'s history)" if warmup else "")
     )
     return 0
 
@@ -141,6 +155,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     render.add_argument("--out", required=True, help="output PNG; with --frames or --trace, an output folder")
     render.add_argument("--stats", help="output stats JSON (for a sequence: per-frame means)")
     render.add_argument("--frames", type=count, help="render a sequence of N frames at the profile's refresh rate")
+    render.add_argument(
+        "--warmup",
+        type=_warmup,
+        help="frames of the first view rendered and not written first (default: the method's declared history for "
+        "one frame, so rrm shows its whole image; 0 for a sequence)",
+    )
     render.add_argument("--trace", help="native gaze/pose trace (.jsonl[.gz]) driving the sequence, or 'builtin'")
     render.add_argument(
         "--eye", choices=["left", "right", "both"], default="left", help="which eye (both: side by side)"

@@ -55,7 +55,7 @@ from hmdrt.optics.camera import eccentricity_map
 from hmdrt.scene import Scene, load_scene
 from hmdrt.telemetry.stats import RAY_KINDS, FrameStats
 from hmdrt.trace.integrator import Whitted
-from hmdrt.views import FrameInput, eye_cameras, frame_requests, sequence_inputs
+from hmdrt.views import FrameInput, eye_cameras, frame_requests, held_start, sequence_inputs
 
 REFERENCES = ("full", "regular")  # not foveated: never the "best foveated" cell of the summary
 NOISY_SPREAD = 0.15  # a speed-up whose per-round ratios range over more than this of their median is noisy
@@ -216,13 +216,6 @@ def run_group(
     ]
     rows = [{**row, "worker": worker, "group_seconds": seconds, **provenance.stamp()} for row in rows]
     return GroupResult(rows, Crops(**group.ids, **last, images={c.label: c.last for c in group.cells}))
-
-
-def held_start(inputs: list[FrameInput], extra: int, period_ns: int) -> list[FrameInput]:
-    """The trace's frames after `extra` frames that hold its first one, all renumbered from 0: a longer warm-up
-    comes before the trace starts, so every group scores the same stretch of it (and its truths are shared)."""
-    held = [inputs[0]] * extra + inputs
-    return [dataclasses.replace(inp, frame=k, t_ns=k * period_ns) for k, inp in enumerate(held)]
 
 
 def group_warmup(configured: int, cells: list[_Cell], group: dict) -> int:
