@@ -77,9 +77,9 @@ class DriverRates:
 class Hub:
     """Takes the compositor's telemetry and status and sends them on to the open pages (start(), then stop())."""
 
-    def __init__(self, link: CompositorLink, refusals: Callable[[], dict[str, int]]):
+    def __init__(self, link: CompositorLink, counts: Callable[[], dict]):
         self.link = link
-        self._refusals = refusals  # () -> the server's refusal counts, shown on the pages
+        self._counts = counts  # () -> the server's counts (refusals, connections, timeouts), shown on the pages
         self.pages: set[Page] = set()
         self.status: dict = {}
         self.report: dict = {}
@@ -175,7 +175,7 @@ class Hub:
             "control_allows": self.status.get("ok", False) and not why,
             "control_why": why or self.status.get("error", ""),
             "watch": {
-                "refused": self._refusals(),
+                **self._counts(),
                 "pages": len(self.pages),
                 "dropped": sum(page.dropped for page in self.pages),  # messages pages were too slow to take
                 "malformed": self.link.malformed,

@@ -92,9 +92,10 @@ class CompositorLink:
     async def request(self, command: dict) -> dict:
         """The compositor's reply to a control request; {"ok": False, "error": ...} when none comes in time."""
         async with self._lock:
-            sock = self._socket(zmq.REQ)
-            sock.setsockopt(zmq.MAXMSGSIZE, MAX_TELEMETRY_BYTES)
-            try:
+            sock = None
+            try:  # a socket of its own, which even this process being out of files only makes a failed request
+                sock = self._socket(zmq.REQ)
+                sock.setsockopt(zmq.MAXMSGSIZE, MAX_TELEMETRY_BYTES)
                 sock.connect(self.control)
                 await sock.send(msgspec.msgpack.encode(command))
                 reply = msgspec.msgpack.decode(await asyncio.wait_for(sock.recv(), self.timeout_s))
@@ -103,7 +104,8 @@ class CompositorLink:
             except (zmq.ZMQError, ValueError, RecursionError) as exc:
                 return {"ok": False, "error": f"control request to {self.control} failed: {exc}"}
             finally:
-                sock.close()
+                if sock is not None:
+                    sock.close()
         return reply if isinstance(reply, dict) else {"ok": False, "error": "the compositor's reply is not a map"}
 
     def close(self) -> None:

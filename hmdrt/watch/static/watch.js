@@ -196,7 +196,9 @@
       fmt(d.reconnects), fmt(d.offset_ms, 3), fmt(d.drift_ppm, 2),
     ]));
     const security = s.security || {};
-    const refused = (message.watch && message.watch.refused) || {};
+    const watch = message.watch || {};
+    const refused = watch.refused || {};
+    const timedOut = watch.timed_out || {};
     fillTable($("security").tBodies[0], [
       ["compositor access", security.curve ? "CURVE"
         : String((s.endpoints || {}).control).startsWith("ipc://") ? "this user (ipc://)" : "loopback (tcp://)"],
@@ -206,7 +208,9 @@
       ["watch: refused (host / origin / token / message)",
         `${fmt(refused.host)} / ${fmt(refused.origin)} / ${fmt(refused.token)} / ${fmt(refused.message)}`],
       ["watch: bad HTTP requests (answered 400)", fmt(refused.bad_http)],
-      ["watch: pages open", fmt(message.watch && message.watch.pages)],
+      ["watch: connections / pages open", `${fmt(watch.connections)} / ${fmt(watch.pages)}`],
+      ["watch: refused over the cap (connections / pages)", `${fmt(refused.connections)} / ${fmt(refused.pages)}`],
+      ["watch: timed out (request / idle)", `${fmt(timedOut.request)} / ${fmt(timedOut.idle)}`],
     ]);
     updateControls();
   }
