@@ -27,10 +27,17 @@ def _spin() -> None:
         pass
 
 
-def _speedups(rows: list[dict]) -> dict[tuple[str, str, str], tuple[float, bool, float | None]]:
-    """Each compared cell's speed-up against its baseline, whether the eval marked it noisy, and its spread."""
+def _speedups(rows: list[dict]) -> dict[tuple[str, str, str], tuple[float, bool, float | None, float]]:
+    """Each compared cell's speed-up against its baseline, whether the eval marked it noisy, its spread, and the
+    speed-up in CPU time."""
+    cpu = {(r["scene"], r["trace"], r["label"]): r["cpu_ms_per_frame"] for r in rows}
     return {
-        (r["scene"], r["trace"], r["label"]): (r["speedup_vs_baseline"], r["timing_noisy"], r["speedup_spread"])
+        (r["scene"], r["trace"], r["label"]): (
+            r["speedup_vs_baseline"],
+            r["timing_noisy"],
+            r["speedup_spread"],
+            cpu[(r["scene"], r["trace"], r["baseline"])] / r["cpu_ms_per_frame"],
+        )
         for r in rows
         if r["baseline"] is not None and r["label"] != r["baseline"]
     }
@@ -57,11 +64,13 @@ def main() -> None:
     finally:
         for p in load:
             p.terminate()
-    held = 0
-    print(f"{'scene':12s} {'trace':12s} {'cell':44s} {'run 1':>13s} {'run 2':>13s} {'differ':>7s}  verdict")
-    for key, (a, noisy_a, spread_a) in runs[0].items():
-        b, noisy_b, spread_b = runs[1][key]
-        differ = max(a, b) / min(a, b) - 1.0
+    held, cpu_held = 0, 0
+    print(f"{'scene':12s} {'trace':12s} {'cell':44s} {'run 1':>13s} {'run 2':>13s} {'differ':>7s}  verdict"
+          f"{'':14s} {'CPU time: run 1':>15s} {'run 2':>6s} {'differ':>7s}")  # fmt: skip
+    for key, (a, noisy_a, spread_a, cpu_a) in runs[0].items():
+        b, noisy_b, spread_b, cpu_b = runs[1][key]
+        differ, cpu_differ = max(a, b) / min(a, b) - 1.0, max(cpu_a, cpu_b) / min(cpu_a, cpu_b) - 1.0
+        cpu_held += cpu_differ <= NOISY_SPREAD
         ok = differ <= NOISY_SPREAD or noisy_a or noisy_b
         held += ok
         cells = [
@@ -70,10 +79,11 @@ def main() -> None:
         ]
         verdict = "within 15%" if differ <= NOISY_SPREAD else "marked noisy" if ok else "DIFFER, not marked"
         print(f"{key[0][:12]:12s} {key[1][:12]:12s} {key[2][:44]:44s} {cells[0]:>13s} {cells[1]:>13s} "
-              f"{differ:7.0%}  {verdict}")  # fmt: skip
+              f"{differ:7.0%}  {verdict:18s} {cpu_a:10.2f}x {cpu_b:6.2f}x {cpu_differ:7.0%}")  # fmt: skip
     print(
         f"{held} of {len(runs[0])} cells agree within {NOISY_SPREAD:.0%} or are marked noisy (~spread): "
         + ("every speed-up holds" if held == len(runs[0]) else "some do not")
+        + f"; in CPU time {cpu_held} of {len(runs[0])} agree within {NOISY_SPREAD:.0%}"
     )
 
 
