@@ -11,7 +11,7 @@ import pytest
 
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.profiles import HmdProfile
-from hmdrt.present.timewarp import timewarp
+from hmdrt.present.timewarp import Warp, _warp, homography, timewarp
 from hmdrt.spatial import Pose, quat_from_yaw_pitch, quat_multiply
 
 HEAD = np.array([0.2, 1.6, -0.4])
@@ -62,8 +62,9 @@ def test_identity_returns_the_image(name: str, eye: str) -> None:
     moved = EyeCamera(**{**rendered.__dict__, "position": rendered.position + [0.3, -0.1, 0.5]})
     for target in (rendered, moved):  # positions are ignored: only the rotation matters
         warped, outside = timewarp(image, rendered, target)
-        # the homography's float64 rounding vanishes in float32 lookups: they land on pixel centres
-        np.testing.assert_allclose(warped, image, rtol=1e-6, atol=1e-9)
+        # the homography's float64 rounding vanishes in float32 lookups: they land on pixel centres, blended
+        # with weights of exactly 0
+        np.testing.assert_array_equal(warped, image)
         assert outside == 0.0
 
 
@@ -163,6 +164,84 @@ def test_every_pixel_matches_a_numpy_reference(name: str, eye: str, yaw: float, 
     warped = timewarp(image, rendered, target).image
     # float32 lookups land within ~2e-4 px of float64 ones, and a [0, 1] texture changes by at most 1 per pixel
     np.testing.assert_allclose(warped, reference_warp(image, rendered, target), atol=5e-4)
+
+
+def float32_lookups_warp(image: np.ndarray, rendered: EyeCamera, target: EyeCamera) -> np.ndarray:
+    """The warp with the kernel's own float32 lookups (each row's constant terms in float64, then float32 per pixel,
+    coordinates clamped so that the footprint stays inside), blended from them in float64: what the kernel's output
+    must match to float32 rounding of its blend, since 2026-12 as before (weights then, lerps with FMA now)."""
+    f32 = np.float32
+    h, w = image.shape[:2]
+    m = homography(rendered, target)
+    cy = np.arange(h)[:, None] + 0.5
+    bx, by, bz = ((m[i, 0] * 0.5 + m[i, 1] * cy + m[i, 2]).astype(f32) for i in range(3))
+    xf = np.arange(w, dtype=f32)[None, :]
+    z = f32(m[2, 0]) * xf + bz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = f32(1.0) / z
+    qx, qy = (f32(m[0, 0]) * xf + bx) * inv, (f32(m[1, 0]) * xf + by) * inv
+    fx = np.minimum(np.maximum(qx - f32(0.5), f32(0.0)), f32(w - 1))
+    fy = np.minimum(np.maximum(qy - f32(0.5), f32(0.0)), f32(h - 1))
+    ix, iy = np.clip(fx.astype(np.int32), 0, max(w - 2, 0)), np.clip(fy.astype(np.int32), 0, max(h - 2, 0))
+    ax, ay = (fx - ix)[..., None].astype(np.float64), (fy - iy)[..., None].astype(np.float64)
+    right, lower = np.minimum(ix + 1, w - 1), np.minimum(iy + 1, h - 1)
+    top = image[iy, ix] * (1 - ax) + image[iy, right] * ax
+    bottom = image[lower, ix] * (1 - ax) + image[lower, right] * ax
+    out = top * (1 - ay) + bottom * ay
+    out[~(z > 0)] = 0.0
+    return out
+
+
+@pytest.mark.parametrize(
+    ("name", "eye", "yaw", "pitch", "roll"),
+    [
+        ("sim-cpu", "left", 1.5, 0.5, 0.0),  # the bench's turn
+        ("dk2", "right", 4.0, -2.0, 1.0),
+        ("vive_pro_eye", "left", 35.0, 30.0, 5.0),  # off two edges: the corner repeats
+        ("vive_pro_eye", "right", -35.0, -30.0, -5.0),  # the opposite corner, the last texel's
+        ("sim-cpu", "left", 95.0, 10.0, 0.0),  # part behind the rendered eye: black
+    ],
+)
+def test_output_matches_the_float32_lookups_to_1e6(name: str, eye: str, yaw: float, pitch: float, roll: float) -> None:
+    """Pinned to the lookups' float32 arithmetic: a [0, 1] texture comes out within 1e-6 (the blend's float32
+    rounding) of float32_lookups_warp, which the SIMD blend of 2026-12 kept from the kernel before it (1.8e-7 apart
+    on the bench's frames). A change to the projection, its clamping or its rounding moves pixels by far more."""
+    profile = small(name)
+    image = texture(profile, seed=3)
+    rendered, target = camera(profile, eye, 3.0, 1.0), camera(profile, eye, 3.0 + yaw, 1.0 + pitch, roll)
+    warped = timewarp(image, rendered, target).image
+    np.testing.assert_allclose(warped, float32_lookups_warp(image, rendered, target), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize(("width", "height"), [(1, 16), (16, 1), (1, 1), (2, 2), (37, 23)])
+def test_images_down_to_one_pixel_read_only_their_own_texels(width: int, height: int) -> None:
+    """The image sits inside NaNs: a read of anything but its texels (a step past a 1-pixel-wide row, a row past the
+    last) would turn pixels NaN. Turns towards each corner clamp lookups onto the first and the last texels."""
+    profile = get_profile("dk2").with_resolution(width, height)
+    padded = np.full((height + 2, width, 3), np.nan, np.float32)
+    padded[1:-1] = texture(profile)
+    image = padded[1:-1]  # C-contiguous, NaN on both sides
+    rendered = camera(profile, "left")
+    for yaw, pitch in ((40.0, 40.0), (-40.0, -40.0), (40.0, -40.0), (-40.0, 40.0), (2.0, 1.0)):
+        target = camera(profile, "left", yaw, pitch)
+        warped = timewarp(image, rendered, target).image
+        assert np.isfinite(warped).all()
+        np.testing.assert_allclose(warped, float32_lookups_warp(image, rendered, target), rtol=0, atol=1e-6)
+
+
+def test_every_split_into_bands_of_rows_gives_the_same_warp() -> None:
+    """The kernel warps one band of rows per thread: every row is written once and counted once, however many
+    bands (1 to one per row) and whatever the numba thread count the call runs on."""
+    for width, height in ((24, 1), (24, 3), (192, 216)):
+        profile = get_profile("sim-cpu").with_resolution(width, height)
+        image, rendered, target = texture(profile), camera(profile, "left"), camera(profile, "left", 6.0, -3.0)
+        whole = timewarp(image, rendered, target)
+        assert 0.0 < whole.outside < 1.0
+        for blocks in sorted({1, 2, 3, height}):
+            out = np.full_like(image, np.nan)
+            outside = _warp(Warp(image, out, homography(rendered, target)), blocks)
+            np.testing.assert_array_equal(out, whole.image)
+            assert outside / image[..., 0].size == whole.outside
 
 
 def test_a_warp_into_a_buffer_allocates_nothing_image_sized() -> None:
