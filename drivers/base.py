@@ -101,7 +101,7 @@ class Counters:
         """The counts in a line, as `hmdrt driver` prints them when it stops."""
         return (
             f"{self.samples} samples ({self.invalid} invalid), {self.dropped} dropped, {self.malformed} malformed, "
-            f"{self.reconnects} reconnects"
+            f"{self.reconnects} reconnects, {self.crashes} crashes"
         )
 
 

@@ -2,11 +2,14 @@
 
 open() resolves the one stream of the type, name and source_id given (LSL's discovery, as lsl_api.cfg or LSLAPICFG
 set it) within `timeout` seconds; when none matches it names the streams it found and raises DeviceLost, so that a
-host tries again. It reads the stream's XDF Gaze meta-data (drivers.protocols.lsl_gaze) and fails with one error
-naming the channels when they do not say where the gaze is. A sample's timestamp is the sender's local_clock(); the
-inlet's time_correction() (liblsl's round-trip probes, refreshed in the background) maps it to this machine's
-local_clock(), which is taken for the host clock only where hmdrt.bus.lsl.ClockMap finds them one clock; otherwise (or
-in virtual time) the clock sync maps it from receive times, as for the other network devices. Gaps of under a
+host tries again. It reads the stream's XDF Gaze meta-data (drivers.protocols.lsl_gaze) before any sample and fails
+with one error naming the stream and what is wrong when they lie (a string format, too many channels, more channels
+described than the stream has, a count or format other than the one announced to discovery) or do not say where the
+gaze is; a compositor's driver thread counts that as a crash and tries again with backoff (drivers.host). A sample's
+timestamp is the sender's local_clock(); the inlet's time_correction() (liblsl's round-trip probes, refreshed in the
+background) maps it to this machine's local_clock(), which is taken for the host clock only where
+hmdrt.bus.lsl.ClockMap finds them one clock; otherwise (or in virtual time) the clock sync maps it from receive times,
+as for the other network devices. Gaps of under a
 second in the timestamps of a stream with a nominal rate count as dropped samples (longer ones are pauses), rows
 with infinite or huge values as malformed.
 """
@@ -23,7 +26,15 @@ from hmdrt.bus.lsl import ClockMap, load_pylsl
 from hmdrt.bus.messages import ClockEstimate, Gaze, Status
 from hmdrt.clock import MONOTONIC, Clock
 from hmdrt.drivers.base import DeviceLost, Driver, DriverError, DriverUrl, Sample
-from hmdrt.drivers.protocols.lsl_gaze import AXES, ORIGINS, GazeDecoder, MetadataError, gaze_layout, parse_info
+from hmdrt.drivers.protocols.lsl_gaze import (
+    AXES,
+    ORIGINS,
+    GazeDecoder,
+    MetadataError,
+    StreamMeta,
+    gaze_layout,
+    parse_info,
+)
 from hmdrt.errors import ConfigError
 from hmdrt.optics import get_profile
 
@@ -97,7 +108,7 @@ class LslDriver(Driver):
             )
         inlet = lsl.StreamInlet(found[0], max_buflen=BUFFER_S, recover=False)
         try:
-            layout = gaze_layout(parse_info(inlet.info(timeout).as_xml()))
+            layout = gaze_layout(_checked_meta(found[0], inlet.info(timeout)))
             self.decoder = GazeDecoder(
                 layout, self.opt["axes"], self.profile, self.opt["origin"], self.opt["confidence"]
             )
@@ -191,11 +202,30 @@ class LslDriver(Driver):
         self.state = "closed"
 
 
+def _named(stream) -> str:
+    """A stream info as "'name' (type T, source_id S, N channels)", its texts cut short."""
+    name, kind, source_id = (text[:MAX_SELECTOR] for text in (stream.name(), stream.type(), stream.source_id()))
+    return f"{name!r} (type {kind!r}, source_id {source_id!r}, {stream.channel_count()} channels)"
+
+
 def _listing(streams: list) -> str:
-    """Stream infos as "'name' (type T, source_id S, N channels)", the first MAX_LISTED of them."""
-    named = [
-        f"{s.name()!r} (type {s.type()!r}, source_id {s.source_id()!r}, {s.channel_count()} channels)"
-        for s in streams[:MAX_LISTED]
-    ]
+    """Stream infos as _named says, the first MAX_LISTED of them."""
     more = len(streams) - MAX_LISTED
-    return ", ".join(named) + (f" and {more} more" if more > 0 else "")
+    return ", ".join(_named(s) for s in streams[:MAX_LISTED]) + (f" and {more} more" if more > 0 else "")
+
+
+def _checked_meta(announced, full) -> StreamMeta:
+    """The meta-data of a stream's full info, checked before any sample is read: parse_info's limits, and the
+    channel count and format the stream announced to discovery (what the inlet reads samples by) must be the full
+    info's. MetadataError naming the stream and what is wrong."""
+    try:
+        first, meta = parse_info(announced.as_xml()), parse_info(full.as_xml())
+    except MetadataError as exc:
+        raise MetadataError(f"LSL stream {_named(announced)}: {exc}") from None
+    said, says = (first.channel_count, first.channel_format), (meta.channel_count, meta.channel_format)
+    if said != says:
+        raise MetadataError(
+            f"{meta.title()} announced {said[0]} channels of {said[1]!r} but its stream info says {says[0]} of "
+            f"{says[1]!r}"
+        )
+    return meta

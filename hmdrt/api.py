@@ -169,9 +169,9 @@ def run_compositor(
 
     In virtual time (the default) the clock moves one period per frame: the run never misses, takes as long as
     the rendering does, and reproduces bit for bit for the same config, trace and seed. virtual_time=False runs
-    against the host clock, as `hmdrt run` does. The config's drivers feed it; its bus sockets are bound for the
-    run and closed after. The report is a Report: the keys of `hmdrt run --report`'s JSON, read by key or
-    attribute (report.latency_ms.gaze_to_photon.p99); Report.to_dict() gives the plain dict.
+    against the host clock, as `hmdrt run` does. The config's drivers feed it; its bus sockets (by default private
+    ipc:// ones) are bound for the run and closed after. The report is a Report: the keys of `hmdrt run --report`'s
+    JSON, read by key or attribute (report.latency_ms.gaze_to_photon.p99); Report.to_dict() gives the plain dict.
     """
     if frames < 1:
         raise ValueError(f"frames must be at least 1, got {frames}")

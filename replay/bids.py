@@ -23,19 +23,20 @@ BIDS since 1.11.0), checked against the schema of bidsschematools 2.0.1 (BIDS 1.
 
 from __future__ import annotations
 
-import gzip
 import json
 import math
 import re
-import statistics
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from decimal import Decimal
 from pathlib import Path
+
+import numpy as np
 
 from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
 from hmdrt.files.atomic import write_atomic
-from hmdrt.replay.trace import Sample
+from hmdrt.replay.table import GAZE, SampleTable
+from hmdrt.replay.trace import Sample, batches, write_chunks
 from hmdrt.spatial import gaze_angles
 
 SUFFIX = "_physio.tsv.gz"
@@ -73,43 +74,51 @@ def physio_files(out: str | Path, samples: Iterable[Sample]) -> dict[str, tuple[
     """The (TSV, sidecar) pair per eye ("L", "R", "C") that write_physio writes for these samples."""
     out = Path(out)
     stem = _stem(out)
-    gazes = [s for s in samples if isinstance(s, Gaze)]
+    table = SampleTable.of(samples)
     files = {}
     for eye, (label, _) in RECORDINGS.items():
-        if any(getattr(s, eye) is not None for s in gazes):
+        if table.present(eye):
             name = f"{stem}_recording-{label}_physio"
             files[eye] = (out.with_name(name + ".tsv.gz"), out.with_name(name + ".json"))
     return files
 
 
-def _sampling_frequency(gazes: list[Gaze]) -> float:
-    """The rate of the median interval between consecutive samples, in Hz."""
-    steps = [b.t_host - a.t_host for a, b in zip(gazes, gazes[1:], strict=False) if b.t_host > a.t_host]
-    if not steps:
+def _sampling_frequency(table: SampleTable) -> float:
+    """The rate of the median interval between consecutive gaze samples, in Hz."""
+    times = table.column("t_host")[table.column("kind") == GAZE]
+    steps = np.diff(times)
+    steps = steps[steps > 0]
+    if not len(steps):
         raise ConfigError("a BIDS recording needs at least two gaze samples at different times")
-    return float(f"{1e9 / statistics.median(steps):.6g}")
+    return float(f"{1e9 / float(np.median(steps)):.6g}")
 
 
 def _cell(value: float) -> str:
     return repr(value) if math.isfinite(value) else "n/a"
 
 
-def write_physio(out: str | Path, samples: Iterable[Sample]) -> list[Path]:
-    """Write the gaze samples as BIDS eye-tracking physio files beside OUT (see the module docstring); the paths."""
-    out = Path(out)
-    gazes = [s for s in samples if isinstance(s, Gaze)]
-    files = physio_files(out, gazes)
-    if not files:
-        raise ConfigError(f"{out.name}: the trace has no gaze direction to export")
-    frequency = _sampling_frequency(gazes)
-    task = re.search(r"(?:^|_)task-([a-zA-Z0-9]+)", out.name)
-    written = []
-    for eye, (tsv, sidecar) in files.items():
+def _rows(table: SampleTable, eye: str) -> Iterator[bytes]:
+    """One eye's TSV rows, a batch of samples at a time."""
+    for batch in batches(s for s in table if isinstance(s, Gaze)):
         rows = []
-        for s in gazes:
+        for s in batch:
             v = getattr(s, eye)
             x, y = gaze_angles(v) if s.valid and v is not None else (math.nan, math.nan)
             rows.append(f"{Decimal(s.t_host).scaleb(-6):f}\t{_cell(x)}\t{_cell(y)}\n")
+        yield "".join(rows).encode()
+
+
+def write_physio(out: str | Path, samples: Iterable[Sample]) -> list[Path]:
+    """Write the gaze samples as BIDS eye-tracking physio files beside OUT (see the module docstring); the paths."""
+    out = Path(out)
+    table = SampleTable.of(samples)
+    files = physio_files(out, table)
+    if not files:
+        raise ConfigError(f"{out.name}: the trace has no gaze direction to export")
+    frequency = _sampling_frequency(table)
+    task = re.search(r"(?:^|_)task-([a-zA-Z0-9]+)", out.name)
+    written = []
+    for eye, (tsv, sidecar) in files.items():
         metadata = {
             "SamplingFrequency": frequency,
             "StartTime": 0,
@@ -120,7 +129,7 @@ def write_physio(out: str | Path, samples: Iterable[Sample]) -> list[Path]:
             **({"TaskName": task.group(1)} if task else {}),
             **COLUMN_METADATA,
         }
-        write_atomic(tsv, gzip.compress("".join(rows).encode(), mtime=0))
+        write_chunks(tsv, _rows(table, eye))
         write_atomic(sidecar, (json.dumps(metadata, indent=2) + "\n").encode())
         written += [tsv, sidecar]
     return written

@@ -5,7 +5,8 @@ The output format follows OUT's name: `.jsonl` / `.jsonl.gz` native (replay/trac
 hmdrt CSV and BIDS hold gaze only, so head poses are left out (and counted), and they keep one time per sample,
 t_host (every imported format has t_dev equal to it; a recorded native trace may not). A refusal (an unknown
 output name, an option the input's format does not take, an output that exists without force) is a ConfigError,
-before anything is written.
+before anything is written. The samples are held as a SampleTable (replay/table.py: 106 bytes a sample, at most
+10 million) and written a batch at a time, so memory stays near the table's size, however the input compresses.
 """
 
 from __future__ import annotations
@@ -15,11 +16,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
 from hmdrt.replay import bids, load_trace
 from hmdrt.replay.formats.eyelink import Screen
 from hmdrt.replay.formats.generic_csv import write_generic_csv
+from hmdrt.replay.table import GAZE, NO_TIME, SampleTable
 from hmdrt.replay.trace import TraceReading, write_trace
 
 log = logging.getLogger(__name__)
@@ -62,7 +63,14 @@ def _native(out: Path, reading: TraceReading) -> int:
 
 def _bids(out: Path, reading: TraceReading) -> int:
     bids.write_physio(out, reading.samples)
-    return sum(isinstance(s, Gaze) for s in reading.samples)
+    return SampleTable.of(reading.samples).gaze_count
+
+
+def _device_times(table: SampleTable) -> bool:
+    """Whether some gaze sample has a device time other than its t_host."""
+    return any(
+        ((rows.kind == GAZE) & (rows.t_dev != NO_TIME) & (rows.t_dev != rows.t_host)).any() for rows in table.columns()
+    )
 
 
 WRITERS: dict[str, Callable[[Path, TraceReading], int]] = {  # each returns how many samples it wrote
@@ -84,7 +92,7 @@ def convert_trace(source: str | Path, out: str | Path, force: bool = False, **op
         targets = [path for pair in bids.physio_files(out, reading.samples).values() for path in pair]
     if not force and (existing := [p for p in targets if p.exists()]):
         raise ConfigError(f"{existing[0]} exists; --force replaces it")
-    if kind != NATIVE and any(isinstance(s, Gaze) and s.t_dev not in (None, s.t_host) for s in reading.samples):
+    if kind != NATIVE and _device_times(SampleTable.of(reading.samples)):
         log.info("%s: device times (t_dev) left out; %s keeps one time per sample, t_host", out.name, kind)
     samples = WRITERS[kind](out, reading)
     left_out = len(reading.samples) - samples

@@ -9,14 +9,20 @@ The samples are the bus's gaze and pose messages (hmdrt.bus.messages, which docu
 t_host in integer nanoseconds, unit gaze vectors in the head frame per eye or combined, poses
 relative to where the trace started. Lines that do not parse or validate are counted and skipped,
 never fatal; a file without a valid header (its first line that is not blank) is an error.
+
+Traces are read a line at a time into a SampleTable (replay/table.py) and written a batch of samples at a time, so
+neither takes memory in proportion to the file beyond the table's columns; a file over MAX_FILE_BYTES, or a gzip
+file that inflates past it, is refused with one line naming the cap.
 """
 
 from __future__ import annotations
 
 import gzip
 import io
-from collections.abc import Iterable, Iterator
+import zlib
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from itertools import chain, islice
 from pathlib import Path
 from typing import IO, AnyStr
 
@@ -25,11 +31,13 @@ import msgspec
 from hmdrt.bus.messages import Gaze, Pose, numpy_scalar, usable
 from hmdrt.errors import ConfigError
 from hmdrt.files.atomic import write_atomic
+from hmdrt.replay.table import PACK, Sample, SampleTable
 
 __all__ = [
     "Gaze",
     "Pose",
     "Sample",
+    "SampleTable",
     "TraceReading",
     "TraceWriter",
     "capped_lines",
@@ -37,6 +45,7 @@ __all__ = [
     "open_capped",
     "read_trace",
     "usable",
+    "write_chunks",
     "write_trace",
 ]
 
@@ -52,17 +61,18 @@ class Header(msgspec.Struct, frozen=True):
     device: str = ""
 
 
-Sample = Gaze | Pose
 _decoder = msgspec.json.Decoder(Sample)
 _header_decoder = msgspec.json.Decoder(Header)
+_encoder = msgspec.json.Encoder(enc_hook=numpy_scalar)
 
 
 @dataclass
 class TraceReading:
-    """Samples of a trace file in file order, with the count of lines that were dropped."""
+    """Samples of a trace file in file order (the readers' are SampleTables), with the count of lines that were
+    dropped."""
 
     device: str
-    samples: list[Sample]
+    samples: Sequence[Sample]
     malformed: int = 0
 
 
@@ -95,7 +105,10 @@ def capped_lines(stream: io.BufferedIOBase) -> Iterator[bytes | None]:
                 if rest.endswith(b"\n"):
                     break
         if total > MAX_FILE_BYTES:
-            raise ConfigError(f"trace {getattr(stream, 'name', '')} holds more than {MAX_FILE_BYTES} bytes")
+            raise ConfigError(
+                f"trace {getattr(stream, 'name', '')} holds more than {MAX_FILE_BYTES} bytes (once inflated), "
+                "the most hmdrt reads of a trace"
+            )
         yield line
 
 
@@ -120,14 +133,15 @@ def read_trace(path: str | Path) -> TraceReading:
                 raise ConfigError(f"{path} is not an {FORMAT} file (the header must come first)")
             if header.v != VERSION:
                 raise ConfigError(f"{path} is {FORMAT} version {header.v}; this hmdrt reads version {VERSION}")
-            reading = TraceReading(header.device, [])
+            samples = SampleTable(f"trace {path}")
+            reading = TraceReading(header.device, samples)
             for line in lines:
                 if line is None or not line.strip():
                     reading.malformed += line is None
                     continue
                 try:
-                    reading.samples.append(_decoder.decode(line))
-                except (msgspec.DecodeError, RecursionError):
+                    samples.append(_decoder.decode(line))
+                except (ValueError, RecursionError):  # msgspec.DecodeError is a ValueError, as is a seq past 64 bits
                     reading.malformed += 1
     except (OSError, EOFError, gzip.BadGzipFile) as exc:
         raise ConfigError(f"cannot read trace {path}: {exc}") from None
@@ -139,24 +153,44 @@ class TraceWriter:
 
     def __init__(self, stream: IO[bytes]):
         self._stream = stream
-        self._encoder = msgspec.json.Encoder(enc_hook=numpy_scalar)
         self.started = False
 
     def header(self, device: str) -> None:
-        self._stream.write(self._encoder.encode(Header(FORMAT, VERSION, device)) + b"\n")
+        self._stream.write(_header_line(device))
         self.started = True
 
     def sample(self, sample: Sample) -> None:
-        self._stream.write(self._encoder.encode(sample) + b"\n")
+        self._stream.write(_encoder.encode(sample) + b"\n")
+
+
+def _header_line(device: str) -> bytes:
+    return _encoder.encode(Header(FORMAT, VERSION, device)) + b"\n"
+
+
+def batches(items: Iterable, size: int = PACK) -> Iterator[list]:
+    """`items` in lists of `size` (the last one shorter)."""
+    it = iter(items)
+    while batch := list(islice(it, size)):
+        yield batch
+
+
+def write_chunks(path: Path, chunks: Iterable[bytes]) -> None:
+    """Write the chunks whole or not at all (write_atomic), gzip-compressed when the name ends in .gz, holding one
+    chunk at a time."""
+    if path.suffix == ".gz":
+        chunks = _gzipped(chunks)
+    write_atomic(path, chunks)
+
+
+def _gzipped(chunks: Iterable[bytes]) -> Iterator[bytes]:
+    deflate = zlib.compressobj(9, zlib.DEFLATED, 31)  # gzip.compress(data, mtime=0) a chunk at a time
+    for chunk in chunks:
+        if out := deflate.compress(chunk):
+            yield out
+    yield deflate.flush()
 
 
 def write_trace(path: str | Path, samples: Iterable[Sample], device: str = "") -> None:
-    """Write samples as a native trace (gzip when the name ends in .gz), whole or not at all (write_atomic)."""
-    path = Path(path)
-    buffer = io.BytesIO()
-    writer = TraceWriter(buffer)
-    writer.header(device)
-    for sample in samples:
-        writer.sample(sample)
-    data = buffer.getvalue()
-    write_atomic(path, gzip.compress(data, mtime=0) if path.suffix == ".gz" else data)
+    """Write samples as a native trace (gzip when the name ends in .gz), whole or not at all, a batch at a time."""
+    lines = (_encoder.encode_lines(batch) for batch in batches(samples))
+    write_chunks(Path(path), chain([_header_line(device)], lines))

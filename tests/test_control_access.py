@@ -125,7 +125,7 @@ def test_a_runtime_folder_others_could_use_is_refused(
         Compositor(load_config(write_config(tmp_path / "r.toml")), context=context)
     assert not list(runtime_dir.glob("hmdrt/*.sock"))  # nothing bound there
     code, _, err = status_line(capsys)  # nor does a client trust a socket in it
-    assert code == 1 and err.startswith(f"hmdrt: error: control socket folder {folder}") and message in err
+    assert code == 1 and err.startswith(f"hmdrt: error: socket folder {folder}") and message in err
 
 
 def test_an_ipc_endpoint_in_a_folder_others_can_use_is_refused(tmp_path, context):
@@ -155,10 +155,19 @@ def test_tcp_control_without_security_answers_reads_and_refuses_changes(tmp_path
         ):
             reply = request(control, command)
             assert not reply["ok"] and "refused on a tcp:// control socket without [security]" in reply["error"]
-        assert comp.security() == {"curve": False, "commands_refused": 3, "snapshots_refused": 0}
+        assert comp.security() == {
+            "curve": False,
+            "open_to_local_users": ["control"],
+            "commands_refused": 3,
+            "snapshots_refused": 0,
+        }
         assert not comp.stop.is_set() and "group_w=2" not in comp.session.spec and not (tmp_path / "a.png").exists()
         assert main(["status", "--control", control]) == 0
-        assert capsys.readouterr().out.strip().endswith("; access: loopback, control read-only")
+        assert (
+            capsys.readouterr()
+            .out.strip()
+            .endswith("; access: any local user on control (loopback tcp://), control read-only")
+        )
 
 
 # --- snapshots ----------------------------------------------------------------------------------------------------
@@ -206,7 +215,12 @@ def test_snapshots_land_in_the_snapshot_folder_by_name_only_and_refusals_are_cou
             assert not reply["ok"] and f"{folder / name} exists; a snapshot never replaces a file" in reply["error"]
         refused = len(bad_names) + 3
         assert request(control, {"cmd": "status"})["security"]["snapshots_refused"] == refused
-        assert comp.summary()["security"] == {"curve": False, "commands_refused": 0, "snapshots_refused": refused}
+        assert comp.summary()["security"] == {
+            "curve": False,
+            "open_to_local_users": [],
+            "commands_refused": 0,
+            "snapshots_refused": refused,
+        }
     assert (folder / "taken.png").read_bytes() == b"keep"
     assert sorted(p.name for p in folder.iterdir()) == ["link.png", "shown.png", "taken.png"]
     assert list(outside.iterdir()) == [] and not Path("/tmp/absolute.png").exists()

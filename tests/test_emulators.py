@@ -4,6 +4,7 @@ registers; make_emulator and `hmdrt emulate` read the declarations and know no d
 from __future__ import annotations
 
 import inspect
+import json
 import re
 from pathlib import Path
 
@@ -132,3 +133,18 @@ def test_the_defaults_table_in_the_protocols_doc_matches_the_declarations():
         assert float(re.match(r"[\d.]+", rate.strip()).group()) == device.rate_hz, name
         declared = "-" if device.latency_ms is None else f"{device.latency_ms:g} ms"
         assert latency.strip() == declared, name
+
+
+@pytest.mark.usefixtures("own_signals")
+def test_the_emulated_tracker_config_runs_a_compositor_on_an_emulators_gaze(tmp_path, capsys):
+    """configs/emulated_tracker.toml, as the README's tour runs it beside `hmdrt emulate smi`: the compositor's
+    SMI driver receives the emulator's gaze over UDP and the run reports it (here on a free port, not 4444)."""
+    shipped = Path(__file__).resolve().parents[1] / "configs" / "emulated_tracker.toml"
+    with make_emulator("smi", port=0, seed=1) as emulator:
+        config = tmp_path / "emulated_tracker.toml"
+        config.write_text(shipped.read_text().replace("smi://127.0.0.1:4444?listen=0", emulator.url))
+        report = tmp_path / "report.json"
+        assert main(["run", str(config), "--duration", "2", "--report", str(report)]) == 0
+    gaze = json.loads(report.read_text())["latency_ms"]["gaze_to_photon"]
+    assert gaze["p50"] is not None  # frames were shown with the emulator's gaze
+    assert "gaze-to-photon p99 n/a" not in capsys.readouterr().out

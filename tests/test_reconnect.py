@@ -66,7 +66,10 @@ def test_a_crash_waits_and_the_delay_starts_afresh_only_after_a_long_run():
     assert [policy.crashed(driver, 10 * MS) for _ in range(3)] == [0.05, 0.1, 0.2]  # crashing again at once
     policy.opened(driver, 100 * MS)
     assert policy.crashed(driver, 301 * MS) == 0.05  # it had run longer than the longest delay
-    assert driver.counters.crashes == 4 and driver.counters.reconnects == 0
+    # then every reopen crashes (a stream that lies from now on): no run since, so the delays grow again, however
+    # long ago the last good run began
+    assert [policy.crashed(driver, (400 + k) * MS) for k in range(3)] == [0.1, 0.2, 0.2]
+    assert driver.counters.crashes == 7 and driver.counters.reconnects == 0
 
 
 def test_the_state_is_announced_before_the_driver_is_closed():

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import gc
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -272,6 +273,37 @@ def test_kernel_threads_set_the_render_threads_numba_threads_and_leave_the_frame
     assert threads == [1, 1, 1, 1]
     every, _ = virtual_run(hmdrt_compositor, hmdrt_config(eyes="left", name="k0.toml"), 4)  # 0: all of numba's
     assert one == every
+
+
+def test_a_minimal_config_resolves_to_the_shipped_configs_speed_settings(tmp_path, context):
+    """A config of a scene and a method renders with the settings the shipped configs/default.toml renders with:
+    kernel threads chosen from the core count (1 on 2 cores), tracing on every core, the same pacing margin and
+    display; so relying on "every key is optional" is not the slow way to run."""
+    minimal = tmp_path / "minimal.toml"
+    minimal.write_text('scene = "whitted"\n[method]\nname = "rrm"\n')
+    shipped = Path(__file__).resolve().parents[1] / "configs" / "default.toml"
+    resolved = {}
+    for name, path in (("minimal", minimal), ("shipped", shipped)):
+        threads: list[int] = []
+        with compositor(path, context, frames=2, virtual_time=True) as comp:
+            render = comp.session.render
+
+            def counting(*args, render=render, threads=threads, **kwargs):
+                threads.append(numba.get_num_threads())
+                return render(*args, **kwargs)
+
+            comp.session.render = counting
+            run_bounded(comp)
+            config = comp.config
+            resolved[name] = (
+                set(threads),
+                comp.session.tracer.tracer.threads,
+                config.pacing,
+                config.display,
+                config.run.kernel_threads,
+            )
+    assert resolved["minimal"] == resolved["shipped"]
+    assert resolved["minimal"][0] == {1 if (os.cpu_count() or 1) <= 2 else numba.config.NUMBA_NUM_THREADS}
 
 
 def test_frames_dir_gets_every_nth_vsync_as_shown(tmp_path, context):

@@ -129,7 +129,7 @@ def test_control_socket_status_set_snapshot_and_shutdown(tmp_path, context):
         printed = hmdrt("status", "--control", control)
         assert printed.returncode == 0, printed.stderr
         assert printed.stdout.startswith("rrm?") and "group_w=2" in printed.stdout
-        assert "on whitted at sim-cpu (30 Hz)" in printed.stdout and "devices replay;" in printed.stdout
+        assert "on whitted at sim-cpu (30 Hz, period 33.3 ms)" in printed.stdout and "from replay" in printed.stdout
         printed = hmdrt("status", "--control", control, "--json")
         assert printed.returncode == 0 and json.loads(printed.stdout)["endpoints"]["control"] == control
 

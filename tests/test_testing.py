@@ -100,12 +100,12 @@ def test_the_checks_pass_within_their_bounds_and_say_what_failed():
         assert_every_vsync_shown({**REPORT, "out_of_order": 2})
 
 
-def test_write_config_writes_a_small_loopback_run_fed_by_the_shipped_trace(tmp_path):
+def test_write_config_writes_a_small_private_run_fed_by_the_shipped_trace(tmp_path):
     path = write_config(tmp_path / "a.toml", {"options": {"group_w": 2}}, "left", pacing={"margin_ms": 3.0})
     run = load_config(path)
     assert (run.display.profile, run.display.resolution, run.display.eyes) == ("sim-cpu", "64x72", "left")
     assert str(run.method_choice) == "rrm?group_w=2" and run.pacing.margin_ms == 3.0
-    assert run.bus.ingest == run.bus.telemetry == "tcp://127.0.0.1:*" and run.bus.control == ""
+    assert run.bus.ingest == run.bus.telemetry == run.bus.control == ""  # the private ipc:// defaults
     assert [d.url for d in run.drivers] == [f"replay://{ROOT / 'configs/traces/synthetic_250hz.jsonl.gz'}?loop=1"]
     assert TRACE.is_file()  # installed with the package: a lab's tests find it too
     assert load_config(write_config(tmp_path / "b.toml", drivers=[])).drivers == []

@@ -2,8 +2,10 @@
 of a watch process attached to a compositor that replays a recorded trace in virtual time slowed to the wall clock.
 
 The page must show the presented frame as it changes, with the gaze marker where the replayed gaze projects, plot
-the frames, and switch the compositor's method from its controls. Skipped, with the reason, without Chromium or
-Playwright. HMDRT_WATCH_SCREENSHOT=PATH saves the page as it was (docs/img/watch.png was taken so).
+the frames with the newest values in the legends, give each driver's gaze and pose rates, and switch the
+compositor's method from its controls; then, watching a real-time run too slow for its VSyncs, mark the repeats on
+the frame-time plot. Skipped, with the reason, without Chromium or Playwright. HMDRT_WATCH_SCREENSHOT=PATH saves
+the page as it was (docs/img/watch.png was taken so).
 """
 
 from __future__ import annotations
@@ -17,8 +19,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from hmdrt.compositor.config import load_config
 from hmdrt.compositor.endpoints import request
-from hmdrt.testing import Background, write_config
+from hmdrt.testing import Background, Recording, write_config
 
 from .helpers import wait_for
 from .watching import expected_gaze, paced_compositor, watch_process
@@ -40,6 +43,8 @@ pytestmark = pytest.mark.skipif(
 )
 WAIT_MS = 20_000
 MARKER = [0, 255, 0]  # the gaze point's colour on the page (watch.js)
+REPEAT = [241, 194, 27]  # a repeat's marker on the frame-time plot (watch.js)
+TRACE_HZ = 250.0  # the replayed trace's gaze and pose rates (hmdrt.testing.TRACE)
 
 
 def canvas_image(page) -> np.ndarray:
@@ -59,6 +64,61 @@ def marks(page) -> dict:
             const colours = header.eyes.map((eye) => Array.from(
                 ctx.getImageData(Math.round(eye.gaze[0] * k), Math.round(eye.gaze[1] * k), 1, 1).data.slice(0, 3)));
             return {header, colours};
+        }"""
+    )
+
+
+def driver_row(page) -> dict[str, str]:
+    """The drivers table's first row, by column heading."""
+    return page.evaluate(
+        """() => {
+            const heads = [...document.querySelectorAll('#drivers thead th')].map((th) => th.textContent);
+            const row = document.querySelector('#drivers tbody tr');
+            const cells = [...row.querySelectorAll('td')].map((td) => td.textContent);
+            return Object.fromEntries(heads.map((head, i) => [head, cells[i]]));
+        }"""
+    )
+
+
+def legends(page, chart: str) -> list[dict]:
+    """Each series of a plot: its legend's label and value as shown, and its newest value in the plot's data (null
+    where it has none), read in one go."""
+    return page.evaluate(
+        """(id) => {
+            const u = window.hmdrtWatch.charts[id];
+            const rows = [...document.querySelectorAll(`#${id} .u-legend .u-series`)];
+            return rows.map((row, i) => ({
+                label: row.querySelector('.u-label').textContent,
+                value: row.querySelector('.u-value').textContent,
+                newest: u.data[i].findLast((v) => v != null) ?? null,
+            }));
+        }""",
+        chart,
+    )
+
+
+def assert_legends_show_the_newest_values(page, chart: str, labels: list[str]) -> None:
+    """The legends of these series of a plot give each its newest value."""
+    shown = {series["label"]: series for series in legends(page, chart)}
+    for label in labels:
+        series = shown[label]
+        assert series["newest"] is not None, (chart, series)
+        assert float(series["value"].replace(",", "")) == pytest.approx(series["newest"], abs=0.01), (chart, series)
+
+
+def repeat_marker(page) -> dict | None:
+    """A repeat's marker on the frame-time plot, off its edges: its point and the colour drawn there (None: none
+    yet)."""
+    return page.evaluate(
+        """() => {
+            const u = window.hmdrtWatch.charts['plot-frame'], [t, , , repeat] = u.data;
+            for (let i = repeat.length - 2; i > 0; i--) {
+                if (repeat[i] == null) continue;
+                const x = Math.round(u.valToPos(t[i], 'x', true)), y = Math.round(u.valToPos(repeat[i], 'y', true));
+                const colour = Array.from(u.ctx.getImageData(x, y, 1, 1).data.slice(0, 3));
+                return {t: t[i], ms: repeat[i], colour};
+            }
+            return null;
         }"""
     )
 
@@ -127,9 +187,22 @@ def test_the_page_shows_the_run_live_and_switches_the_method(tmp_path, context):
                 timeout=WAIT_MS,
             )
 
-            # the drivers' table and the security counters
-            page.wait_for_function("() => document.querySelectorAll('#drivers tbody tr').length >= 1", timeout=WAIT_MS)
-            assert page.inner_text("#drivers tbody tr td") == "replay"
+            # without the cursor on a plot, its legend gives each series' newest value; again after the cursor left
+            assert_legends_show_the_newest_values(page, "plot-frame", ["frame ms", "period ms"])
+            assert_legends_show_the_newest_values(page, "plot-latency", ["gaze-to-photon", "pose-to-photon"])
+            page.hover("#plot-frame .u-over")
+            page.mouse.move(0, 0)
+            assert_legends_show_the_newest_values(page, "plot-frame", ["frame ms", "period ms"])
+
+            # the drivers' table, with the rate of each stream of the 250 Hz trace, and the security counters
+            page.wait_for_function(
+                "() => ['gaze_hz', 'pose_hz'].every((k) => window.hmdrtWatch.status.drivers.replay?.[k] != null)",
+                timeout=WAIT_MS,
+            )
+            row = driver_row(page)
+            assert row["device"] == "replay"
+            assert float(row["gaze Hz"]) == pytest.approx(TRACE_HZ, rel=0.1), row
+            assert float(row["pose Hz"]) == pytest.approx(TRACE_HZ, rel=0.1), row
             assert "watch: refused" in page.inner_text("#security")
 
             if os.environ.get("HMDRT_WATCH_SCREENSHOT"):  # with 10 s of plots
@@ -162,6 +235,30 @@ def test_the_page_shows_the_run_live_and_switches_the_method(tmp_path, context):
             page.once("dialog", lambda dialog: dialog.accept())
             page.click("#shutdown")
             report, _ = run.join(30)
+            comp.close()
+
+            # a real-time run on the same sockets whose renders take longer than a period: the page, still open,
+            # plots it afresh and marks its repeats on the period line, the newest in the legend
+            sockets = {
+                "ingest": comp.ingest.address,
+                "telemetry": comp.telemetry.address,
+                "control": comp.control.address,
+            }
+            slow_config = write_config(tmp_path / "slow.toml", eyes="left", pacing={"render_delay_ms": 45}, bus=sockets)
+            slow = Recording(load_config(slow_config, duration_s=60), context=context)
+            slow_run = Background(slow)
+            try:
+                page.wait_for_function(
+                    "() => window.hmdrtWatch.charts['plot-frame'].data[3].filter((v) => v != null).length >= 3",
+                    timeout=WAIT_MS,
+                )
+                marker = repeat_marker(page)
+                assert marker["ms"] == pytest.approx(1000 / 30) and marker["colour"] == REPEAT, marker
+                assert legends(page, "plot-frame")[3]["value"].startswith("at "), legends(page, "plot-frame")
+            finally:
+                slow.stop.set()
+                slow_run.join(30)
+                slow.close()
             assert not problems, problems
             browser.close()
     finally:

@@ -1,7 +1,8 @@
 """Who may use the bus (docs/runtime.md, Access): loopback by default, ZeroMQ CURVE with an allow-list otherwise.
 
-A compositor whose sockets all bind loopback trusts every local client. One that binds another
-address (`*`, 0.0.0.0, a host name, an interface) must be given a [security] section: its three
+A compositor whose sockets all bind loopback trusts the local clients that can reach them: this user alone on
+the default ipc:// sockets (hmdrt.bus.local), every local user on a tcp:// one (open_to_local_users). One that
+binds another address (`*`, 0.0.0.0, a host name, an interface) must be given a [security] section: its three
 sockets are then CURVE servers (RFC 26) and a ZAP handler (RFC 27) admits only the listed client
 public keys. Every handshake on those sockets is counted: admitted, or refused (no CURVE, a wrong
 server key, a key not on the list); a refused client never reaches the compositor.
@@ -63,6 +64,14 @@ def check_binds(endpoints: dict[str, str], secured: bool) -> None:
                 f"{name} = {endpoint} is not loopback: binding it needs CURVE, a [security] section with "
                 f'server_key and allowed_clients (keys from "hmdrt keys NAME"; docs/runtime.md, Access)'
             )
+
+
+def open_to_local_users(endpoints: dict[str, str], secured: bool) -> list[str]:
+    """The names of the bound endpoints every local user can reach: tcp:// ones (loopback, as check_binds makes sure)
+    without CURVE. ipc:// ones lie in a private folder (hmdrt.bus.local)."""
+    if secured:
+        return []
+    return [name for name, endpoint in endpoints.items() if endpoint.partition("://")[0] not in LOCAL_TRANSPORTS]
 
 
 # --- key files -----------------------------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ import signal
 import threading
 from pathlib import Path
 
-from hmdrt.bus.local import find_control
+from hmdrt.bus.local import KINDS, check_endpoint, find_endpoint
 from hmdrt.bus.security import ClientKeys
 from hmdrt.files.atomic import write_atomic
 
@@ -83,6 +83,15 @@ def control_options(parser: argparse.ArgumentParser) -> None:
     key_options(parser)
 
 
+def endpoint(given: str | None, kind: str) -> str:
+    """The endpoint of the option that names a compositor's `kind` socket (control, ingest, telemetry), or that socket
+    of this user's one running compositor; ConfigError if none or several run, or for an abstract socket."""
+    if not given:
+        return find_endpoint(kind)
+    check_endpoint(given, f"{KINDS[kind]} {given}")
+    return given
+
+
 def control_endpoint(args: argparse.Namespace) -> str:
     """--control, or the control socket of this user's one running compositor (ConfigError if none or several)."""
-    return args.control or find_control()
+    return endpoint(args.control, "control")

@@ -21,16 +21,20 @@ from hmdrt.cli.common import (
     control_endpoint,
     control_options,
     count,
+    endpoint,
     key_options,
     seconds,
     stop_on_signals,
     write_json,
 )
 from hmdrt.compositor.commands import COMMANDS, Stats, Status, from_words, to_request
+from hmdrt.compositor.startup import Startup
 from hmdrt.console.progress import StatusLine
 from hmdrt.errors import HmdrtError
 from hmdrt.files.atomic import check_writable
 from hmdrt.files.resources import run_config
+from hmdrt.telemetry import verdict
+from hmdrt.telemetry.verdict import ms
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -55,10 +59,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     stop = stop_on_signals()  # before the start-up, so a SIGTERM during it still ends with a report
     reloads = threading.Event()
     signal.signal(signal.SIGHUP, lambda *_: reloads.set())
-    with StatusLine(
-        lambda s: f"starting: compiling kernels (about a minute on a first run), connecting drivers: {s:.0f} s"
-    ):
-        compositor = Compositor(config)
+    startup = Startup()
+    with StatusLine(lambda _: f"starting: {startup.now()} (a first run compiles for a minute or two)"):
+        compositor = Compositor(config, startup=startup)
     if reloads.is_set():
         compositor.reload()
     stop_relay = threading.Thread(target=lambda: (stop.wait(), compositor.stop.set()), daemon=True)
@@ -68,7 +71,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(
         f"hmdrt run {args.config}: {compositor.session.spec} on {config.scene} at {compositor.session.profile.name} "
         f"({compositor.session.profile.refresh_hz:g} Hz{', virtual time' if config.run.virtual_time else ''}); "
-        f"control {endpoints['control']}",
+        f"started: {startup.summary()}; control {endpoints['control']}",
         flush=True,
     )
     try:
@@ -77,13 +80,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         compositor.close()
     saved = _save_report(report_path, report) if report_path else ""
-    gaze, levels = report["latency_ms"]["gaze_to_photon"], report["controller_level"]
     print(
         f"{report['vsyncs']} VSyncs: {report['presented']} frames shown ({report['late']} late), "
-        f"{report['re_presented']} repeated, {report['dropped']} dropped; miss rate {report['miss_rate']:.1%}; "
-        f"frame p99 {report['frame_ms']['p99']} ms; gaze-to-photon p99 {gaze['p99']} ms"
+        f"{report['re_presented']} repeated, {report['dropped']} dropped; frame p99 {ms(report['frame_ms']['p99'])}"
         + _gaze_error(report.get("gaze_error_at_photon_deg") or {})
-        + (f"; controller level p50 {levels['p50']}" if levels and "controller" in report else "")
+        + f"; {verdict.line(report)}"
         + (f"; report {saved}" if saved else "")
     )
     return 0 if saved == report_path else 1
@@ -122,7 +123,7 @@ def _run_status(report: dict) -> str:
     gaze = report["latency_ms"]["gaze_to_photon"]
     return (
         f"{report['vsyncs']} VSyncs, {report['achieved_hz']:g} Hz, misses {report['miss_rate']:.1%}, "
-        f"repeats {report['repeat_rate']:.1%}, gaze-to-photon p99 {gaze['p99']} ms"
+        f"repeats {report['repeat_rate']:.1%}, gaze-to-photon p99 {ms(gaze['p99'])}"
     )
 
 
@@ -143,24 +144,40 @@ def cmd_status(args: argparse.Namespace) -> int:
     if args.json or args.report:
         print(json.dumps(reply.get("report", reply), indent=2))
         return 0
-    shown = reply["shown"]
-    pacing = reply["pacing"]
-    print(
-        f"{reply['method']} on {reply['scene']} at {reply['profile']} ({reply['vsync_hz']:g} Hz): "
-        f"{shown['new']} on time, {shown['late']} late, {shown['repeat']} repeated; "
-        f"devices {', '.join(sorted(set(chain(*reply['devices'].values())))) or 'none'}; pacing {json.dumps(pacing)}"
-        + _access(reply)
-    )
+    print(_status_text(reply))
     return 0
 
 
+def _status_text(reply: dict) -> str:
+    """A compositor's status as a person reads it: what it renders and how often, the frames shown, the pacing in
+    ms, the drivers and who may reach it (`--json` gives the reply itself)."""
+    shown, pacing = reply["shown"], reply["pacing"]
+    drivers = [
+        f"{device} {status.get('state', '?')}" + (f" {status['rate_hz']:g} Hz" if status.get("rate_hz") else "")
+        for device, status in sorted(reply.get("drivers", {}).items())
+    ]
+    devices = sorted(set(chain(*reply["devices"].values())))
+    return (
+        f"{reply['method']} on {reply['scene']} at {reply['profile']} ({reply['vsync_hz']:g} Hz, period "
+        f"{ms(pacing['period_ns'] / 1e6)}): {shown['new']} frames on time, {shown['late']} late, {shown['repeat']} "
+        f"repeated; render estimate {ms(pacing['render_estimate_ns'] / 1e6)} of a {ms(pacing['budget_ns'] / 1e6)} "
+        f"budget (margin {ms(pacing['margin_ns'] / 1e6)}), {pacing['misses']} missed; "
+        f"samples from {', '.join(devices) or 'no device yet'}"
+        + (f"; drivers {', '.join(drivers)}" if drivers else "")
+        + _access(reply)
+    )
+
+
 def _access(status: dict) -> str:
-    """Who may reach the compositor, from its status: CURVE clients, this user (ipc://) or any local user (tcp://)."""
+    """Who may reach the compositor, from its status: CURVE clients, this user (ipc://) or, on its tcp:// sockets,
+    any local user."""
     security = status.get("security", {})
     if security.get("curve"):
         return f"; access: CURVE, {security['admitted']} handshakes admitted, {security['refused']} refused"
-    if status["endpoints"]["control"].startswith("tcp://"):
-        return "; access: loopback, control read-only"
+    open_to = security.get("open_to_local_users", [])
+    if open_to:
+        read_only = ", control read-only" if "control" in open_to else ""
+        return f"; access: any local user on {', '.join(open_to)} (loopback tcp://){read_only}"
     return "; access: this user"
 
 
@@ -199,7 +216,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
     options = WatchOptions(
         control=control_endpoint(args),
-        telemetry=args.telemetry or "",
+        telemetry=endpoint(args.telemetry, "telemetry") if args.telemetry else "",  # "": the one status names
         bind=args.bind,
         port=args.port,
         allow_hosts=tuple(args.allow_host),

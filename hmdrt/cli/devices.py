@@ -7,9 +7,9 @@ import argparse
 
 import zmq
 
-from hmdrt.bus import INGEST
+from hmdrt.bus.local import bind_endpoints, check_endpoint, ipc_path
 from hmdrt.bus.security import is_loopback
-from hmdrt.cli.common import UNTIL, client_keys, key_options, seconds, stop_on_signals
+from hmdrt.cli.common import UNTIL, client_keys, endpoint, key_options, seconds, stop_on_signals
 from hmdrt.drivers.emulators import EMULATORS
 from hmdrt.errors import ConfigError
 from hmdrt.replay.convert import READER_OPTIONS, convert_trace
@@ -22,7 +22,8 @@ def cmd_driver(args: argparse.Namespace) -> int:
     """Run a driver and publish its samples on the bus until stopped."""
     from hmdrt.drivers.host import DriverHost
 
-    host = DriverHost(args.url, args.bus, curve=client_keys(args))
+    bus = endpoint(args.bus, "ingest") if args.bus else ""  # "": DriverHost finds it once the URL is checked
+    host = DriverHost(args.url, bus, curve=client_keys(args))
     counters = host.run(stop_on_signals(), args.duration)
     print(f"{args.url}: {counters.summary()}")
     return 0
@@ -44,17 +45,29 @@ def cmd_record(args: argparse.Namespace) -> int:
     """Record a device's samples from the bus into a native trace."""
     from hmdrt.replay.recorder import Recorder
 
-    keys, context = client_keys(args), None
+    keys, context, bus = client_keys(args), None, args.bus or ""
+    check_endpoint(bus, f"--bus {bus}")
+    if args.connect and not bus:
+        raise ConfigError("--connect needs --bus ENDPOINT, the publisher to connect to")
     if keys is not None:
         if not args.connect:
             raise ConfigError("--server-key and --client-key are for --connect (a bound recorder has no CURVE)")
         context = zmq.Context()  # the recorder makes its own socket: a context whose sockets are CURVE clients
         keys.set_defaults(context)
-    elif not args.connect and not is_loopback(args.bus):
-        raise ConfigError(f"record binds loopback only, not {args.bus} (a bound recorder has no CURVE)")
-    recorder = Recorder(args.bus, args.out, bind=not args.connect, device=args.device, context=context)
-    print(f"recording {recorder.endpoint} to {args.out}", flush=True)
-    recorder.run(stop_on_signals(), args.duration)
+    elif not args.connect and not is_loopback(bus):
+        raise ConfigError(f"record binds loopback only, not {bus} (a bound recorder has no CURVE)")
+    if not args.connect:
+        bus = bind_endpoints({"ingest": bus})["ingest"]  # by default where `hmdrt driver` finds a compositor's
+    recorder = Recorder(bus, args.out, bind=not args.connect, device=args.device, context=context)
+    made = ipc_path(bus) if not args.bus else None  # 0600 and removed after, as a compositor's
+    if made is not None:
+        made.chmod(0o600)
+    try:
+        print(f"recording {recorder.endpoint} to {args.out}", flush=True)
+        recorder.run(stop_on_signals(), args.duration)
+    finally:
+        if made is not None:
+            made.unlink(missing_ok=True)
     print(f"{args.out}: {recorder.summary()}")
     return 0
 
@@ -76,7 +89,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     driver.add_argument(
         "url", help="driver URL, e.g. synthetic://?seed=1&rate=250, replay://trace.jsonl, smi://host:4444"
     )
-    driver.add_argument("--bus", default=INGEST, help=f"the compositor's ingest endpoint (default {INGEST})")
+    driver.add_argument(
+        "--bus", help="the compositor's ingest endpoint (default: this user's one running compositor's, ipc://)"
+    )
     driver.add_argument("--duration", type=seconds, help=UNTIL)
     key_options(driver)
     driver.set_defaults(run=cmd_driver)
@@ -104,7 +119,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
     record = sub.add_parser("record", help="record a device's gaze and pose from the bus into a native trace")
     record.add_argument("--out", required=True, help="output trace (.jsonl)")
-    record.add_argument("--bus", default=INGEST, help=f"endpoint to bind as the ingest (default {INGEST})")
+    record.add_argument(
+        "--bus", help="endpoint to bind as the ingest (default: ipc:// where `hmdrt driver` finds it, yours alone)"
+    )
     record.add_argument("--connect", action="store_true", help="connect to a publisher at --bus instead of binding")
     record.add_argument("--device", help="the device to record (default: the first one heard)")
     record.add_argument("--duration", type=seconds, help=UNTIL)

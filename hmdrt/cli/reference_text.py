@@ -71,7 +71,7 @@ compositor runs on). The server (`hmdrt/watch/`) answers:
 | `GET /` | the page (`hmdrt/watch/static/`: plain HTML and JS, uPlot vendored) | - |
 | `GET /static/NAME` | the page's script, styles and uPlot | - |
 | `GET /ws` | a websocket: the page's feed and its commands | the token for commands that change the compositor |
-| `GET /api/state` | JSON: the compositor's status, the run report so far, each driver's state, rate, counts \
+| `GET /api/state` | JSON: the compositor's status, the run report so far, each driver's state, gaze and pose rates, counts \
 and clock, and the server's refusal counts | - |
 | `POST /api/command` | a command (below) as a JSON body; the compositor's reply | the token |
 
@@ -134,8 +134,11 @@ only by an authenticated client, and on a `tcp://` control socket without
 `[security]` by none (`status` and `stats` answer). A snapshot name
 is letters, digits, `.`, `_` and `-` ending in `.png`, without `..` and not
 starting with `.`; a path, another name or an existing file is refused and
-counted (`security.snapshots_refused`). SIGHUP makes the daemon re-read
-its config file between frames (see [Reload](#reload))."""
+counted (`security.snapshots_refused`). One client (a process on `ipc://`,
+an address on `tcp://`, a key with CURVE) may send 100 requests a second, 200
+at once; more get `"rate limited"` and are counted (`rate_limited.control`).
+SIGHUP makes the daemon re-read its config file between frames (see
+[Reload](#reload))."""
 
 RUN_CONFIG = """\
 ## Run config
@@ -157,17 +160,21 @@ RUN_SECTIONS = {
     "bus": (
         "",
         """\
-An endpoint ending in `:*` binds a free port. Without `[security]` every
-endpoint must be loopback. The default control folder is created 0700 (an
-existing one must be yours, closed to group and others, and no link) and the
-socket made 0600; a configured `ipc://` path must be in such a folder too. A
-`tcp://` control socket without `[security]` only reads (README, "Access").""",
+By default each socket is a Unix socket of this user's alone, in
+`$XDG_RUNTIME_DIR/hmdrt/` (else `/tmp/hmdrt-UID/`), created 0700 (an existing
+one must be yours, closed to group and others, and no link); the sockets are
+made 0600 and removed on exit. A configured `ipc://` path must be in such a
+folder too; an abstract one (`ipc://@NAME`) is refused. An endpoint ending in
+`:*` binds a free port. Without `[security]` every endpoint must be loopback,
+and a `tcp://` one is open to every local user: the start says so in the log
+and the report (`security.open_to_local_users`), and a `tcp://` control
+socket only reads (docs/runtime.md, "Access").""",
     ),
     "security": (
         """\
-Absent by default: every socket binds loopback, and the control socket is
+Absent by default: every socket binds loopback, and the default sockets are
 this user's alone (see [bus]). When present, all three sockets use CURVE
-(README, "Access").""",
+(docs/runtime.md, "Access").""",
         "",
     ),
     "fallback": ("When the gaze device goes silent (`hmdrt/compositor/fallback.py`).", ""),
@@ -247,10 +254,9 @@ RUN_MEANINGS = {
     "`weier16`, `weier18`",
     "method.options": "more options, as a table; `docs/methods.md` lists each method's",
     "drivers.url": "a driver URL, as `hmdrt driver URL` takes (`docs/protocols.md`)",
-    "bus.ingest": "the SUB socket drivers publish to",
-    "bus.telemetry": "the PUB socket of `frame`, `stats` and `log`",
-    "bus.control": 'the REP socket of the control commands; `""`: '
-    "`ipc://$XDG_RUNTIME_DIR/hmdrt/control-PID.sock` (else `/tmp/hmdrt-UID/`)",
+    "bus.ingest": 'the SUB socket drivers publish to; `""`: `ipc://$XDG_RUNTIME_DIR/hmdrt/ingest-PID.sock`',
+    "bus.telemetry": 'the PUB socket of `frame`, `stats` and `log`; `""`: `.../telemetry-PID.sock`',
+    "bus.control": 'the socket of the control commands; `""`: `.../control-PID.sock`',
     "security.server_key": "the compositor's secret key file, `NAME.key_secret` (from `hmdrt keys`)",
     "security.allowed_clients": "the public key files (`NAME.key`) of the clients allowed",
     "pacing.margin_ms": "fixed margin before the VSync",
@@ -290,7 +296,9 @@ RUN_MEANINGS = {
     "predictions, and gaze- and pose-to-photon latency",
     "run.seed": "seed of every stochastic step",
     "run.threads": "tracing threads (0: all cores)",
-    "run.kernel_threads": "numba threads of the per-pixel kernels of the render and display threads (0: all cores)",
+    "run.kernel_threads": "numba threads of the per-pixel kernels of the render and display threads (0: all cores; "
+    "`auto`: 1 on a machine of 2 cores or fewer, where a parallel kernel waits for a core that the display, ingest "
+    "and drivers want, else all)",
     "run.virtual_time": "a simulated clock, one period per frame; the run reproduces bit for bit",
     "run.frames": "stop after this many VSyncs (0: until stopped)",
     "run.duration_s": "or after this long (0: until stopped)",
@@ -307,6 +315,9 @@ EVAL_MEANINGS = {
     "(`--warmup-frames` overrides). A method that needs a longer history (its `warmup_frames`: RRM's refresh "
     "cycle N) lengthens the warm-up of its scene, profile and trace to that; methods without history (`full`, "
     "`regular`) skip it",
+    "timing_rounds": "the frames are rendered this many times for their times, the first round scored, the others "
+    "from fresh methods; `ms_per_frame` is the median of the rounds' means, and a speed-up spreading over more "
+    "than 15% across them is marked `timing_noisy` (docs/evaluation.md, Timing on a busy machine)",
     "truth_spp": "the ground truth: `regular` at this many samples per pixel",
     "seed": "seed",
     "threads": "tracing threads (0: all cores; with `--cluster`, 0 means one per task)",

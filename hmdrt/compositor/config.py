@@ -12,7 +12,6 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from hmdrt.bus import INGEST, TELEMETRY
 from hmdrt.drivers import DriverUrl, driver_class
 from hmdrt.errors import ConfigError
 from hmdrt.files.configfile import convert, read_toml
@@ -43,9 +42,12 @@ class Driver(_Section):
 
 
 class Bus(_Section):
-    ingest: str = INGEST
-    telemetry: str = TELEMETRY
-    control: str = ""  # "": ipc:// in a folder of this user's only (hmdrt.bus.local); tcp:// reads only without CURVE
+    """The three sockets' endpoints; "": ipc:// in a folder of this user's only (hmdrt.bus.local). A tcp:// one
+    without [security] is open to every local user (loopback) or refused (any other address)."""
+
+    ingest: str = ""  # the SUB drivers publish to
+    telemetry: str = ""  # the PUB of `frame`, `stats`, `log` and `preview`
+    control: str = ""  # the control socket; tcp:// without [security] answers reads only
 
 
 class Security(_Section):
@@ -119,8 +121,9 @@ class Lsl(_Section):
 class Run(_Section):
     seed: int = 0
     threads: Annotated[int, msgspec.Meta(ge=0, le=256)] = 0  # tracing threads (0: all cores)
-    # numba threads of the render and display threads' per-pixel kernels (0: all cores)
-    kernel_threads: Annotated[int, msgspec.Meta(ge=0, le=256)] = 0
+    # numba threads of the render and display threads' per-pixel kernels (0: all cores; "auto": 1 on a machine of
+    # 2 cores or fewer, where a parallel kernel waits for a core the display, ingest and drivers want, else all)
+    kernel_threads: Annotated[int, msgspec.Meta(ge=0, le=256)] | Literal["auto"] = "auto"
     virtual_time: bool = False
     frames: Annotated[int, msgspec.Meta(ge=0)] = 0  # stop after this many VSyncs (0: until stopped)
     duration_s: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0  # or after this long

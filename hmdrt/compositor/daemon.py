@@ -23,7 +23,7 @@ import msgspec
 import numpy as np
 import zmq
 
-from hmdrt.bus.local import bind_endpoint
+from hmdrt.bus.local import bind_endpoints
 from hmdrt.bus.security import Guard, ServerKeys, check_binds
 from hmdrt.clock import MONOTONIC, Clock, VirtualClock
 from hmdrt.compositor import control, loops, status
@@ -43,6 +43,7 @@ from hmdrt.compositor.samples import SampleStore
 from hmdrt.compositor.session import Session
 from hmdrt.compositor.sinks import FrameTelemetry, LoggedFrames, Shown, Sink, WrittenFrames
 from hmdrt.compositor.sources import Sources
+from hmdrt.compositor.startup import Startup
 from hmdrt.console.logs import TelemetryHandler
 from hmdrt.errors import HmdrtError
 from hmdrt.foveation import MethodChoice
@@ -60,16 +61,25 @@ class Compositor:
     """The daemon: its parts, wired together at start, the sinks its shown frames go to, and the changes asked for
     between frames. hmdrt.compositor.loops drives the parts and hmdrt.compositor.status reads them."""
 
-    def __init__(self, config: RunConfig, clock: Clock | None = None, context: zmq.Context | None = None):
+    def __init__(
+        self,
+        config: RunConfig,
+        clock: Clock | None = None,
+        context: zmq.Context | None = None,
+        startup: Startup | None = None,
+    ):
         self.config = config
+        self.startup = startup or Startup()
         virtual = config.run.virtual_time
         self.clock = clock or (VirtualClock(0) if virtual else MONOTONIC)
         self._paced = not virtual  # virtual time schedules each frame over the period before its VSync
-        # loopback only, or CURVE with [security]: checked, and the keys read, before any start-up work
+        # loopback only, or CURVE with [security]: checked, and the keys read, before any start-up work; by default
+        # each socket is ipc:// in a folder of this user's only
         security = config.security
-        check_binds({f"bus.{k}": v for k, v in msgspec.structs.asdict(config.bus).items()}, security is not None)
+        configured = msgspec.structs.asdict(config.bus)
+        check_binds({f"bus.{k}": v for k, v in configured.items()}, security is not None)
         server_keys = ServerKeys.load(security.server_key, security.allowed_clients) if security else None
-        control_endpoint = bind_endpoint(config.bus.control)  # by default in a folder of this user's only
+        endpoints = bind_endpoints(configured)
         self.kernel_threads = loops.kernel_threads(config)
         self.session = Session(config)
         self.store = SampleStore()
@@ -93,7 +103,7 @@ class Compositor:
                 self.lsl = LslOutlets(config.lsl.outlets, self.clock, block=virtual)
                 self.sinks.append(self.lsl)
             self.guard = Guard(self._context, server_keys) if server_keys else None  # before any bind
-            self.telemetry = Telemetry(self._context, config.bus.telemetry, self.guard, on_demand=(PREVIEW,))
+            self.telemetry = Telemetry(self._context, endpoints["telemetry"], self.guard, on_demand=(PREVIEW,))
             self.sinks.insert(0, FrameTelemetry(self.telemetry))
             # first of all: it puts into each record the gaze errors that the others carry
             eyes, device = self.session.eyes, lambda: self.config.prediction.gaze_device
@@ -102,7 +112,7 @@ class Compositor:
             self.sinks.append(self.preview)
             self._log = TelemetryHandler(self.telemetry.publish)
             self._log.attach()
-            self.ingest = Ingest(self._context, config.bus.ingest, self.store.add, self.clock, self.guard)
+            self.ingest = Ingest(self._context, endpoints["ingest"], self.store.add, self.clock, self.guard)
             self.sources = Sources(
                 [d.url for d in config.drivers],
                 self.clock,
@@ -112,8 +122,11 @@ class Compositor:
                 keys=self.guard.own_keys if self.guard else None,
             )
             # compiled kernels, allocated buffers and connected drivers before the VSync clock starts
+            self.startup.step(f"compiling {self.session.choice.name}'s kernels and the timewarp")
             self.session.warm_up()
+            self.startup.step("connecting drivers")
             self.sources.wait_connected(CONNECT_WAIT_S)
+            self.startup.end()
             # and no collection of what start-up built: a full one scanned its ~180k objects, stopping every
             # thread for ~120 ms (four frames at 30 Hz) whenever it came; frozen, it takes microseconds
             gc.collect()
@@ -135,8 +148,9 @@ class Compositor:
             )
             self.apply(config)
             self.control = ControlServer(
-                self._context, control_endpoint, partial(control.handle, self), MUTATING, self.guard
+                self._context, endpoints["control"], partial(control.handle, self), MUTATING, self.guard
             )
+            status.warn_if_open(self)
         except (HmdrtError, ValueError):
             self.close()
             raise
@@ -154,6 +168,7 @@ class Compositor:
         with self.lock:
             self.pacer.configure(**pacing)
         self.store.horizon_ns = int(config.prediction.horizon_ms * 1e6)
+        self.store.expiry_ns = self.ingest.expiry_ns = int(config.fallback.centre_after_ms * 1e6)  # devices' slots
         self.store.saccades = config.gaze.saccade_prediction
         self.outages.config = config.fallback
         self.builder.controller = make_controller(config, self.session.method)

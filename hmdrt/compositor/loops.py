@@ -7,6 +7,7 @@ the run report each second meanwhile.
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -27,9 +28,15 @@ SWITCH_INTERVAL_S = 0.0005
 STATS_S = 1.0  # the `stats` telemetry's interval
 
 
+SMALL_MACHINE_CORES = 2  # at most this many: "auto" kernel threads are 1 (docs/performance.md, real time)
+
+
 def kernel_threads(config: RunConfig) -> int:
-    """The numba threads of the render and display threads' kernels: run.kernel_threads, 0 for all."""
+    """The numba threads of the render and display threads' kernels: run.kernel_threads, 0 for all, "auto" for 1
+    on a machine of SMALL_MACHINE_CORES or fewer and all otherwise."""
     wanted, most = config.run.kernel_threads, numba.config.NUMBA_NUM_THREADS
+    if wanted == "auto":
+        return 1 if (os.cpu_count() or 1) <= SMALL_MACHINE_CORES else most
     if wanted > most:
         raise ConfigError(f"run.kernel_threads = {wanted}: numba has {most} threads (NUMBA_NUM_THREADS)")
     return wanted or most

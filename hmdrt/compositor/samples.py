@@ -26,6 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from hmdrt.bus.limits import silent
 from hmdrt.bus.messages import Gaze, Pose, usable
 from hmdrt.spatial import (
     Vec,
@@ -48,7 +49,7 @@ from hmdrt.spatial import (
 from hmdrt.tracking.saccade import Flight, SaccadePredictor
 
 KINDS = ("gaze", "pose")
-MAX_DEVICES = 64  # devices tracked at once; samples naming another device are refused and counted
+MAX_DEVICES = 64  # devices tracked at once; another takes the slot of a silent one, or is refused and counted
 
 
 @dataclass(frozen=True)
@@ -87,9 +88,11 @@ class PoseEstimate:
 
 @dataclass
 class DeviceCounts:
-    """What add() did with one device's samples, gaze and pose together."""
+    """What add() did with one device's samples, gaze and pose together but for the count of each kind."""
 
     samples: int = 0  # offered to add()
+    gaze: int = 0  # of them, the gaze samples (all but the malformed are gaze or pose)
+    pose: int = 0  # and the pose samples
     stored: int = 0  # held now (filled in by counts())
     invalid: int = 0  # kept but not usable (blink, lost tracking): marks the eye closed, never estimated from
     out_of_order: int = 0  # kept, inserted before an earlier-arrived sample with a later capture time
@@ -158,7 +161,8 @@ class SampleStore:
     """Gaze and pose samples per device, added from an ingest thread and looked up from the frame loop.
 
     Per device and kind it keeps at most max_per_device samples spanning at most history_ns, for at most
-    MAX_DEVICES devices (so at most 2 x MAX_DEVICES x max_per_device samples, whatever arrives). Predictions
+    MAX_DEVICES devices (so at most 2 x MAX_DEVICES x max_per_device samples, whatever arrives); with the table full,
+    the devices silent for over expiry_ns ([fallback] centre_after_ms) give up their slots to a new one. Predictions
     extrapolate at most horizon_ns past the newest sample, from a velocity fitted to up to fit_samples
     consecutive usable samples within fit_window_ns of it, or, with saccades true, along a predicted saccade.
     """
@@ -184,7 +188,9 @@ class SampleStore:
         self._lock = threading.Lock()
         self._tracks: dict[str, dict[str, _Track]] = {kind: {} for kind in KINDS}
         self._counts: dict[str, DeviceCounts] = {}
-        self.devices_refused = 0  # samples of a device beyond MAX_DEVICES: memory stays bounded
+        self.expiry_ns = 2_000_000_000  # [fallback] centre_after_ms: the compositor sets it
+        self.devices_refused = 0  # samples of a device beyond MAX_DEVICES live ones: memory stays bounded
+        self.devices_expired = 0  # devices whose slot went to a new one after they fell silent
 
     @property
     def saccades(self) -> bool:
@@ -243,7 +249,7 @@ class SampleStore:
         with self._lock:
             counts = self._counts.get(device)
             if counts is None:
-                if len(self._counts) >= MAX_DEVICES:
+                if len(self._counts) >= MAX_DEVICES and not self._expire(received_ns):
                     self.devices_refused += 1
                     return None
                 counts = self._counts[device] = DeviceCounts()
@@ -252,6 +258,7 @@ class SampleStore:
                 counts.malformed += 1
                 return None
             kind, t_host, ok, units = admitted
+            setattr(counts, kind, getattr(counts, kind) + 1)
             if t_host > received_ns + self.history_ns:
                 counts.ahead += 1
                 return None
@@ -283,6 +290,16 @@ class SampleStore:
             newest = at == len(ts) - 1
             self._trim(track, counts)
             return kind, track, entry if newest else None
+
+    def _expire(self, now_ns: int) -> bool:
+        """Free the slots of the devices silent for over expiry_ns (under the lock); whether any was freed."""
+        gone = silent({device: c.last_received_ns for device, c in self._counts.items()}, now_ns, self.expiry_ns)
+        for device in gone:
+            del self._counts[device]
+            for tracks in self._tracks.values():
+                tracks.pop(device, None)
+        self.devices_expired += len(gone)
+        return bool(gone)
 
     def gaze_at(self, t_ns: int, now_ns: int, device: str | None = None) -> GazeEstimate | None:
         """Gaze at t_ns from what had arrived by now_ns; None when no usable sample at or before t_ns had."""

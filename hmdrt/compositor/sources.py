@@ -4,7 +4,8 @@ In real time each runs under its own DriverHost thread and publishes to the comp
 exactly as `hmdrt driver URL` would from another process. In virtual time the frame loop polls each
 driver against the virtual clock instead, so every sample due by a frame's wake-up is in before the
 frame samples gaze and pose: the run is a pure function of config, trace and seed. Either way a driver whose
-device goes away is opened again as drivers.reconnect says; in virtual time its waits are on the virtual clock.
+device goes away, or that raises (a crash, counted), is opened again as drivers.reconnect says; in virtual time its
+waits are on the virtual clock. No driver ends the run once it has started.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ class Sources:
                 self._reconnects[driver].opened(driver, clock.now_ns())
                 self.polled.append(driver)
             else:
-                self.hosts.append(DriverHost(url, ingest, subscriber_wait_s=0.5, curve=keys))
+                self.hosts.append(DriverHost(url, ingest, subscriber_wait_s=0.5, curve=keys, keep_alive=True))
         for host in self.hosts:
             thread = threading.Thread(target=host.run, args=(self._stop,), name=f"driver-{host.driver.device}")
             thread.daemon = True
@@ -79,6 +80,9 @@ class Sources:
                     self._lost(driver, now, working=True)
                     self._ready(driver, now)  # a device that was working opens again at once
                     break
+                except Exception as exc:  # noqa: BLE001 - a driver's own error: restart it, as a host would
+                    self._crashed(driver, now, exc)
+                    break
                 if not samples:
                     break
                 for sample in samples:
@@ -87,6 +91,10 @@ class Sources:
     def _lost(self, driver: Driver, now_ns: int, working: bool) -> None:
         """Close a polled driver whose device went away, and note when its reconnect policy opens it again."""
         self._reopen_ns[driver] = now_ns + round(self._reconnects[driver].lost(driver, working) * 1e9)
+
+    def _crashed(self, driver: Driver, now_ns: int, error: Exception) -> None:
+        """Count and close a polled driver that raised, and note when its reconnect policy opens it again."""
+        self._reopen_ns[driver] = now_ns + round(self._reconnects[driver].crashed(driver, now_ns, error) * 1e9)
 
     def _ready(self, driver: Driver, now_ns: int) -> bool:
         """Whether a polled driver is open: it was, or it was due to open again by now_ns and did."""
@@ -100,12 +108,15 @@ class Sources:
         except DeviceLost:
             self._lost(driver, now_ns, working=False)
             return False
+        except Exception as exc:  # noqa: BLE001 - see poll
+            self._crashed(driver, now_ns, exc)
+            return False
         del self._reopen_ns[driver]
         self._reconnects[driver].opened(driver, now_ns)
         return True
 
     def counters(self) -> dict[str, dict]:
-        """{device: {samples, dropped, invalid, malformed, reconnects}} of the drivers started here."""
+        """{device: {samples, dropped, invalid, malformed, reconnects, crashes}} of the drivers started here."""
         drivers = [host.driver for host in self.hosts] + self.polled
         return {d.device: dict(vars(d.counters)) for d in drivers}
 

@@ -6,8 +6,11 @@ display threads share; the rest is worked out after it is released.
 
 from __future__ import annotations
 
+import logging
+
 import msgspec
 
+from hmdrt.bus.security import open_to_local_users
 from hmdrt.compositor.buffers import counts
 from hmdrt.compositor.config import RunConfig
 from hmdrt.compositor.display import Display
@@ -17,6 +20,8 @@ from hmdrt.compositor.session import Session
 from hmdrt.compositor.sources import Sources
 from hmdrt.telemetry.frames_log import FramesHeader
 from hmdrt.version import __version__
+
+log = logging.getLogger(__name__)
 
 
 def frames_header(config: RunConfig, session: Session) -> FramesHeader:
@@ -53,23 +58,44 @@ def status(comp: Parts) -> dict:
         "pacing": pacing,
         "devices": comp.store.devices,
         "drivers": {device: msgspec.to_builtins(status) for device, status in list(comp.ingest.status.items())},
-        "endpoints": {
-            "ingest": comp.ingest.address,
-            "telemetry": comp.telemetry.address,
-            "control": comp.control.address,
-        },
+        "endpoints": endpoints(comp),
         "security": security(comp),
     }
 
 
+def endpoints(comp: Parts) -> dict[str, str]:
+    """Where the three sockets are bound."""
+    return {"ingest": comp.ingest.address, "telemetry": comp.telemetry.address, "control": comp.control.address}
+
+
 def security(comp: Parts) -> dict:
     """Whether CURVE guards the bus and, if so, the handshakes it admitted and refused (clients without the
-    keys are refused at the handshake, so their requests and samples never arrive); and the control commands
-    and snapshot names refused."""
+    keys are refused at the handshake, so their requests and samples never arrive); the sockets every local user
+    can reach (tcp:// without CURVE); and the control commands and snapshot names refused."""
     refused = {"commands_refused": comp.control.unauthorised, "snapshots_refused": comp.snapshots_refused}
+    open_to = {"open_to_local_users": open_to_local_users(endpoints(comp), comp.guard is not None)}
     if comp.guard is None:
-        return {"curve": False, **refused}
-    return {"curve": True, **comp.guard.counts(), **refused}
+        return {"curve": False, **open_to, **refused}
+    return {"curve": True, **comp.guard.counts(), **open_to, **refused}
+
+
+def warn_if_open(comp: Parts) -> None:
+    """Say once, at start, which sockets every local user can reach (the run report's security says so too)."""
+    bound = endpoints(comp)
+    names = open_to_local_users(bound, comp.guard is not None)
+    if names:
+        log.warning(
+            "%s: tcp:// without [security], which every local user can reach (to publish gaze, read the telemetry, "
+            "ask for status); leave [bus] %s out for private ipc:// sockets, or add [security]",
+            ", ".join(f"bus.{name} = {bound[name]}" for name in names),
+            " and ".join(names),
+        )
+
+
+def rate_limited(comp: Parts) -> dict[str, dict]:
+    """Per socket, the messages refused over their peer's budget and the seconds reading waited on the socket's
+    (hmdrt.bus.limits)."""
+    return {"ingest": comp.ingest.limiter.counts(), "control": comp.control.limiter.counts()}
 
 
 def drivers(ingest: Ingest, sources: Sources) -> dict[str, dict]:
@@ -125,6 +151,9 @@ def summary(comp: Parts) -> dict:
         ingest_malformed=comp.ingest.malformed,
         outages=comp.outages.to_dict(),
         devices_refused=comp.store.devices_refused,
+        devices_expired=comp.store.devices_expired,
+        statuses_refused=comp.ingest.statuses_refused,
+        rate_limited=rate_limited(comp),
         **{key: value for sink in comp.sinks for key, value in sink.report().items()},
         config=config.source,
         hmdrt=__version__,
@@ -135,6 +164,7 @@ def summary(comp: Parts) -> dict:
     if controller is not None:
         report["controller"] = {
             "kind": config.controller.kind,
+            "target_miss_rate": config.controller.target_miss_rate,
             "level": controller.level,
             "at_floor": controller.at_floor,
             "changes": controller.changes,

@@ -81,6 +81,11 @@ class Trace(_Table):
         if isinstance(self.pose_tracker, str):
             pose_tracker_named(self.pose_tracker)
 
+    def __hash__(self) -> int:
+        """A hash of every field, the sweep's lists as tuples (a trace names a group: a key of dicts)."""
+        fields = tuple(getattr(self, f) for f in self.__struct_fields__ if f != "sweep")
+        return hash((*fields, tuple((k, tuple(v)) for k, v in self.sweep.items())))
+
     def expanded(self) -> list[Trace]:
         """The traces this entry stands for: itself, or one per combination of its sweep's values (a swept key
         overrides the entry's own); a ValueError naming the key and value for a value the key does not take."""

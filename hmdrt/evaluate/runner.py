@@ -436,8 +436,8 @@ def _best_against(group: list[dict], name: str | None) -> dict:
         and floor is not None
         and r["psnr_fovea"] >= floor
     ]
-    noisy = [r["label"] for r in candidates if r["timing_noisy"]]
-    candidates = [r for r in candidates if not r["timing_noisy"]]
+    noisy = [r["label"] for r in candidates if r.get("timing_noisy")]  # rows of one timing round may lack it
+    candidates = [r for r in candidates if not r.get("timing_noisy")]
     best = min(candidates, key=lambda r: (r["ms_per_frame"], -r["psnr_fovea"]), default=None)
     return {
         "baseline": name,

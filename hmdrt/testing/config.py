@@ -9,7 +9,7 @@ from pathlib import Path
 
 from hmdrt.files.resources import INSTALLED
 
-ANY_PORT = "tcp://127.0.0.1:*"  # a loopback port the socket picks free when it binds
+ANY_PORT = "tcp://127.0.0.1:*"  # a loopback port the socket picks free when it binds (open to every local user)
 TRACE = INSTALLED / "traces" / "synthetic_250hz.jsonl.gz"  # the recorded synthetic gaze and head trace hmdrt ships
 
 
@@ -27,8 +27,8 @@ def write_config(
     **sections: dict | list,
 ) -> Path:
     """Write a run config to `path` and return it: 64x72 per eye on sim-cpu (30 Hz), fed by `trace` replayed in a
-    loop (device "replay"), ingest and telemetry on free loopback ports, control on the default ipc:// socket (in
-    XDG_RUNTIME_DIR: the hmdrt_runtime_dir fixture gives each test its own).
+    loop (device "replay"), its sockets the default private ipc:// ones (in XDG_RUNTIME_DIR: the hmdrt_runtime_dir
+    fixture gives each test its own; bus={"ingest": ANY_PORT} puts one on a free loopback port).
 
     A str `method` names the method ("weier16?frc=small"); a dict adds keys to [method] (name rrm), as in
     {"options": {"group_w": 2}}. `sections` add keys to a section, as in pacing={"render_delay_ms": 45}, or
@@ -38,7 +38,6 @@ def write_config(
         "display": {"profile": "sim-cpu", "resolution": "64x72", "eyes": eyes},
         "method": {"name": "rrm", **method} if isinstance(method, dict) else {"name": method},
         "drivers": [{"url": f"replay://{Path(trace).resolve()}?loop=1"}],
-        "bus": {"ingest": ANY_PORT, "telemetry": ANY_PORT},
     }
     for name, keys in sections.items():
         config[name] = keys if isinstance(keys, list) else {**config.get(name, {}), **keys}

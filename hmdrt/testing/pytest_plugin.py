@@ -1,6 +1,6 @@
 """pytest fixtures for latency-budget tests of the hmdrt compositor (the `pytest11` entry point "hmdrt").
 
-A test asks for a config (hmdrt_config), a compositor on free loopback ports (hmdrt_compositor), a whole run's
+A test asks for a config (hmdrt_config), a compositor on private ipc:// sockets (hmdrt_compositor), a whole run's
 report (hmdrt_run), or an emulated eye tracker to feed one (hmdrt_emulator); docs/testing.md has an example.
 
 Nothing heavy is imported here, so pytest runs that use none of these fixtures do not pay for the compositor:
@@ -28,7 +28,7 @@ if TYPE_CHECKING:
 
 @pytest.fixture
 def hmdrt_runtime_dir(monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
-    """A fresh XDG_RUNTIME_DIR for the test and its subprocesses, so that the compositors' default control sockets
+    """A fresh XDG_RUNTIME_DIR for the test and its subprocesses, so that the compositors' default sockets
     (hmdrt.bus.local) meet neither a real compositor's nor each other's; short, as a Unix socket's path must be."""
     with tempfile.TemporaryDirectory(prefix="hmdrt-xdg-") as folder:
         monkeypatch.setenv("XDG_RUNTIME_DIR", folder)
@@ -48,7 +48,7 @@ def hmdrt_context() -> Iterator[zmq.Context]:
 @pytest.fixture
 def hmdrt_config(tmp_path: Path) -> Callable[..., Path]:
     """hmdrt_config(method="rrm", eyes="both", trace=TRACE, name="run.toml", **sections): a run config written in
-    the test's tmp_path (hmdrt.testing.write_config: 64x72 per eye on sim-cpu at 30 Hz, free loopback ports, the
+    the test's tmp_path (hmdrt.testing.write_config: 64x72 per eye on sim-cpu at 30 Hz, private ipc:// sockets, the
     trace replayed in a loop)."""
 
     def make(

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from hmdrt.bus.security import LOCAL_TRANSPORTS
+from hmdrt.compositor.samples import KINDS
 from hmdrt.watch.link import STATUS, CompositorLink
 from hmdrt.watch.protocol import MAX_FRAMES_PER_BATCH, BadMessage, frame_point, preview_message
 
@@ -57,21 +57,39 @@ def _maps(value: object) -> dict[str, dict]:
 
 
 class DriverRates:
-    """Each driver's sample rate from the counts of successive run reports, on the wall clock."""
+    """Each device's gaze and pose sample rates from the counts of successive run reports (their `samples`, which
+    count each kind), per second of the run's own clock (its VSyncs over the refresh rate): in real time the wall
+    clock's, and a 250 Hz trace reads 250 Hz also in virtual time, however fast or slow the run goes."""
 
     def __init__(self) -> None:
-        self._last: dict[str, tuple[float, int]] = {}
+        self._last: tuple[float, dict[str, dict]] | None = None  # the run's seconds at a report, and its counts
+        self.rates: dict[str, dict[str, float | None]] = {}
 
-    def update(self, drivers: dict) -> dict[str, float | None]:
-        now, rates = time.monotonic(), {}
-        for device, counts in drivers.items():
-            samples = counts.get("samples") if isinstance(counts, dict) else None
-            if not isinstance(samples, int):
-                continue
-            before = self._last.get(device)
-            rates[device] = None if before is None else (samples - before[1]) / max(now - before[0], 1e-3)
-            self._last[device] = (now, samples)
-        return rates
+    def update(self, report: dict) -> None:
+        """rates: {device: {kind: Hz}} since the previous report of the run (None: no count of that kind yet, or no
+        report before); kept while the run's clock has not moved."""
+        vsyncs, hz = report.get("vsyncs"), report.get("vsync_hz")
+        if not isinstance(vsyncs, int) or not isinstance(hz, int | float) or not hz > 0:
+            return
+        now_s, counts = vsyncs / hz, _maps(report.get("samples"))
+        if self._last is not None and now_s < self._last[0]:  # a new run
+            self._last = None
+        if self._last is None or now_s > self._last[0]:
+            before_s, before = self._last or (now_s, {})
+            self.rates = {
+                device: {
+                    kind: _rate(count.get(kind), before.get(device, {}).get(kind), now_s - before_s) for kind in KINDS
+                }
+                for device, count in counts.items()
+            }
+            self._last = (now_s, counts)
+
+
+def _rate(count: object, before: object, seconds: float) -> float | None:
+    """Samples a second from two counts `seconds` apart; None without both, or with none of the kind yet."""
+    if not isinstance(count, int) or not isinstance(before, int) or not count or seconds <= 0:
+        return None
+    return (count - before) / seconds
 
 
 class Hub:
@@ -83,8 +101,7 @@ class Hub:
         self.pages: set[Page] = set()
         self.status: dict = {}
         self.report: dict = {}
-        self._rates: dict[str, float | None] = {}
-        self._driver_rates = DriverRates()
+        self._rates = DriverRates()
         self._points: list[dict] = []
         self.skipped_points = 0  # frame points that arrived faster than a batch takes
         self._tasks: list[asyncio.Task] = []
@@ -126,7 +143,7 @@ class Hub:
             else:
                 self.skipped_points += 1
         elif topic == "stats":
-            self._rates = self._driver_rates.update(fields.get("drivers") or {})
+            self._rates.update(fields)
             self.report = fields
             self._broadcast({"type": "stats", "report": fields})
         elif topic == "log":
@@ -149,7 +166,8 @@ class Hub:
             await asyncio.sleep(STATUS_S)
 
     def drivers(self) -> dict[str, dict]:
-        """Each driver's state and clock estimate (its newest status on the bus), counts (the run report) and rate."""
+        """Each driver's state and clock estimate (its newest status on the bus), counts (the run report) and its
+        gaze and pose rates."""
         statuses, counts = _maps(self.status.get("drivers")), _maps(self.report.get("drivers"))
         out = {}
         for device in sorted(set(statuses) | set(counts)):
@@ -158,7 +176,7 @@ class Hub:
             offset = clock.get("offset_ns")
             out[device] = {
                 "state": status.get("state"),
-                "rate_hz": self._rates.get(device),
+                **{f"{kind}_hz": self._rates.rates.get(device, {}).get(kind) for kind in KINDS},
                 **{k: count.get(k, status.get(k)) for k in COUNTS},
                 "offset_ms": offset / 1e6 if isinstance(offset, int | float) else None,
                 "drift_ppm": clock.get("drift_ppm"),

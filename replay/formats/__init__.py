@@ -4,8 +4,8 @@ gaze angles and vectors, and the normalised sample they all produce.
 Every importer turns a file into a TraceReading of Gaze samples numbered in file order, with t_host =
 t_dev = the file's own time in integer nanoseconds (relative values kept, so replay can re-base
 them). A line that does not parse is counted in TraceReading.malformed and skipped; a file that
-yields no valid sample is a ConfigError. Files are read under the native format's size caps; a CSV's
-header is its first line that is not blank.
+yields no valid sample is a ConfigError. Files are read a line at a time under the native format's size caps, into a
+SampleTable (replay/table.py) under its cap on samples; a CSV's header is its first line that is not blank.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from pathlib import Path
 
 from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
+from hmdrt.replay.table import SampleTable
 from hmdrt.replay.trace import TraceReading, capped_lines, first_line, open_capped
 from hmdrt.spatial import gaze_direction
 
@@ -118,7 +119,7 @@ def gaze_sample(
 
 def require_valid(path: Path, reading: TraceReading) -> TraceReading:
     """The reading, or a ConfigError when the file held no valid sample of its format."""
-    if not any(s.valid for s in reading.samples):
+    if not SampleTable.of(reading.samples).column("valid").any():
         raise ConfigError(
             f"{path} holds no valid {reading.device} gaze samples "
             f"({len(reading.samples)} samples read, {reading.malformed} malformed lines)"
@@ -132,7 +133,7 @@ def read_csv(path: Path, device: str, convert: Callable[[dict[str, str], int], G
     Rows of the wrong width, over-long lines and rows that convert raises ValueError for are counted
     as malformed; blank lines are skipped.
     """
-    reading = TraceReading(device, [])
+    reading = TraceReading(device, SampleTable(f"trace {path}"))
     lines = text_lines(path)
     names = _names(first_line(lines))
     for line in lines:

@@ -37,6 +37,7 @@ from pathlib import Path
 
 from hmdrt.errors import ConfigError
 from hmdrt.replay.formats import MS, S, Vec3, gaze_sample, number, require_valid, text_lines, time_ns, unit
+from hmdrt.replay.table import SampleTable
 from hmdrt.replay.trace import TraceReading
 
 log = logging.getLogger(__name__)
@@ -107,7 +108,7 @@ def read_asc(
     period_ns = MS  # no spacing until a SAMPLES line gives a rate above 1000 Hz
     last_ns, repeats = None, 0
     spaced: Counter[int] = Counter()  # samples placed after the one before, by the period they were placed at
-    reading = TraceReading("eyelink", [])
+    reading = TraceReading("eyelink", SampleTable(f"trace {path}"))
     for line in text_lines(path):
         if line is None:
             reading.malformed += 1

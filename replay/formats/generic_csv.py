@@ -25,16 +25,15 @@ and reads back with the same times, validity and directions (hmdrt convert).
 from __future__ import annotations
 
 import csv
-import gzip
 import io
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from hmdrt.bus.messages import Gaze
 from hmdrt.errors import ConfigError
-from hmdrt.files.atomic import write_atomic
 from hmdrt.replay.formats import MS, NS, S, csv_header, direction, gaze_sample, number, read_csv, time_ns, unit
-from hmdrt.replay.trace import Sample, TraceReading
+from hmdrt.replay.table import SampleTable
+from hmdrt.replay.trace import Sample, TraceReading, batches, write_chunks
 
 TIME_COLUMNS = {"t_ns": NS, "t_ms": MS, "t_s": S}
 ANGLES = ("yaw_deg", "pitch_deg")
@@ -93,17 +92,17 @@ def write_generic_csv(path: str | Path, samples: Iterable[Sample]) -> int:
 
     Columns: t_ns (t_host), the direction columns of each eye some sample has, valid (1/0), and depth_m when
     some sample has one. Numbers are written in full (repr), so reading back gives the same directions up to
-    the reader's normalisation (a few 1e-16). Poses are not part of the format and are skipped."""
+    the reader's normalisation (a few 1e-16). Poses are not part of the format and are skipped. Rows are written
+    a batch at a time."""
     path = Path(path)
-    gazes = [s for s in samples if isinstance(s, Gaze)]
-    eyes = [eye for eye in VECTORS if any(getattr(s, eye) is not None for s in gazes)]
+    table = SampleTable.of(samples)
+    eyes = [eye for eye in VECTORS if table.present(eye)]
     if not eyes:
         raise ConfigError(f"{path.name}: no gaze direction to write; hmdrt CSV needs at least one")
-    depth = any(s.depth_m is not None for s in gazes)
-    text = io.StringIO()
-    out = csv.writer(text, lineterminator="\n")
-    out.writerow(["t_ns", *(c for eye in eyes for c in VECTORS[eye]), "valid", *(["depth_m"] if depth else [])])
-    for s in gazes:
+    depth = table.present("depth_m")
+    header = ["t_ns", *(c for eye in eyes for c in VECTORS[eye]), "valid", *(["depth_m"] if depth else [])]
+
+    def row(s: Gaze) -> list[str]:
         cells = [str(s.t_host)]
         for eye in eyes:
             v = getattr(s, eye)
@@ -111,7 +110,18 @@ def write_generic_csv(path: str | Path, samples: Iterable[Sample]) -> int:
         cells.append("1" if s.valid else "0")
         if depth:
             cells.append("" if s.depth_m is None else repr(float(s.depth_m)))
-        out.writerow(cells)
-    data = text.getvalue().encode()
-    write_atomic(path, gzip.compress(data, mtime=0) if path.suffix == ".gz" else data)
-    return len(gazes)
+        return cells
+
+    def chunks() -> Iterator[bytes]:
+        yield _csv_text([header])
+        for batch in batches(s for s in table if isinstance(s, Gaze)):
+            yield _csv_text(row(s) for s in batch)
+
+    write_chunks(path, chunks())
+    return table.gaze_count
+
+
+def _csv_text(rows: Iterable[list[str]]) -> bytes:
+    text = io.StringIO()
+    csv.writer(text, lineterminator="\n").writerows(rows)
+    return text.getvalue().encode()

@@ -6,6 +6,7 @@
   const MAX_CANVAS = 960; // the preview is drawn this wide at most (whole multiples of its size)
   const MARKER = "rgb(0, 255, 0)"; // gaze point
   const FOVEA = "rgb(255, 200, 0)";
+  const REPEAT = "rgb(241, 194, 27)"; // a repeat's marker on the frame-time plot
   const COLOURS = ["#4ea1ff", "#ff8389", "#6fdc8c", "#f1c21b", "#be95ff", "#3ddbd9", "#ff7eb6"];
   const $ = (id) => document.getElementById(id);
   const state = (window.hmdrtWatch = {
@@ -21,16 +22,31 @@
   let token = sessionStorage.getItem("hmdrt-watch-token") || "";
 
   // --- plots ----------------------------------------------------------------------------------------------------
-  // per-VSync series, in step with t; a VSync's gaze error comes with a later VSync's point and is put at its own
-  const SERIES = ["t", "vsync", "frame", "period", "misses", "repeats", "gaze", "pose", "errorLeft", "errorRight", "fovea", "level"];
+  // per-VSync series, in step with t; a VSync's gaze error comes with a later VSync's point and is put at its own;
+  // a repeat (a VSync that showed the previous frame again) is a marker on the period line
+  const SERIES = [
+    "t", "vsync", "frame", "period", "repeat", "misses", "repeats", "gaze", "pose", "errorLeft", "errorRight", "fovea",
+    "level",
+  ];
   const data = { ...Object.fromEntries(SERIES.map((key) => [key, []])), knobs: {} };
   let t0 = null, lastVsync = -1, knobNames = [], recent = [];
+
+  // with the cursor off a chart, its legend gives each series' newest value (uPlot's would read "--")
+  function legendLatest(u) {
+    if (u.cursor.left >= 0) return;
+    u.setLegend({ idxs: u.data.map((values) => {
+      let i = values.length - 1;
+      while (i >= 0 && values[i] == null) i--;
+      return i < 0 ? null : i;
+    }) });
+  }
 
   function chart(id, title, series, scales, axes) {
     const el = $(id);
     const grid = { stroke: "#30363d", width: 1 };
     const opts = {
       title, width: Math.max(el.clientWidth, 400), height: 170,
+      hooks: { draw: [legendLatest], setCursor: [legendLatest] },
       scales: { x: { time: false }, ...scales },
       series: [{ label: "s" }, ...series.map((s, i) => ({ stroke: COLOURS[i % COLOURS.length], width: 1.5, ...s }))],
       axes: [{ stroke: "#b8c0c8", grid }, ...axes.map((a) => ({ stroke: "#b8c0c8", grid, ...a }))],
@@ -41,7 +57,12 @@
   }
 
   function makeCharts() {
-    chart("plot-frame", "frame time (ms) against the period", [{ label: "frame ms" }, { label: "period ms", dash: [4, 4] }], {}, [{}]);
+    chart("plot-frame", "frame time (ms) against the period; repeats marked on it", [
+      { label: "frame ms", spanGaps: true }, // drawn across the repeats between new frames
+      { label: "period ms", dash: [4, 4] },
+      { label: "repeat", stroke: REPEAT, paths: () => null, points: { show: true, size: 7, fill: REPEAT },
+        value: (u, v, si, i) => (v == null ? "–" : `at ${u.data[0][i].toFixed(1)} s`) },
+    ], {}, [{}]);
     chart("plot-misses", "misses and repeats in the last second", [{ label: "misses" }, { label: "repeats" }], {}, [{}]);
     chart("plot-latency", "latency (ms)", [{ label: "gaze-to-photon" }, { label: "pose-to-photon" }], {}, [{}]);
     chart("plot-gaze-error", "gaze error at photon time (deg) against the foveal radius",
@@ -61,7 +82,7 @@
 
   function plot() {
     const t = data.t;
-    state.charts["plot-frame"].setData([t, data.frame, data.period]);
+    state.charts["plot-frame"].setData([t, data.frame, data.period, data.repeat]);
     state.charts["plot-misses"].setData([t, data.misses, data.repeats]);
     state.charts["plot-latency"].setData([t, data.gaze, data.pose]);
     state.charts["plot-gaze-error"].setData([t, data.errorLeft, data.errorRight, data.fovea]);
@@ -86,6 +107,7 @@
       data.vsync.push(p.vsync);
       data.frame.push(p.frame_ms);
       data.period.push(hz ? 1000 / hz : null);
+      data.repeat.push(p.shown === "repeat" && hz ? 1000 / hz : null);
       data.misses.push(recent.filter((r) => r.missed).length);
       data.repeats.push(recent.filter((r) => r.shown === "repeat").length);
       data.gaze.push(p.gaze_ms);
@@ -192,8 +214,8 @@
       }
     }
     fillTable($("drivers").tBodies[0], Object.entries(message.drivers || {}).map(([device, d]) => [
-      device, fmt(d.state), fmt(d.rate_hz), fmt(d.samples), fmt(d.dropped), fmt(d.invalid), fmt(d.malformed),
-      fmt(d.reconnects), fmt(d.offset_ms, 3), fmt(d.drift_ppm, 2),
+      device, fmt(d.state), fmt(d.gaze_hz), fmt(d.pose_hz), fmt(d.samples), fmt(d.dropped), fmt(d.invalid),
+      fmt(d.malformed), fmt(d.reconnects), fmt(d.offset_ms, 3), fmt(d.drift_ppm, 2),
     ]));
     const security = s.security || {};
     const watch = message.watch || {};
