@@ -36,3 +36,19 @@ def test_a_file_without_a_mode_gets_the_one_open_would_give_it(tmp_path):
     finally:
         os.umask(umask)
     assert stat.S_IMODE((tmp_path / "report.json").stat().st_mode) == 0o640
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o077, 0o600)])
+def test_outputs_a_lab_shares_get_the_umasks_mode(tmp_path, umask, mode):
+    """A render's PNG and stats JSON (written by rename, as reports and eval results are) are 0644 under umask 022,
+    as the PNGs always were, and 0600 for a user who asked for private files with umask 077."""
+    from hmdrt.cli import main
+
+    previous = os.umask(umask)
+    try:
+        out, stats = tmp_path / "frame.png", tmp_path / "stats.json"
+        args = "render --scene whitted --profile sim-cpu --method full --resolution 16x12".split()
+        assert main([*args, "--out", str(out), "--stats", str(stats)]) == 0
+    finally:
+        os.umask(previous)
+    assert {stat.S_IMODE(p.stat().st_mode) for p in (out, stats)} == {mode}

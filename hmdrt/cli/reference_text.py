@@ -71,8 +71,8 @@ compositor runs on). The server (`hmdrt/watch/`) answers:
 | `GET /` | the page (`hmdrt/watch/static/`: plain HTML and JS, uPlot vendored) | - |
 | `GET /static/NAME` | the page's script, styles and uPlot | - |
 | `GET /ws` | a websocket: the page's feed and its commands | the token for commands that change the compositor |
-| `GET /api/state` | JSON: the compositor's status, the run report so far, each driver's state, gaze and pose rates, counts \
-and clock, and the server's refusal counts | - |
+| `GET /api/state` | JSON: the compositor's status, the run report so far, each driver's state, gaze and pose \
+rates, counts and clock, and the server's refusal counts | - |
 | `POST /api/command` | a command (below) as a JSON body; the compositor's reply | the token |
 
 Each needs a `Host` header naming the server (the bound address, `localhost`,
