@@ -275,6 +275,7 @@ def request(endpoint: str, command: dict, timeout_s: float = 2.0, keys: ClientKe
     sock = context.socket(zmq.REQ)
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.RCVTIMEO, int(timeout_s * 1000))
+    sock.setsockopt(zmq.SNDTIMEO, int(timeout_s * 1000))  # a REQ with no pipe to send on would block for good
     sock.setsockopt(zmq.MAXMSGSIZE, 16 * MAX_PAYLOAD_BYTES)
     if keys is not None:
         keys.apply(sock)
