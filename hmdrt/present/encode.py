@@ -3,15 +3,23 @@ output.
 
 Values outside [0, 1] are clipped by the display encoding, as a display would; that is output
 quantisation, not input clamping.
+
+The sRGB transfer function (_srgb8, a float64 pow per channel) took 34 ms for both eyes at 640x720 on one thread,
+about 12 ns a value, so the kernels never call it: they look the code up instead (_lookup), exactly. The value's
+bucket of 1/BUCKETS in linear light gives the code at the bucket's start, and one comparison with the next code's
+threshold (the least float32 _srgb8 maps to that code) adds 1 or not: no bucket holds two thresholds, since the
+codes are at least 1/3295 apart in linear light (the steepest part of the curve, 12.92 x 255 codes per unit) and a
+bucket is 1/4096 wide. So every float32 gets the code _srgb8 gives it, and the PNGs are as they were
+(test_preview checks every threshold and every bucket's edges, and with -m slow every float32 of [0, 1]).
 """
 
 from __future__ import annotations
 
 import io
 import math
-from collections.abc import Callable
 from functools import cache
 from pathlib import Path
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -19,13 +27,22 @@ from PIL import Image
 
 from hmdrt.errors import HmdrtError
 from hmdrt.files.atomic import write_atomic
-from hmdrt.kernels.jit import inline, kernel
+from hmdrt.kernels.jit import inline, kernel, serial
 
-PREVIEW_LEVELS = 16384  # linear levels of preview_srgb8's table: steps of at most one sRGB code
+BUCKETS = 4096  # linear-light buckets of the lookup: narrower than the closest two sRGB codes' thresholds
+
+
+class Tables(NamedTuple):
+    """The lookup of _srgb8: codes[i] is the code of i / BUCKETS; limits[k] the least float32 whose code is k
+    (limits[0] 0, limits[256] infinity, so that code 255 never steps past itself)."""
+
+    codes: np.ndarray  # (BUCKETS,) uint8
+    limits: np.ndarray  # (257,) float32
 
 
 @inline
 def _srgb8(x: float) -> np.uint8:
+    """The exact sRGB encoding, in float64, rounded to the nearest code: the definition the tables are made from."""
     if not x > 0.0:  # also catches NaN
         return np.uint8(0)
     if x >= 1.0:
@@ -34,76 +51,114 @@ def _srgb8(x: float) -> np.uint8:
     return np.uint8(s * 255.0 + 0.5)
 
 
+@serial
+def _srgb8_each(values: np.ndarray, out: np.ndarray) -> None:
+    """_srgb8 of each float32 value, into out: to make the tables and to check them."""
+    for i in range(values.shape[0]):
+        out[i] = _srgb8(values[i])
+
+
+@cache
+def tables() -> Tables:
+    """The lookup's tables, made once from _srgb8: each code's threshold by bisection over the float32 bit patterns
+    of [0, 1] (ordered as integers since they are positive), all codes at once; sound as _srgb8 never decreases."""
+    codes = np.empty(BUCKETS, np.uint8)
+    _srgb8_each(np.arange(BUCKETS, dtype=np.float32) / np.float32(BUCKETS), codes)
+    wanted = np.arange(1, 256, dtype=np.uint8)
+    lo = np.zeros(255, np.int32)  # code < wanted
+    hi = np.full(255, np.float32(1.0).view(np.int32), np.int32)  # code >= wanted
+    got = np.empty(255, np.uint8)
+    while (hi - lo > 1).any():
+        mid = lo + (hi - lo) // 2
+        _srgb8_each(mid.view(np.float32), got)
+        high = got >= wanted
+        hi, lo = np.where(high, mid, hi), np.where(high, lo, mid)
+    limits = np.concatenate([[0], hi.view(np.float32), [np.inf]]).astype(np.float32)
+    return Tables(codes, limits)
+
+
+@inline
+def _lookup(x: np.float32, codes: np.ndarray, limits: np.ndarray) -> np.uint8:
+    """_srgb8(x) of a float32 x through the tables: a bucket's code, plus 1 if x reaches the next code's threshold."""
+    if not x > 0.0:  # also NaN
+        return np.uint8(0)
+    if x >= 1.0:  # also inf
+        return np.uint8(255)
+    code = codes[np.int32(x * np.float32(BUCKETS))]
+    return code + np.uint8(x >= limits[code + 1])
+
+
 @kernel
-def _encode_into(image: np.ndarray, out: np.ndarray, x0: int) -> None:
+def _encode_into(image: np.ndarray, out: np.ndarray, x0: int, codes: np.ndarray, limits: np.ndarray) -> None:
     """image (h, w, 3) float32 into columns [x0, x0 + w) of out (h, W, 3) uint8."""
     h, w = image.shape[0], image.shape[1]
     for y in nb.prange(h):
         for x in range(w):
             for c in range(3):
-                out[y, x0 + x, c] = _srgb8(image[y, x, c])
+                out[y, x0 + x, c] = _lookup(image[y, x, c], codes, limits)
 
 
-def side_by_side_srgb8(images: list[np.ndarray], out: np.ndarray | None = None) -> np.ndarray:
-    """(h, w, 3) linear float images of one height, left to right, as one (h, sum of w, 3) uint8 sRGB image: each
-    encoded where it goes, never joined as floats first. `out`, when given, is that uint8 image, written and
-    returned."""
-    return _side_by_side(images, 1, out, _encode_into)
+@kernel
+def _shrink_into(
+    image: np.ndarray, out: np.ndarray, x0: int, factor: int, codes: np.ndarray, limits: np.ndarray
+) -> None:
+    """image (h, w, 3) float32, the mean of each factor x factor block in linear light (float32, summed row by row
+    in memory order), encoded into columns [x0, x0 + w // factor) of out. Factor 2 (the watch's at sim-cpu-640) has
+    a path of its own with the same sums: with the block's size known, it takes 1.2 ms for both eyes where the
+    general loop takes 1.6 (bench/preview.py)."""
+    h, w = image.shape[0] // factor, image.shape[1] // factor
+    scale = np.float32(1.0 / (factor * factor))
+    for y in nb.prange(h):
+        if factor == 2:
+            top, bottom = image[2 * y], image[2 * y + 1]
+            for x in range(w):
+                for c in range(3):
+                    total = top[2 * x, c] + top[2 * x + 1, c] + bottom[2 * x, c] + bottom[2 * x + 1, c]
+                    out[y, x0 + x, c] = _lookup(total * scale, codes, limits)
+            continue
+        for x in range(w):
+            r, g, b = np.float32(0.0), np.float32(0.0), np.float32(0.0)
+            for dy in range(factor):
+                for dx in range(factor):
+                    r += image[y * factor + dy, x * factor + dx, 0]
+                    g += image[y * factor + dy, x * factor + dx, 1]
+                    b += image[y * factor + dy, x * factor + dx, 2]
+            out[y, x0 + x, 0] = _lookup(r * scale, codes, limits)
+            out[y, x0 + x, 1] = _lookup(g * scale, codes, limits)
+            out[y, x0 + x, 2] = _lookup(b * scale, codes, limits)
 
 
-def _side_by_side(
-    images: list[np.ndarray], factor: int, out: np.ndarray | None, encode: Callable[[np.ndarray, np.ndarray, int], None]
-) -> np.ndarray:
-    """The images, each shrunk by `factor`, left to right in one uint8 image (out, or a new one): encode(image, out,
-    x0) writes one image from column x0."""
+def _side_by_side(images: list[np.ndarray], factor: int, out: np.ndarray | None) -> np.ndarray:
+    """The images, each shrunk by `factor` (1: as they are), left to right in one uint8 image (out, or a new one)."""
     images = [np.ascontiguousarray(image, dtype=np.float32) for image in images]
     shape = (images[0].shape[0] // factor, sum(image.shape[1] // factor for image in images), 3)
     if out is None:
         out = np.empty(shape, np.uint8)
     elif out.shape != shape or out.dtype != np.uint8:
         raise ValueError(f"out must be a uint8 array of shape {shape}, got {out.dtype} {out.shape}")
+    codes, limits = tables()
     x0 = 0
     for image in images:
-        encode(image, out, x0)
+        if factor == 1:
+            _encode_into(image, out, x0, codes, limits)
+        else:
+            _shrink_into(image, out, x0, factor, codes, limits)
         x0 += image.shape[1] // factor
     return out
 
 
-@kernel
-def _shrink_into(image: np.ndarray, out: np.ndarray, x0: int, factor: int, levels: np.ndarray) -> None:
-    """image (h, w, 3) float32, each factor x factor block averaged in linear light and looked up in `levels` (the
-    sRGB codes of len(levels) evenly spaced linear values), into columns [x0, x0 + w // factor) of out."""
-    h, w, top = image.shape[0] // factor, image.shape[1] // factor, len(levels) - 1
-    scale = np.float32(top / (factor * factor))
-    for y in nb.prange(h):
-        for x in range(w):
-            for c in range(3):
-                total = np.float32(0.0)
-                for dy in range(factor):
-                    for dx in range(factor):
-                        total += image[y * factor + dy, x * factor + dx, c]
-                level = total * scale + np.float32(0.5)
-                if not level > 0.0:  # also NaN
-                    out[y, x0 + x, c] = levels[0]
-                elif level >= top:  # also inf
-                    out[y, x0 + x, c] = levels[top]
-                else:
-                    out[y, x0 + x, c] = levels[int(level)]
-
-
-@cache
-def _srgb_levels() -> np.ndarray:
-    """The sRGB code of each of PREVIEW_LEVELS evenly spaced linear values in [0, 1], as _srgb8 encodes them."""
-    ramp = np.repeat(np.linspace(0.0, 1.0, PREVIEW_LEVELS, dtype=np.float32)[None, :, None], 3, axis=2)
-    return np.ascontiguousarray(side_by_side_srgb8([ramp])[0, :, 0])
+def side_by_side_srgb8(images: list[np.ndarray], out: np.ndarray | None = None) -> np.ndarray:
+    """(h, w, 3) linear float images of one height, left to right, as one (h, sum of w, 3) uint8 sRGB image: each
+    encoded where it goes, never joined as floats first. `out`, when given, is that uint8 image, written and
+    returned."""
+    return _side_by_side(images, 1, out)
 
 
 def preview_srgb8(images: list[np.ndarray], factor: int, out: np.ndarray | None = None) -> np.ndarray:
-    """side_by_side_srgb8 of the images shrunk by `factor` (the mean of each factor x factor block, in linear light;
-    a remainder of rows or columns left out), through a table of PREVIEW_LEVELS linear levels: within one code
-    value of the exact encoding of the means, several times faster, for previews."""
-    levels = _srgb_levels()
-    return _side_by_side(images, factor, out, lambda image, into, x0: _shrink_into(image, into, x0, factor, levels))
+    """side_by_side_srgb8 of the images shrunk by `factor` (the float32 mean of each factor x factor block, in linear
+    light; a remainder of rows or columns left out), in one pass that reads each image once: the exact encoding of
+    those means, for previews."""
+    return _side_by_side(images, factor, out)
 
 
 def linear_to_srgb8(image: np.ndarray) -> np.ndarray:
