@@ -1,18 +1,22 @@
 """The Embree tracer: hit distances, differential agreement with trimesh, robustness and self-intersection."""
 
+import threading
+
 import numpy as np
 import pytest
 
 from hmdrt.api import trace_gbuffer
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
-from hmdrt.scene import Scene
+from hmdrt.scene import Scene, load_scene
 from hmdrt.scene.builtin import bunny
 from hmdrt.scene.model import Material, Mesh, PointLight
 from hmdrt.scene.pack import pack
 from hmdrt.scene.shapes import quad, sphere
 from hmdrt.spatial import Pose
+from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.blocks import BLOCK
+from hmdrt.trace.integrator import Whitted
 from hmdrt.trace.tracer import Tracer
 
 from .helpers import render
@@ -196,3 +200,40 @@ def test_direct_embree_agrees_with_embreex_and_with_itself_on_two_threads():
     np.testing.assert_array_equal(a.t, b.t)
     np.testing.assert_array_equal(blocked_one, blocked_many)
     assert 0 < blocked_one.sum() < len(dirs)
+
+
+def test_share_runs_each_share_once_the_first_on_the_caller_and_raises_a_failed_one():
+    """Tracer.share: work(0) on the calling thread, work(1..threads-1) on the pool; an error comes back once all
+    shares have ended."""
+    with Tracer(pack(bunny()).geometry, threads=2) as tr:
+        ran: list[tuple[int, int]] = []
+        tr.share(lambda t: ran.append((t, threading.get_ident())))
+        assert sorted(t for t, _ in ran) == list(range(tr.threads))
+        assert dict(ran)[0] == threading.get_ident()
+        ended = []
+
+        def fail_last(t: int) -> None:
+            if t == tr.threads - 1:
+                raise ValueError("the last share failed")
+            ended.append(t)
+
+        with pytest.raises(ValueError, match="the last share failed"):
+            tr.share(fail_last)
+        assert sorted(ended) == list(range(tr.threads - 1))
+
+
+def test_whitted_traces_the_same_on_one_thread_and_on_two():
+    """The tracer's threads claim blocks as each frees up, each on its own scratch (lane): which thread traces a
+    block changes no sample, nor the rays counted."""
+    scene = load_scene("whitted")
+    cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(64, 72), scene.start)
+    xy = pixel_centres(64, 72)
+    keys = np.arange(len(xy), dtype=np.int64)
+    results = []
+    for threads in (1, 2):
+        stats = FrameStats()
+        with Whitted(scene, threads=threads) as tracer:
+            results.append((tracer.trace_samples(cam, xy, keys, stats), stats.rays))
+    (one, rays_one), (two, rays_two) = results
+    np.testing.assert_array_equal(one, two)
+    assert rays_one == rays_two and rays_one["secondary"] > 0

@@ -60,7 +60,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     reloads = threading.Event()
     signal.signal(signal.SIGHUP, lambda *_: reloads.set())
     startup = Startup()
-    with StatusLine(lambda _: f"starting: {startup.now()} (a first run compiles for a minute or two)"):
+    with StatusLine(lambda _: f"starting: {startup.now()} (a first run compiles for half a minute or more)"):
         compositor = Compositor(config, startup=startup)
     if reloads.is_set():
         compositor.reload()

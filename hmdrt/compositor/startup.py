@@ -1,5 +1,5 @@
 """What the compositor's start-up is doing and how long each of its steps took: compiling the method's kernels
-and the timewarp (a minute or two on a first run, about a second from numba's cache), then connecting the
+and the timewarp (half a minute or more on a first run, about a second from numba's cache), then connecting the
 drivers (up to a few seconds), so that the wait before the first VSync says what it waits for."""
 
 from __future__ import annotations

@@ -11,9 +11,7 @@ from __future__ import annotations
 import threading
 import time
 
-import numba as nb
 import numpy as np
-from numba import typed
 
 from hmdrt.kernels.memory import retain_freed_memory
 from hmdrt.optics.camera import EyeCamera
@@ -59,25 +57,20 @@ class Whitted:
         )
         self._lock = threading.Lock()
         self._no_gbuffer, self._no_light = GBuffer.empty(0), LightBuffer.empty(0)
-        # one lane of scratch per numba thread id; those the tracer's threads take start with room for a block and
-        # its children, any other starts empty, and each grows to the largest level it met (meter.NEED)
+        # one lane of scratch per tracer thread, with room for a block and its children at first, each growing to the
+        # largest level it met (meter.NEED)
         first = MAX_BLOCK * (2 if self.secondary and self.max_depth else 1)
-        self._lanes = [self._lane(first if t < self.tracer.threads else 0) for t in range(nb.config.NUMBA_NUM_THREADS)]
-        self._typed_lanes = typed.List(self._lanes)
+        self._lanes = [self._lane(first) for _ in range(self.tracer.threads)]
 
     def _lane(self, capacity: int) -> Lane:
         return lane_empty(capacity, MAX_BLOCK, self.n_point, self.plan.area_total, self.plan.ao_samples)
 
     def _grow(self) -> None:
         """Give each lane that met a level larger than its scratch room for that level."""
-        grown = False
         for t, lane in enumerate(self._lanes):
             need = int(lane.tally[meter.NEED])
             if need > len(lane.work.kr):
                 self._lanes[t] = self._lane(need)
-                grown = True
-        if grown:
-            self._typed_lanes = typed.List(self._lanes)
 
     def block(self, n: int) -> int:
         """Samples per block for a batch of n."""
@@ -135,7 +128,7 @@ class Whitted:
             for lane in self._lanes:
                 lane.tally.fill(0)
             start = time.perf_counter_ns()
-            self.tracer.run(trace, self._scene, frame, self._typed_lanes, self.block(n))
+            trace(self._scene, frame, self._lanes, self.block(n), self.tracer.share)
             wall_ms = (time.perf_counter_ns() - start) / 1e6
             meter.credit(stats, wall_ms, [lane.tally for lane in self._lanes])
             self._grow()

@@ -92,7 +92,7 @@ def _inactive(origins, directions, far, j):
     far[j] = -1.0
 
 
-@serial
+@inline
 def light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
     """Fill the point-light, area-light and AO rays of hits [start, stop); hit i owns a fixed block of each.
     One pass per kind of source: a loop that holds all three runs twice as slow even where two are empty."""
@@ -196,7 +196,7 @@ def _lit(ns, albedo, i, wlocal, ks, shininess, view, light, e):
     return e[0] * (w * albedo[i, 0] + spec), e[1] * (w * albedo[i, 1] + spec), e[2] * (w * albedo[i, 2] + spec)
 
 
-@serial
+@inline
 def shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, acc, local, shadow_count, stochastic, start, stop):
     """Local radiance (n, 3) at hits [start, stop) (background on misses), each hit's count of shadowed light
     samples, and the irradiance its area lights and ambient occlusion contribute (stochastic (n, 3)):

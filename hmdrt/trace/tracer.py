@@ -6,6 +6,8 @@ and any caller with rays of its own."""
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import NamedTuple
 
 import numba as nb
@@ -62,7 +64,8 @@ def _occluded_kernel(scene, args, packets, origins, directions, tfar, out, count
 
 
 class Tracer:
-    """Embree scene over one Geometry; intersect() and occluded() trace on `threads` numba threads."""
+    """Embree scene over one Geometry; intersect() and occluded() trace on `threads` numba threads, and share() runs
+    work on as many threads: the caller's and a pool of the tracer's own."""
 
     def __init__(self, geometry: Geometry, threads: int | None = None):
         self.threads = max(1, min(threads or os.cpu_count() or 1, nb.config.NUMBA_NUM_THREADS))
@@ -70,6 +73,18 @@ class Tracer:
         self.scene = embree.EmbreeScene(geometry.vertices, geometry.faces)
         self.packets = embree.packets(nb.config.NUMBA_NUM_THREADS)
         self.args = embree.coherent_args()
+        self._pool = ThreadPoolExecutor(self.threads - 1, "hmdrt-tracer") if self.threads > 1 else None
+
+    def share(self, work: Callable[[int], None]) -> None:
+        """work(0) on the calling thread and work(1) ... work(threads - 1) on the pool, at once (each calls a kernel
+        that releases the GIL); returns once all have, raising the first error."""
+        futures = [self._pool.submit(work, t) for t in range(1, self.threads)] if self._pool else []
+        try:
+            work(0)
+        finally:
+            wait(futures)
+        for future in futures:
+            future.result()
 
     def run(self, fn, *args) -> None:
         """fn(*args), a parallel kernel that claims its blocks (hmdrt.kernels.schedule.dynamic: they differ in cost), on
@@ -109,6 +124,8 @@ class Tracer:
         return out
 
     def close(self) -> None:
+        if self._pool:
+            self._pool.shutdown()
         self.scene.close()
 
     def __enter__(self) -> Tracer:

@@ -1,5 +1,5 @@
-"""Whitted tracing of camera samples as one fused kernel: a parallel loop over blocks of samples, each block a
-small wavefront over bounce depth that never leaves its thread's cache-sized scratch.
+"""Whitted tracing of camera samples as one fused kernel, run by each of the tracer's threads over the blocks of
+samples it claims, each block a small wavefront over bounce depth that never leaves its thread's cache-sized scratch.
 
 Per block and depth: generate the camera rays (depth 0), intersect them, build the shading records, make
 the shadow / area / AO rays and trace them, shade, store the G-buffer and light buffer rows, then spawn
@@ -11,20 +11,24 @@ parents in order, reflection before refraction), so the result does not depend o
 Each thread owns a Lane of scratch sized for `capacity` rays per level; a level that needs more (deep
 glass) takes fresh arrays for that block and reports the size it needed (meter.NEED), and the caller grows
 the lanes for the next call.
+
+The steps of a block are inlined in numba's IR (jit.inline), not compiled on their own: in each library numba
+compiles, LLVM optimises and compiles again every function it calls, so steps of their own took a first run
+6.5 s more CPU (28 s, not 21 s, for the tracer; bench/first_start.py).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
-import numba as nb
 import numpy as np
 
-from hmdrt.kernels.jit import kernel, serial
+from hmdrt.kernels.jit import inline, serial
 from hmdrt.kernels.schedule import claim
 from hmdrt.optics.camera import eye_direction
 from hmdrt.trace import embree, meter
-from hmdrt.trace.gbuffer import GBuffer, store_block
+from hmdrt.trace.gbuffer import store_block
 from hmdrt.trace.lighting import RayBatch, batch_empty, light_rays_block, shade_block
 from hmdrt.trace.secondary import Rays, interaction_block, rays_empty, spawn_block
 from hmdrt.trace.surface import Surface, surface_block, surface_empty
@@ -126,7 +130,7 @@ def lane_empty(capacity: int, block: int, n_point: int, n_area: int, n_ao: int) 
     )
 
 
-@serial
+@inline
 def _occlude(scene, packet, batch, rays, hits, per_hit, depth):
     """The occlusion rays of a level's hits; below the first, those of reflected and refracted rays' hits apart
     (as _intersect traces them: each kind's hits lie together, a mix of the two does not)."""
@@ -141,7 +145,7 @@ def _occlude(scene, packet, batch, rays, hits, per_hit, depth):
     return traced
 
 
-@serial
+@inline
 def _raygen(frame, rays, radiance, start, count):
     eye, xy, keys = frame.eye, frame.xy, frame.keys
     ox, oy, oz = np.float32(eye.position[0]), np.float32(eye.position[1]), np.float32(eye.position[2])
@@ -159,7 +163,7 @@ def _raygen(frame, rays, radiance, start, count):
         rays.through[i] = False
 
 
-@serial
+@inline
 def _accumulate(frame, w, rays, radiance, start, count, depth):
     """Add the level's local radiance to its samples; depth 0 also fills the light buffer."""
     local = w.local
@@ -182,7 +186,7 @@ def _accumulate(frame, w, rays, radiance, start, count, depth):
             radiance[o, c] += thr[i, c] * local[i, c]
 
 
-@serial
+@inline
 def _store_gbuffer(frame, scene, w, rays, start, count, depth):
     rows = w.rows
     for i in range(count):
@@ -191,7 +195,7 @@ def _store_gbuffer(frame, scene, w, rays, start, count, depth):
     store_block(attrs, rows, w.hits.t, w.surf, scene.textured, w.shadow_count, w.kr, w.kt, 0, count)
 
 
-@serial
+@inline
 def _intersect(scene, packet, rays, hits, count, depth):
     """Primary rays in packets of neighbours; secondary rays with the reflected and refracted ones apart (each kind
     is coherent on its own, a mix of the two is not)."""
@@ -203,7 +207,7 @@ def _intersect(scene, packet, rays, hits, count, depth):
         embree.intersect_selected(scene.handle, scene.args, packet, o, d, rays.through, through, hits, count)
 
 
-@serial
+@inline
 def _shade(scene, w, rays, count):
     shade_block(
         scene.lights,
@@ -223,7 +227,7 @@ def _shade(scene, w, rays, count):
     )
 
 
-@serial
+@inline
 def _spawn(scene, w, rays, children, spawners, depth):
     """The next level's rays, the children of the level's first `spawners` hits in w.spawners, in a larger buffer
     than `children` where they do not fit, and how many there are."""
@@ -238,7 +242,7 @@ def _spawn(scene, w, rays, children, spawners, depth):
     return children, total
 
 
-@serial
+@inline
 def _block(scene, frame, lane, start, stop):
     """Trace, shade and write samples [start, stop) of the frame."""
     plan, tally, clock, packet, radiance = scene.plan, lane.tally, lane.clock, lane.packet, lane.radiance
@@ -302,45 +306,25 @@ def _block(scene, frame, lane, start, stop):
     meter.tick(tally, clock, meter.SHADE, t)
 
 
-@kernel
-def _trace_kernel(
-    handle,
-    args,
-    geo,
-    mats,
-    lights,
-    plan,
-    textured,
-    max_depth,
-    secondary,
-    eye,
-    xy,
-    keys,
-    out,
-    gb1,
-    gb2,
-    light,
-    flags,
-    lanes,
-    block,
-    counter,
-    threads,
-):
-    n = xy.shape[0]
+@serial
+def _trace_blocks(scene, frame, lane, block, counter):
+    """One thread's share of a trace call: blocks of `block` samples claimed from `counter` until none is left."""
+    n = frame.xy.shape[0]
     blocks = (n + block - 1) // block
-    for _ in nb.prange(threads):
-        scene = SceneArgs(handle, args, geo, mats, lights, plan, textured, max_depth, secondary)
-        frame = Frame(eye, xy, keys, out, GBuffer(gb1, gb2), light, flags[0], flags[1])
-        lane = lanes[nb.get_thread_id()]
+    b = claim(counter)
+    while b < blocks:
+        _block(scene, frame, lane, b * block, min(n, (b + 1) * block))
         b = claim(counter)
-        while b < blocks:
-            _block(scene, frame, lane, b * block, min(n, (b + 1) * block))
-            b = claim(counter)
 
 
-def trace(scene: SceneArgs, frame: Frame, lanes, block: int, counter: np.ndarray, threads: int) -> None:
-    """Radiance of every sample of `frame` into frame.out, blocks of `block` samples claimed by the threads as
-    each frees up (call it through hmdrt.kernels.schedule.dynamic); lanes: a numba typed List of one Lane per numba
-    thread. A parallel kernel's arguments cannot nest tuples of arrays (numba builds its gufunc from the flat
-    ones), so the namedtuples travel field by field."""
-    _trace_kernel(*scene, *frame[:4], *frame.gbuffer, frame.light, frame[6:], lanes, block, counter, threads)
+def trace(
+    scene: SceneArgs, frame: Frame, lanes: list[Lane], block: int, share: Callable[[Callable[[int], None]], None]
+) -> None:
+    """Radiance of every sample of `frame` into frame.out, in blocks of `block` samples that the threads of `share`
+    (hmdrt.trace.tracer.Tracer.share) claim as each frees up, thread t on lanes[t].
+
+    A serial kernel on each thread, not one parallel kernel: numba builds a parallel kernel's body into four
+    nested libraries, and LLVM optimises and compiles the whole tracer again in each (on a first run, 8.5 s more
+    CPU with the steps of their own, 11 s more with them inlined)."""
+    counter = np.zeros(1, np.int64)
+    share(lambda t: _trace_blocks(scene, frame, lanes[t], block, counter))
