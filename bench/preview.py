@@ -17,26 +17,22 @@ median (p50) and fastest of the repeats, the median of the repeats' own ratios, 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import io
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 import types
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 
 import numba as nb
 import numpy as np
 from PIL import Image
+from references import copy_rows, module_at
 
 from hmdrt.compositor import preview
 from hmdrt.evaluate.provenance import machine
 from hmdrt.foveation import MethodChoice
-from hmdrt.kernels.jit import kernel
 from hmdrt.optics import get_profile
 from hmdrt.present import encode
 from hmdrt.scene import load_scene
@@ -44,29 +40,7 @@ from hmdrt.telemetry.report import FrameRecord
 from hmdrt.trace.integrator import Whitted
 from hmdrt.views import eye_cameras, render_frames, sequence_inputs
 
-ROOT = Path(__file__).resolve().parents[1]
 PROFILE, SCENE = "sim-cpu-640", "whitted"
-
-
-@kernel
-def _copy(src: np.ndarray, dst: np.ndarray) -> None:
-    for y in nb.prange(src.shape[0]):
-        for i in range(src.shape[1]):
-            dst[y, i] = src[y, i]
-
-
-def encode_at(revision: str, folder: Path) -> ModuleType:
-    """hmdrt/present/encode.py as it was at git `revision`, imported from a copy in `folder`."""
-    source = subprocess.run(
-        ["git", "show", f"{revision}:hmdrt/present/encode.py"], cwd=ROOT, capture_output=True, text=True, check=True
-    ).stdout
-    path = folder / "encode_before.py"
-    path.write_text(source, encoding="utf-8")
-    spec = importlib.util.spec_from_file_location("encode_before", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["encode_before"] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def jpeg(srgb8: np.ndarray) -> bytes:
@@ -103,9 +77,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as folder:
         versions = {"now": encode}
         if args.against:
-            versions[args.against] = encode_at(args.against, Path(folder))
+            versions[args.against] = module_at(args.against, "hmdrt/present/encode.py", Path(folder))
         tasks: dict[str, Callable[[], object]] = {
-            "copy floor": lambda: [_copy(src, dst) for src, dst in zip(flat, copies, strict=True)],
+            "copy floor": lambda: [copy_rows(src, dst) for src, dst in zip(flat, copies, strict=True)],
             "jpeg": lambda: jpeg(small),
             "message now": lambda: publisher._message(shown),
         }

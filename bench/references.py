@@ -3,9 +3,14 @@ per second, and the frames a bench renders (a still view or the built-in head pa
 
 from __future__ import annotations
 
+import importlib.util
 import statistics
+import subprocess
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from types import ModuleType
 from typing import NamedTuple
 
 import numba as nb
@@ -25,10 +30,28 @@ from hmdrt.views import eye_cameras, frame_requests, sequence_inputs
 
 
 @kernel
-def _copy(src, dst):
+def copy_rows(src: np.ndarray, dst: np.ndarray) -> None:
+    """dst[:] = src for 2-D arrays, one numba pass: the floor of any pass that reads and writes them."""
     for i in nb.prange(src.shape[0]):
         for j in range(src.shape[1]):
             dst[i, j] = src[i, j]
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def module_at(revision: str, path: str, folder: Path) -> ModuleType:
+    """The module at `path` (in the repository) as it was at git `revision`, imported from a copy in `folder`, to be
+    timed beside the current one in the same run."""
+    source = subprocess.run(["git", "show", f"{revision}:{path}"], cwd=ROOT, capture_output=True, text=True, check=True)
+    name = f"{Path(path).stem}_at_{revision}"
+    copy = folder / f"{name}.py"
+    copy.write_text(source.stdout, encoding="utf-8")
+    spec = importlib.util.spec_from_file_location(name, copy)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # numba's cache and dataclasses look the module up by name
+    spec.loader.exec_module(module)
+    return module
 
 
 class ImageCopy:
@@ -38,14 +61,14 @@ class ImageCopy:
     def __init__(self, width: int, height: int):
         self._src = np.random.default_rng(0).random((width * height, 4), dtype=np.float32)
         self._dst = np.empty_like(self._src)
-        _copy(self._src, self._dst)
+        copy_rows(self._src, self._dst)
 
     def rate(self, repeats: int = 5) -> float:
         """Bytes per second (read + write), the median of `repeats` copies."""
         times = []
         for _ in range(repeats):
             t = time.perf_counter()
-            _copy(self._src, self._dst)
+            copy_rows(self._src, self._dst)
             times.append(time.perf_counter() - t)
         return 2 * self._src.nbytes / statistics.median(times)
 

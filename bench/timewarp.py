@@ -16,46 +16,21 @@ others.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
-import subprocess
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 
 import numba as nb
 import numpy as np
 from llvmlite import binding
+from references import copy_rows, module_at
 
 from hmdrt.evaluate.provenance import machine
-from hmdrt.kernels.jit import kernel
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.present import timewarp
 from hmdrt.spatial import Pose
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-@kernel
-def _copy(src: np.ndarray, dst: np.ndarray) -> None:
-    for y in nb.prange(src.shape[0]):
-        for i in range(src.shape[1]):
-            dst[y, i] = src[y, i]
-
-
-def warp_at(revision: str, folder: Path) -> ModuleType:
-    """hmdrt/present/timewarp.py as it was at git `revision`, imported from a copy in `folder`."""
-    source = subprocess.run(
-        ["git", "show", f"{revision}:hmdrt/present/timewarp.py"], cwd=ROOT, capture_output=True, text=True, check=True
-    ).stdout
-    path = folder / "timewarp_before.py"
-    path.write_text(source, encoding="utf-8")
-    spec = importlib.util.spec_from_file_location("timewarp_before", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def simd() -> str:
@@ -77,7 +52,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as folder:
         warps: dict[str, Callable] = {"warp": timewarp.timewarp}
         if args.against:
-            warps[args.against] = warp_at(args.against, Path(folder)).timewarp
+            warps[args.against] = module_at(args.against, "hmdrt/present/timewarp.py", Path(folder)).timewarp
         for name in ("sim-cpu-640", "rift_s"):
             profile = get_profile(name)
             eyes = []
@@ -90,7 +65,7 @@ def main() -> None:
 
             def copy(_: Callable, flat: list = flat) -> None:
                 for src, dst in flat:
-                    _copy(src, dst)
+                    copy_rows(src, dst)
 
             def warp(warp: Callable, eyes: list = eyes) -> None:
                 for eye in eyes:
