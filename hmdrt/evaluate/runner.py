@@ -192,9 +192,10 @@ def run_group(
     after each cell's frame. `worker` (the Dask worker's address; None: in-process) goes into every row, as do
     the date, the commit and the machine of the process that rendered it (provenance.stamp)."""
     started = time.perf_counter()
-    last, scored = _render(group, config, truth_of, tick or (lambda: None))
+    requests = _shown(group, config)
+    last, scored = _render(group, config, requests, truth_of, tick or (lambda: None))
     for _ in range(config.timing_rounds - 1):
-        _time_round(group, config, tick or (lambda: None))
+        _time_round(group, requests, tick or (lambda: None))
     jod = _jod(group.cells, scored, JodScorer(group.profile, config.eye)) if config.jod else {}
     seconds = round(time.perf_counter() - started, 3)
     true, seen = group.inputs[group.warmup :], group.seen[group.warmup :]
@@ -256,7 +257,9 @@ def _timed(method: Method, request: FrameRequest, stats: FrameStats) -> tuple[np
     return image, (time.perf_counter_ns() - wall) * 1e-6, (time.process_time_ns() - cpu) * 1e-6
 
 
-def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dict]:
+def _render(
+    group: Group, config: EvalConfig, requests: list[tuple[FrameRequest, FrameRequest]], truth_of, tick
+) -> tuple[dict, dict]:
     """Each input frame through every cell's method in turn; the frames after the warm-up timed and scored (the
     first timing round). Returns the last scored frame's truth and gaze pixel, and (with jod) every scored truth,
     encoded, and gaze."""
@@ -265,7 +268,7 @@ def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dic
     for cell in group.cells:
         cell.ms.append([])
         cell.cpu_ms.append([])
-    for inp, (request, shown) in zip(group.inputs, _shown(group, config), strict=True):
+    for inp, (request, shown) in zip(group.inputs, requests, strict=True):
         scored = inp.frame >= group.warmup
         if scored:
             truth = truth_of(request.camera)
@@ -302,14 +305,14 @@ def _render(group: Group, config: EvalConfig, truth_of, tick) -> tuple[dict, dic
     return last, {"truths": truths, "gazes": gazes}
 
 
-def _time_round(group: Group, config: EvalConfig, tick) -> None:
+def _time_round(group: Group, requests: list[tuple[FrameRequest, FrameRequest]], tick) -> None:
     """One more timing round: every cell's method afresh through the warm-up and the scored frames, frame by frame
     in turn as in _render, the scored frames timed into a new round of the cell's times and not scored."""
     methods = [cell.choice.make(group.tracer) for cell in group.cells]
     for cell in group.cells:
         cell.ms.append([])
         cell.cpu_ms.append([])
-    for inp, (_, shown) in zip(group.inputs, _shown(group, config), strict=True):
+    for inp, (_, shown) in zip(group.inputs, requests, strict=True):
         scored = inp.frame >= group.warmup
         for cell, method in zip(group.cells, methods, strict=True):
             if scored or method.warmup_frames:
