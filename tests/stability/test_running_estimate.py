@@ -69,10 +69,12 @@ def test_k_of_age_at_dt_0_is_k_min_and_far_beyond_t_max_is_k_max():
     assert k_of_age(8.0, k_min, k_max, t_max) == pytest.approx(math.exp(x0 + 7.0 / 14.0 * (x1 - x0)))
 
 
-def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0):
+def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0, in_place: bool = False):
     """weier2016's cache update (the real kernel, float32 colour and cache info) over `frames` frames of a still
     view in which every pixel is traced each frame, alternating two sample colours a, b per pixel; k_min = k_max = k.
-    Returns a, b, and the (colour, cache info) after the last two frames."""
+    in_place: the final buffers updated in place, as the method does where the mesh reprojects every pixel onto
+    itself, else written into the other of two. Returns a, b, and the (colour, cache info) after the last two
+    frames."""
     n = size * size
     rng = np.random.default_rng(seed)
     a, b = rng.random((n, 3), dtype=np.float32), rng.random((n, 3), dtype=np.float32)
@@ -93,9 +95,9 @@ def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0):
     numba.set_num_threads(1)  # 16 pixels: starting the thread pool each frame would cost 100x the work
     try:
         for t in range(frames):
-            previous, final = finals[t % 2], finals[(t + 1) % 2]
+            previous, final = (finals[0], finals[0]) if in_place else (finals[t % 2], finals[(t + 1) % 2])
             samples = Samples(a if t % 2 == 0 else b, depth, zeros, zeros)
-            rule = CacheRule(float(t), k, k, 15.0, 0.05, 4, 0, False)
+            rule = CacheRule(float(t), k, k, 15.0, 0.05, 4, 0, False, in_place and t > 0)
             dynamic(
                 _update,
                 selection,
@@ -136,6 +138,14 @@ def check_accumulation(frames: int, k: float = 0.1) -> None:
 
 def test_float32_accumulation_over_10_thousand_frames_stays_at_the_closed_form():
     check_accumulation(10_000)
+
+
+def test_the_cache_updated_in_place_accumulates_as_into_the_other_buffer():
+    _, _, swapped = accumulate(101)
+    _, _, in_place = accumulate(101, in_place=True)
+    for (color, info), (color_in_place, info_in_place) in zip(swapped, in_place, strict=True):
+        np.testing.assert_array_equal(color_in_place, color)
+        np.testing.assert_array_equal(info_in_place, info)
 
 
 def test_accumulation_with_k_1_is_exactly_the_newest_sample():

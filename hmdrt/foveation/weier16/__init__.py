@@ -25,7 +25,9 @@ filter changes the image shown, not the cache.
 Each frame reprojects the mesh, marks the resampling info, selects and traces the samples, then runs
 one pass that gathers the previous frame through the mesh, applies the running estimate and merges,
 reading one of two persistent final buffers per eye and writing the other and the caller's image;
-nothing of the image's size is allocated per frame.
+nothing of the image's size is allocated per frame. On a still view, work that cannot change the image is
+skipped: the mesh is rasterised again only when its inputs change, and where it reprojects every pixel onto
+itself the pass updates the final buffers in place instead of copying the untraced pixels.
 
 Values the paper leaves open (eps_*, k_min, k_max, t_max, footprint taps, post taps and its surface test) are
 parameters with defaults chosen here. Section 3.4 prints alpha = min(alpha', k); the running estimate uses

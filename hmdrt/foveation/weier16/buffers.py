@@ -131,6 +131,7 @@ class CacheRule(NamedTuple):
     footprint_samples: int
     seed: int  # of the footprint's taps
     stochastic: bool  # the light buffer is accumulated too
+    in_place: bool  # the mesh reprojects each covered pixel onto itself: the final buffers are the previous ones
 
 
 class RowTaps(NamedTuple):

@@ -75,8 +75,9 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid,
     corner, step_x, step_y = taps.index[t, 0], taps.index[t, 1], taps.index[t, 2]
     flat = prev_color.reshape(-1)
     history = zinv.shape[0] == h  # else no pixel is covered, and the mesh buffers may be empty
+    in_place = rule.in_place
     for y in range(y0, y1):
-        if history:
+        if history and not in_place:
             row_footprints(prev, flags, COVERED, y, spread_row)
             px, py = prev[0, y], prev[1, y]
             for x in range(w):
@@ -97,7 +98,9 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid,
             jy = jx = 0
             if covered and not new:  # the previous frame seen through the mesh
                 qx, qy, spread = prev[0, y, x], prev[1, y, x], spread_row[x]
-                if spread <= 1.5 or rule.footprint_samples <= 1:
+                if in_place:  # the footprint is the pixel's own texel alone
+                    r, g, b = prev_color[y, x, 0], prev_color[y, x, 1], prev_color[y, x, 2]
+                elif spread <= 1.5 or rule.footprint_samples <= 1:
                     r, g, b = blend_footprint(flat, corner[x], step_x[x], step_y[x], across[x], down[x])
                 else:
                     key = (y * w + x) * 64 + rule.seed
@@ -120,12 +123,13 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid,
                         light[y, x, c] = alpha * sample_light[s, c] + (1.0 - alpha) * kept
                 s += 1
             elif covered:
-                color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
-                for c in range(INFO):
-                    info[y, x, c] = prev_info[jy, jx, c]
-                if rule.stochastic:
-                    for c in range(3):
-                        light[y, x, c] = prev_light[jy, jx, c]
+                if not in_place:  # in place, its colour, cache info and light buffer are already there
+                    color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
+                    for c in range(INFO):
+                        info[y, x, c] = prev_info[jy, jx, c]
+                    if rule.stochastic:
+                        for c in range(3):
+                            light[y, x, c] = prev_light[jy, jx, c]
             else:  # the merge: the bilinearly upsampled support image, colour and light buffer
                 r, g, b = bilinear3(support.color, grid.u[x], grid.v[y])
                 color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
@@ -144,7 +148,9 @@ def _update(selection, mesh, cur, previous, samples, support, grid, rule, taps, 
     """Sections 3.2 and 3.4 in one pass: each pixel's previous colour and cache info gathered through the
     mesh, its sample (a support pixel's too) merged into them with the running estimate (or replacing them:
     fovea, resampled, uncovered or moved), and pixels left without colour taken from the support image
-    (support, at grid's coordinates); into the final colour, cache info and the caller's image."""
+    (support, at grid's coordinates); into the final colour, cache info and the caller's image. In place
+    (rule.in_place: final is previous, the mesh reprojecting each pixel onto its own texel), covered pixels
+    without a sample keep what they hold."""
     h = selection.flags.shape[0]
     blocks = (h + ROWS - 1) // ROWS
     for _ in nb.prange(threads):

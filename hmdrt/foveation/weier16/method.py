@@ -119,9 +119,9 @@ class Weier16(Configurable):
         resample = self._resample_info(f, stats)
         n, xy, keys, light = self._sample(f, mesh, resample, stats)
         samples, normals = self._trace(f, xy, keys, light, stats)
-        self._cache_update(f, mesh, samples, normals, stats)
-        self._post(f, samples, normals, stats)
-        f.eye.camera, f.eye.newest = f.request.camera, 1 - f.eye.newest
+        written = self._cache_update(f, mesh, samples, normals, stats)
+        self._post(f, samples, normals, f.eye.finals[written], stats)
+        f.eye.camera, f.eye.newest = f.request.camera, written
         sel = f.buf.selection
         pixels = f.size[0] * f.size[1]
         resampled = int(sel.resampled.sum())
@@ -204,33 +204,39 @@ class Weier16(Configurable):
 
     def _cache_update(
         self, f: _Frame, mesh: MeshImage, samples: Samples, normals: np.ndarray, stats: FrameStats
-    ) -> None:
+    ) -> int:
         """Section 3.4: the support image and G-buffer extracted from the support pixels' samples (the next
         frame's coarse mesh), then the reprojected frame's gather, the merge of the new samples and the running
         estimate, in one pass into the final colour and the image; last, the cells that show the support
-        image's reconstruction (the next frame's resampling info tests them)."""
+        image's reconstruction (the next frame's resampling info tests them). Returns which of the eye's final
+        buffers it wrote: the other one, or, where the mesh reprojects every pixel onto itself (a still view),
+        the previous one in place, whose untraced pixels then keep what they hold instead of being copied."""
         p, t, support, buf = self.params, f.request.frame, f.eye.support, f.buf
-        previous, final = f.eye.finals[f.eye.newest], f.eye.finals[1 - f.eye.newest]
+        in_place = f.history and buf.mesh.still
+        written = f.eye.newest if in_place else 1 - f.eye.newest
+        previous, final = f.eye.finals[f.eye.newest], f.eye.finals[written]
         stochastic = STOCHASTIC in self.features
         lights = (previous.light, final.light, samples.light) if stochastic else ()
         touched = (buf.selection.flags, *mesh, previous.color, previous.info, final.color, final.info, f.image)
         with stats.stage("cache_update", touches=nbytes(*touched, samples.rgb, samples.depth, *lights)):
             _gather_support(buf.grid, buf.sample_index, samples, normals, support)
             rule = CacheRule(
-                float(t), p.k_min, p.k_max, p.t_max, p.eps_cache, p.footprint_samples, f.request.seed + t, stochastic
-            )
+                float(t), p.k_min, p.k_max, p.t_max, p.eps_cache, p.footprint_samples, f.request.seed + t, stochastic,
+                in_place,
+            )  # fmt: skip
             dynamic(
                 _update, buf.selection, mesh, camera_arrays(f.camera), previous, samples, support, buf.grid, rule,
                 buf.taps, final, f.image,
             )  # fmt: skip
             _unsampled_cells(buf.selection.flags, final.info, support.unsampled)
+        return written
 
-    def _post(self, f: _Frame, samples: Samples, normals: np.ndarray, stats: FrameStats) -> None:
-        """Section 3.5: the post filter over the stochastic light buffer, on the image shown."""
+    def _post(self, f: _Frame, samples: Samples, normals: np.ndarray, final: Final, stats: FrameStats) -> None:
+        """Section 3.5: the post filter over the stochastic light buffer (of `final`, the frame's), on the image
+        shown."""
         p = self.params
         if not (p.post and "post" in f.steps):
             return
-        final = f.eye.finals[1 - f.eye.newest]
         with stats.stage("post"):
             rule = PostRule(
                 p.post_radius, p.post_samples, f.request.seed + f.request.frame, p.post_depth, p.post_normal

@@ -31,15 +31,32 @@ def _footprint_mean(color, qx, qy, spread, taps):
 
 
 @serial
-def _luminance_rows(y0, y1, prev, color, rule, scratch):
+def _read_by_tests(tested, y, x):
+    """Whether a test reads cell (y, x): it or a 4-neighbour is tested, as _discontinuous reads them."""
+    h, w = tested.shape
+    return (
+        tested[y, x]
+        or (x > 0 and tested[y, x - 1])
+        or (x + 1 < w and tested[y, x + 1])
+        or (y > 0 and tested[y - 1, x])
+        or (y + 1 < h and tested[y + 1, x])
+    )
+
+
+@serial
+def _luminance_rows(y0, y1, prev, color, rule, scratch, tested):
     """Rows [y0, y1) of the reprojected final colour's luminance at the support resolution (section 3.3 renders
-    the coarse mesh at that resolution with section 3.2's procedure), NaN where the mesh leaves a cell."""
+    the coarse mesh at that resolution with section 3.2's procedure), NaN where the mesh leaves a cell; only at
+    the cells the tests read (_read_by_tests: on a still view those near the cells showing the support image),
+    the others left as they were."""
     covered, lum = scratch.covered, scratch.lum
     h, w = lum.shape
     spread = scratch.footprints[nb.get_thread_id()]
     for y in range(y0, y1):
         row_footprints(prev, covered, 1, y, spread)
         for x in range(w):
+            if not _read_by_tests(tested, y, x):
+                continue
             if not covered[y, x]:
                 lum[y, x] = math.nan
                 continue
@@ -144,9 +161,6 @@ def _resampling_info(mesh, cur, color, normal, unsampled, prev_position, full_w,
             covered[y, x] = 1 if on else 0
             shift = max(abs(prev[0, y, x] - (x + 0.5) * cell_w), abs(prev[1, y, x] - (y + 0.5) * cell_h))
             moved[y, x] = 1 if on and shift > rule.motion else 0
-    for b in nb.prange((h + ROWS - 1) // ROWS):
-        _luminance_rows(b * ROWS, min(h, (b + 1) * ROWS), prev, color, rule, scratch)
-    lum = scratch.lum
     ph, pw = unsampled.shape
     for y in nb.prange(h):
         for x in range(w):
@@ -154,7 +168,13 @@ def _resampling_info(mesh, cur, color, normal, unsampled, prev_position, full_w,
             if covered[y, x] != 0:
                 sy, sx = _previous_cell(prev, y, x, ph, pw, full_w, full_h)
                 tested = _moved_near(moved, y, x) or unsampled[sy, sx] != 0
-            out[y, x] = tested and (
+            out[y, x] = tested  # the cells tested, then (below) those the tests mark
+    for b in nb.prange((h + ROWS - 1) // ROWS):
+        _luminance_rows(b * ROWS, min(h, (b + 1) * ROWS), prev, color, rule, scratch, out)
+    lum = scratch.lum
+    for y in nb.prange(h):
+        for x in range(w):
+            out[y, x] = out[y, x] and (
                 _discontinuous(zinv, covered, lum, y, x, rule)
                 or _grazing(mesh, cur, normal, prev_position, x, y, full_w, full_h, rule.edge)
             )
