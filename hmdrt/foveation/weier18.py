@@ -59,6 +59,7 @@ from hmdrt.foveation.stages.sampling import (
 )
 from hmdrt.foveation.stages.temporal import eye_point, relative_view, view_project
 from hmdrt.kernels.jit import kernel, serial
+from hmdrt.kernels.schedule import claim, dynamic
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
 from hmdrt.optics.projection import FAR, camera_arrays
 from hmdrt.ranges import Deg, Fraction
@@ -206,18 +207,36 @@ def _taa_block(traced, frustum, view, blend, previous, history, data, start, sto
 
 
 @kernel
-def _taa(traced, frustum, view, blend, previous, history, pyramid, where):
+def _taa_blocks(traced, frustum, view, blend, previous, history, pyramid, where, counter, threads):
+    """_taa's blocks, claimed (hmdrt.kernels.schedule): a foveal sample taps one level, a peripheral one two, one
+    outside the previous frame none."""
+    n = traced.pixels.shape[0]
+    data = pyramid.data
+    blocks = (n + BLOCK - 1) // BLOCK
+    for _ in nb.prange(threads):
+        t = nb.get_thread_id()
+        rows = Reprojected(where.x[t], where.y[t], where.expected[t], where.level[t])
+        block = claim(counter)
+        while block < blocks:
+            start, stop = block * BLOCK, min(n, (block + 1) * BLOCK)
+            _taa_block(traced, frustum, view, blend, previous, history, data, start, stop, rows)
+            block = claim(counter)
+
+
+def _taa(
+    traced: Traced,
+    frustum: np.ndarray,
+    view: np.ndarray,
+    blend: Blend,
+    previous: Pyramid,
+    history: bool,
+    pyramid: Pyramid,
+    where: Reprojected,
+) -> None:
     """Each traced sample into level 0 of `pyramid` (weight 1, depth capped at FAR), blended with the previous
     frame's pyramid around its back-projection (temporal.relative_view `view` of the previous camera) when there
     is history; `where`: Reprojected scratch."""
-    n = traced.pixels.shape[0]
-    data = pyramid.data
-    for block in nb.prange((n + BLOCK - 1) // BLOCK):
-        t = nb.get_thread_id()
-        rows = Reprojected(where.x[t], where.y[t], where.expected[t], where.level[t])
-        _taa_block(
-            traced, frustum, view, blend, previous, history, data, block * BLOCK, min(n, (block + 1) * BLOCK), rows
-        )
+    dynamic(_taa_blocks, traced, frustum, view, blend, previous, history, pyramid, where)
 
 
 @dataclass
@@ -346,14 +365,13 @@ class Weier18(Configurable):
         if layers is not None:
             touches += nbytes(layers.coc, layers.far, layers.near)
         with stats.stage("combine", touches=touches):
-            color = base[..., :3]
             blurred = current  # read only with contrast on
             if p.contrast:
                 if state.blurred is None or state.blurred.data.shape != current.data.shape:
                     state.blurred = Pyramid.empty(cam.width, cam.height)
                 blurred = prefilter(current, state.blurred, state.windows)
             contrast = Contrast(p.contrast, p.r0, p.r1, state.levels)
-            combine(color, ecc, layers, blur, current, contrast, blurred, state.axes, state.rows, out)
+            combine(base, ecc, layers, blur, current, contrast, blurred, state.axes, state.rows, out)
         state.camera = request.camera
         stats.metrics["sample_fraction"] = state.samples.count / (cam.width * cam.height)
         return out
@@ -410,10 +428,10 @@ class Weier18(Configurable):
             state.layers = Layers.empty(cam.width, cam.height)
         layers = state.layers
         with stats.stage("coc", touches=nbytes(base, layers.coc)):
-            layers.compute_coc(base[..., 4], lens(focus, preset, ppd, p.depth_inaccuracy_m), miss=0.5 * FAR)
+            layers.compute_coc(base, lens(focus, preset, ppd, p.depth_inaccuracy_m), miss=0.5 * FAR)
         with stats.stage("dof_filter", touches=nbytes(base, ecc, layers.coc, layers.far, layers.near)):
             blur = blur._replace(radius=layers.near_radius())
-            horizontal_pass(base[..., :3], ecc, layers, blur)
+            horizontal_pass(base, ecc, layers, blur)
         stats.metrics["focus_m"] = focus
         # 1 when focus - t fell below the lens's near limit and d_n was kept at 2 d_i (dof.focal_lengths)
         near_mm = focal_lengths(focus, p.depth_inaccuracy_m)[0]

@@ -23,7 +23,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.stages.filters import Contrast, enhance_row
-from hmdrt.foveation.stages.pyramid import PixelAxes, Pyramid, RowSamples, pixel_axes, sample_row
+from hmdrt.foveation.stages.pyramid import CHANNELS, PixelAxes, Pyramid, RowSamples, pixel_axes, sample_row
 from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.schedule import claim, dynamic
 
@@ -32,6 +32,7 @@ DEPTH_INACCURACY_M = 0.2  # t, the mean gaze-depth estimation error over 6 m (We
 REFERENCE_PPD = 11.44  # rift_s pixels per degree at the centre (mean of x and y), where the presets hold
 MAX_BLUR_PX = 24  # radius cap of the central Gaussian and of the near-field spread
 RAMP_PX = 2.0  # the |CoC| over which the sharp image fades into the far field
+DEPTH = CHANNELS - 1  # the hit distance's channel in a pyramid level (r, g, b, weight, depth)
 
 
 class DofPreset(NamedTuple):
@@ -61,10 +62,21 @@ def focal_lengths(d_o_m: float, t_m: float = DEPTH_INACCURACY_M) -> tuple[float,
 
 @serial
 def _image_distance(f, g):
-    """V(F, G) = F G / (G - F): where a lens of focal length F images an object at G (G > F); F at G = inf."""
-    if math.isinf(g):
-        return f
-    return f * g / (g - f)
+    """V(F, G) = F G / (G - F): where a lens of focal length F images an object at G (G > F); F at G = inf. A select
+    rather than a branch and np.divide rather than `/` (no zero-division check, which G > F rules out anyway):
+    a loop over pixels that calls it vectorises."""
+    return f if math.isinf(g) else np.divide(f * g, g - f)
+
+
+@inline
+def _coc(g_mm, d_n, d_f, f_n, f_f, v_n, v_f, k, e):
+    """circle_of_confusion with the images of the range's ends, v_n = V(f_n, d_n) and v_f = V(f_f, d_f), given:
+    they are constant over a frame. Selects only, so that the CoC map's loop vectorises."""
+    near = g_mm < d_n
+    f, vd = (f_n, v_n) if near else (f_f, v_f)
+    vg = _image_distance(f, max(g_mm, f * (1.0 + 1e-9)))  # an object at infinity is imaged at the focal plane
+    c = (vg - vd) * (k * vg) * e
+    return c if near or g_mm > d_f else 0.0
 
 
 @inline
@@ -74,14 +86,7 @@ def circle_of_confusion(g_mm, d_n, d_f, f_n, f_f, k, e):
     An object at or inside the focal length (g <= f: nothing closer than about 2 cm to the eye) has no real
     image; it takes the CoC of g = f (1 + 1e-9), finite and larger than any other. The blur filters cap every
     CoC at MAX_BLUR_PX (weier18 counts those pixels in its coc_capped_pixels metric)."""
-    if g_mm < d_n:
-        f, d = f_n, d_n
-    elif g_mm > d_f:
-        f, d = f_f, d_f
-    else:
-        return 0.0
-    vg = _image_distance(f, max(g_mm, f * (1.0 + 1e-9)))  # an object at infinity is imaged at the focal plane
-    return (vg - _image_distance(f, d)) * (k * vg) * e
+    return _coc(g_mm, d_n, d_f, f_n, f_f, _image_distance(f_n, d_n), _image_distance(f_f, d_f), k, e)
 
 
 class Lens(NamedTuple):
@@ -101,32 +106,48 @@ def lens(focus_m: float, preset: DofPreset, ppd: float, t_m: float = DEPTH_INACC
 
 
 ROW_MAX, ROW_ABS_MAX, ROW_CAPPED = 0, 1, 2  # the per-row figures of a CoC map (Layers.rows)
+_CAP_BITS = int(np.array(MAX_BLUR_PX, np.float32).view(np.int32))  # |CoC| beyond it, as float32 bits
+_NEG_INF_BITS = int(np.array(-np.inf, np.float32).view(np.int32))
+
+
+@serial
+def _order_key(bits):
+    """A float32's bits (as a sign-extended integer) to a key that orders as the floats do, or the key back to the
+    bits: negative floats' bits order backwards, so their 31 low bits are flipped."""
+    return bits ^ np.int64(0x7FFFFFFF) if bits < 0 else bits
 
 
 @inline
 def _row_stats(coc, y, rows):
-    """Row y's largest CoC, largest |CoC| and count of |CoC| beyond MAX_BLUR_PX."""
-    top, size, capped = -math.inf, 0.0, 0
-    for x in range(coc.shape[1]):
-        c = coc[y, x]
-        top, size = max(top, c), max(size, abs(c))
-        capped += abs(c) > MAX_BLUR_PX
-    rows[y, ROW_MAX], rows[y, ROW_ABS_MAX], rows[y, ROW_CAPPED] = top, size, capped
+    """Row y's largest CoC, largest |CoC| and count of |CoC| beyond MAX_BLUR_PX, from the CoCs' float32 bits: their
+    maxima as integer maxima (_order_key; the magnitude's bits with the sign bit cleared), which vectorise, where
+    float maxima do not (NaN's rules). The maxima are written into `rows` (float32) as bits."""
+    bits, figures = coc[y].view(np.int32), rows[y].view(np.int32)
+    top, size, capped = _order_key(np.int64(_NEG_INF_BITS)), np.int64(0), 0
+    for x in range(bits.shape[0]):
+        b = np.int64(bits[x])
+        magnitude = b & np.int64(0x7FFFFFFF)
+        top, size = max(top, _order_key(b)), max(size, magnitude)
+        capped += magnitude > _CAP_BITS
+    figures[ROW_MAX], figures[ROW_ABS_MAX] = _order_key(top), size
+    rows[y, ROW_CAPPED] = capped
 
 
 @kernel
-def _coc_rows(depth_m, miss, lens, coc, rows, counter, threads):
-    """The CoC of every pixel (hit distances in metres; `miss` and beyond: misses, at infinity) and each row's
-    figures, rows claimed (hmdrt.kernels.schedule: a row of misses or of focused pixels costs less)."""
+def _coc_rows(level, miss, lens, coc, rows, counter, threads):
+    """The CoC of every pixel (hit distances in metres in channel DEPTH of a pyramid level; `miss` and beyond:
+    misses, at infinity) and each row's figures, rows claimed (hmdrt.kernels.schedule: a row of misses or of
+    focused pixels costs less)."""
     d_n, d_f, f_n, f_f, k, e = lens
+    v_n, v_f = _image_distance(f_n, d_n), _image_distance(f_f, d_f)
     h, w = coc.shape
     for _ in nb.prange(threads):
         y = claim(counter)
         while y < h:
             for x in range(w):
-                d = depth_m[y, x]
+                d = level[y, x, DEPTH]
                 g = math.inf if d >= miss else d * 1000.0
-                coc[y, x] = circle_of_confusion(g, d_n, d_f, f_n, f_f, k, e)
+                coc[y, x] = _coc(g, d_n, d_f, f_n, f_f, v_n, v_f, k, e)
             _row_stats(coc, y, rows)
             y = claim(counter)
 
@@ -143,7 +164,7 @@ class Layers(NamedTuple):
     coc: np.ndarray  # (h, w) float32 signed CoC in pixels
     far: np.ndarray  # (h, w, 3) float32 the central far-field Gaussian after its horizontal pass
     near: np.ndarray  # (h, w, 4) float32 the near field after its horizontal pass: mean colour, reach
-    rows: np.ndarray  # (h, 3) float64 each row's ROW_MAX, ROW_ABS_MAX, ROW_CAPPED
+    rows: np.ndarray  # (h, 3) float32 each row's ROW_MAX, ROW_ABS_MAX, ROW_CAPPED
 
     @classmethod
     def empty(cls, width: int, height: int) -> Layers:
@@ -151,12 +172,14 @@ class Layers(NamedTuple):
             np.zeros((height, width), np.float32),
             np.zeros((height, width, 3), np.float32),
             np.zeros((height, width, 4), np.float32),
-            np.zeros((height, 3)),
+            np.zeros((height, 3), np.float32),
         )
 
-    def compute_coc(self, depth_m: np.ndarray, lens: Lens, miss: float = math.inf) -> None:
-        """The CoC map of hit distances depth_m (m; `miss` and beyond, or inf: misses) and its row figures."""
-        dynamic(_coc_rows, depth_m, miss, lens, self.coc, self.rows)
+    def compute_coc(self, level: np.ndarray, lens: Lens, miss: float = math.inf) -> None:
+        """The CoC map of a pyramid level's hit distances (channel DEPTH, m; `miss` and beyond, or inf: misses) and
+        its row figures. The level is read in place: a strided view of its depth channel, or a channel index that
+        is not a constant, keeps the loop from vectorising (5-10x slower at rift_s)."""
+        dynamic(_coc_rows, level, miss, lens, self.coc, self.rows)
 
     def near_radius(self) -> int:
         """How far the near field spreads: the largest CoC, rounded up, at most MAX_BLUR_PX."""
@@ -171,9 +194,10 @@ def coc_map(
     depth_m: np.ndarray, focus_m: float, preset: DofPreset, ppd: float, t_m: float = DEPTH_INACCURACY_M
 ) -> np.ndarray:
     """Per-pixel signed CoC in pixels for hit distances depth_m (m, inf for misses), focus widened by t_m."""
-    depth_m = np.asarray(depth_m, np.float64)
-    layers = Layers(np.empty(depth_m.shape, np.float32), None, None, np.empty((depth_m.shape[0], 3)))
-    layers.compute_coc(depth_m, lens(focus_m, preset, ppd, t_m))
+    level = np.zeros((*np.shape(depth_m), CHANNELS), np.float64)
+    level[..., DEPTH] = depth_m
+    layers = Layers(np.empty(level.shape[:2], np.float32), None, None, np.empty((level.shape[0], 3), np.float32))
+    layers.compute_coc(level, lens(focus_m, preset, ppd, t_m))
     return layers.coc
 
 
@@ -314,6 +338,15 @@ def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y,
         out[y, x, 0], out[y, x, 1], out[y, x, 2] = r, g, b
 
 
+@serial
+def _copy_row(level, y, out):
+    """Row y of a pyramid level's colour into out, the rows flattened so that the strides are constants: the loop
+    vectorises."""
+    rgb, src = out[y].reshape(-1), level[y].reshape(-1)
+    for x in range(out.shape[1]):
+        rgb[3 * x], rgb[3 * x + 1], rgb[3 * x + 2] = src[CHANNELS * x], src[CHANNELS * x + 1], src[CHANNELS * x + 2]
+
+
 @kernel
 def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, dof, out, counter, threads):
     """Row by row, the depth of field then the contrast over the row while it is in cache: two simple loops
@@ -326,14 +359,15 @@ def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch
             if dof:
                 _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y, out)
             else:
-                out[y] = color[y]
+                _copy_row(color, y, out)
             if contrast.strength != 0.0:
                 enhance_row(ecc, contrast, blurred, axes, values, texels, y, out)
             y = claim(counter)
 
 
 def horizontal_pass(color: np.ndarray, ecc: np.ndarray, layers: Layers, blur: Blur) -> None:
-    """The first pass of the layered blur (layers.coc and its rows computed): into layers.far and layers.near."""
+    """The first pass of the layered blur (layers.coc and its rows computed) over the colour of `color`
+    (height, width, 3 or more; best a pyramid level, read in place): into layers.far and layers.near."""
     dynamic(_horizontal, color, ecc, layers, blur)
 
 
@@ -352,11 +386,25 @@ def combine(
     """weier2018's DoF Combine in one pass over the image, into out: the second pass of the layered blur
     and its combination with the sharp image when layers are given (after horizontal_pass), then the
     contrast enhancement (filters.enhance_row, from `blurred`, the pyramid prefiltered by filters.prefilter;
-    strength 0: none). `axes`: the pixel_axes of both pyramids' size; `scratch`: RowSamples of their width."""
+    strength 0: none). `color`: the sharp image, best a pyramid level (height, width, CHANNELS), read in place
+    (_as_level); `axes`: the pixel_axes of both pyramids' size; `scratch`: RowSamples of their width; `out`:
+    C-contiguous (height, width, 3)."""
     no_layers = layers is None
     layers = _NO_LAYERS if no_layers else layers
-    dynamic(_combine, color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, not no_layers, out)
+    level = _as_level(color)
+    dynamic(_combine, level, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, not no_layers, out)
     return out
+
+
+def _as_level(color: np.ndarray) -> np.ndarray:
+    """color (height, width, 3 or more) as the C-contiguous (height, width, CHANNELS) array of a pyramid level that
+    the combine's row loops read with constant strides (so that they vectorise): itself when it is one, else a
+    copy (a caller other than a pyramid's, once per call)."""
+    if color.shape[2] == CHANNELS and color.flags.c_contiguous:
+        return color
+    level = np.zeros((*color.shape[:2], CHANNELS), color.dtype)
+    level[..., :3] = color[..., :3]
+    return level
 
 
 _NO_LAYERS = Layers.empty(0, 0)

@@ -57,8 +57,10 @@ def contrast_levels(
 
 @serial
 def _fade(e, r0, r1):
-    """How much of the enhancement applies at eccentricity e: none inside r0, all from r1."""
-    return 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else (e - r0) / (r1 - r0))
+    """How much of the enhancement applies at eccentricity e: none inside r0, all from r1. Selects, and np.divide
+    without `/`'s zero-division check (r1 <= r0 takes the other side), so that a loop over pixels vectorises."""
+    ramp = np.divide(e - r0, r1 - r0)
+    return 0.0 if e <= r0 else (1.0 if e >= r1 or r1 <= r0 else ramp)
 
 
 FINE_LEVELS = 2  # the finest levels: read only by the pixels nearest r0 (enhance_windows)
@@ -150,16 +152,18 @@ def enhance_row(ecc, contrast, blurred, axes, values, texels, y, out):
     """Row y of out enhanced in place: color + strength x fade(e) x (color - blur_e(color)) at each pixel of
     eccentricity e, the blur read trilinearly from the prefiltered pyramid `blurred` (prefilter; `axes` its
     pixel_axes) at the pixel's centre, for the row at once (pyramid.sample_row at the contrast's own row of levels,
-    with `values` and `texels` its scratch). Negative results are cut at zero (light cannot be negative)."""
+    with `values` and `texels` its scratch). Negative results are cut at zero (light cannot be negative). Selects,
+    not branches, over rows flattened so that the channels' strides are constants: the loop vectorises (a pixel
+    inside r0, whose blur was not sampled, keeps its colour)."""
     strength, r0, r1, blur_levels = contrast
     sample_row(blurred.data, blurred.widths, axes, y, blur_levels[y], values, texels)
+    rgb, blur, e = out[y].reshape(-1), values.reshape(-1), ecc[y]
     for x in range(out.shape[1]):
-        fade = _fade(ecc[y, x], r0, r1)
-        if fade <= 0.0:
-            continue
-        br, bg, bb = values[x, 0], values[x, 1], values[x, 2]
+        fade = _fade(e[x], r0, r1)
         gain = strength * fade
-        r, g, b = out[y, x, 0], out[y, x, 1], out[y, x, 2]
-        out[y, x, 0] = max(r + gain * (r - br), 0.0)
-        out[y, x, 1] = max(g + gain * (g - bg), 0.0)
-        out[y, x, 2] = max(b + gain * (b - bb), 0.0)
+        i = 3 * x
+        r, g, b = rgb[i], rgb[i + 1], rgb[i + 2]
+        er = max(r + gain * (r - blur[i]), 0.0)
+        eg = max(g + gain * (g - blur[i + 1]), 0.0)
+        eb = max(b + gain * (b - blur[i + 2]), 0.0)
+        rgb[i], rgb[i + 1], rgb[i + 2] = (er, eg, eb) if fade > 0.0 else (r, g, b)
