@@ -21,6 +21,7 @@ from hmdrt.errors import ConfigError
 from hmdrt.foveation import MethodChoice
 from hmdrt.foveation.base import EYES, Method
 from hmdrt.optics import EyeCamera, HmdProfile, get_profile
+from hmdrt.present import compile_aside
 from hmdrt.present.timewarp import timewarp
 from hmdrt.scene import load_scene
 from hmdrt.spatial import Pose
@@ -64,14 +65,17 @@ class Session:
     def warm_up(self) -> None:
         """Render one frame with a throwaway instance of the method and timewarp it, so that the kernels are
         compiled and the tracer's buffers allocated before the first VSync (a compile on the display thread would
-        stall it for seconds); the method itself starts without history."""
+        stall it for seconds); the method itself starts without history. On a first run a second process compiles
+        the timewarp meanwhile (compile_aside)."""
+        aside = compile_aside.start()
         method, self.method = self.method, self.choice.make(self.tracer)
         try:
             images, cameras, _ = self.render(0, None, None, 0, FrameStats())
+            camera = next(iter(cameras.values()))
+            timewarp(images[0], camera, camera)
         finally:
             self.method = method
-        camera = next(iter(cameras.values()))
-        timewarp(images[0], camera, camera)
+            compile_aside.stop(aside)
 
     @property
     def spec(self) -> str:
