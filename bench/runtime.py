@@ -4,16 +4,19 @@ controller off and on where the method alone cannot hold the rate; and graceful 
 nothing can. Each row states the display it ran and the image buffers the run allocated (a pool of a few
 per eye; more would mean images copied or kept).
 
-    python bench/runtime.py [--duration 60] [--controller-duration 30] [--only default,controller,rift_s] [--watch]
+    python bench/runtime.py [--duration 60] [--controller-duration 30] [--only default,controller,rift_s]
+                            [--watch [--pairs 3]]
 
 Each scenario runs the daemon in-process on its config with the bus on free loopback ports, for the given
 wall time, and prints the run report's figures. These machines are shared: a busy neighbour shows up as
 misses, so run it on a quiet machine and read the figures together, as measured in one run.
 
-With --watch the default scenario runs once as it is and once watched (in place of its controller-off run): an
-`hmdrt watch` process on the compositor and a websocket client of it taking every message, previews included, as
-an open page would; it prints the compositor overhead and frame times of both runs side by side, and what the
-previews cost (made on the compositor's preview thread).
+With --watch the default scenario runs in pairs, once as it is and once watched (in place of its controller-off
+run), the order alternating from pair to pair (plain, watched; watched, plain; ...) so that a neighbour's load falls
+on both: an `hmdrt watch` process on the compositor and a websocket client of it taking every message, previews
+included, as an open page would. It prints each pair's misses after warm-up, the watched runs' extra misses in
+points (each pair's difference, their mean and range), the compositor overhead and frame times of the last pair
+side by side, and what the previews cost (made on the compositor's preview thread).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 
 from hmdrt.compositor.config import Bus, RunConfig, load_config  # noqa: E402
 from hmdrt.compositor.daemon import Compositor  # noqa: E402
+from hmdrt.evaluate.provenance import machine  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 ANY_PORT = "tcp://127.0.0.1:*"
@@ -151,12 +155,39 @@ def compare_watched(plain: dict, watched: dict) -> None:
     )
 
 
+def watch_pairs(config: RunConfig, pairs: int) -> None:
+    """The misses a watcher adds, from pairs of runs in alternating order, each pair's difference in points."""
+    added, last = [], None
+    for k in range(pairs):
+        order = (False, True) if k % 2 == 0 else (True, False)
+        reports = {watched: run(config, watched=watched) for watched in order}
+        plain, watched = reports[False], reports[True]
+        added.append(100 * (watched["miss_rate_after_warmup"] - plain["miss_rate_after_warmup"]))
+        print(
+            f"  pair {k + 1} ({'plain first' if k % 2 == 0 else 'watched first'}): misses after warm-up "
+            f"{plain['miss_rate_after_warmup']:.2%} -> {watched['miss_rate_after_warmup']:.2%} watched "
+            f"({added[-1]:+.2f} points); gaze-to-photon p99 {periods(plain):.2f} -> {periods(watched):.2f} periods"
+        )
+        last = plain, watched
+    print(
+        f"  a watcher adds {sum(added) / len(added):+.2f} points of misses after warm-up, mean of {len(added)} "
+        f"pairs (range {min(added):+.2f} to {max(added):+.2f})"
+    )
+    describe("default (last pair)", last[0])
+    describe("default, watched (last pair)", last[1])
+    compare_watched(*last)
+
+
+def periods(report: dict) -> float:
+    """Gaze-to-photon p99 in VSync periods."""
+    return (report["latency_ms"]["gaze_to_photon"]["p99"] or 0) * report["vsync_hz"] / 1e3
+
+
 def with_controller(config: RunConfig, kind: str) -> RunConfig:
     return msgspec.structs.replace(config, controller=msgspec.structs.replace(config.controller, kind=kind))
 
 
 def describe(name: str, report: dict) -> None:
-    period_ms = 1e3 / report["vsync_hz"]
     gaze, overhead = report["latency_ms"]["gaze_to_photon"], report["compositor_overhead_ms"]
     d, buffers = report["display"], report["image_buffers"]
     print(
@@ -172,7 +203,7 @@ def describe(name: str, report: dict) -> None:
     )
     print(
         f"    frame ms p50 {report['frame_ms']['p50']} p99 {report['frame_ms']['p99']}; "
-        f"gaze-to-photon ms p50 {gaze['p50']} p99 {gaze['p99']} = {(gaze['p99'] or 0) / period_ms:.2f} periods; "
+        f"gaze-to-photon ms p50 {gaze['p50']} p99 {gaze['p99']} = {periods(report):.2f} periods; "
         f"compositor overhead ms p50 {overhead['p50']} p99 {overhead['p99']}; "
         f"timewarp ms p50 {report['timewarp_ms']['p50']}, skipped {report['timewarp_skipped']}"
     )
@@ -201,24 +232,23 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=60.0, help="seconds for configs/default.toml")
     ap.add_argument("--controller-duration", type=float, default=30.0, help="seconds per controller run")
     ap.add_argument("--only", default="default,controller,rift_s")
-    ap.add_argument("--watch", action="store_true", help="the default scenario also with hmdrt watch attached")
+    ap.add_argument("--watch", action="store_true", help="the default scenario in pairs, plain and watched")
+    ap.add_argument("--pairs", type=int, default=3, help="--watch's pairs of runs")
     ap.add_argument("--watch-client", metavar="URL", help=argparse.SUPPRESS)  # Watcher's client process
     args = ap.parse_args()
     if args.watch_client:
         print(json.dumps(asyncio.run(take_messages(args.watch_client))))
         return
     only = set(args.only.split(","))
+    print(machine())
 
     if "default" in only:
         print(f"configs/default.toml, {args.duration:g} s real time")
         config = load_config(CONFIGS / "default.toml", duration_s=args.duration)
-        plain = run(config)
-        describe("default", plain)
         if args.watch:
-            watched = run(config, watched=True)
-            describe("default, watched", watched)
-            compare_watched(plain, watched)
+            watch_pairs(config, args.pairs)
         else:
+            describe("default", run(config))
             describe("default, controller off", run(with_controller(config, "none")))
     if "controller" in only:
         config = load_config(CONFIGS / "bench" / "controller.toml", duration_s=args.controller_duration)

@@ -211,9 +211,12 @@ def ctl_epilog(width: int = 78) -> str:
 
 
 def cmd_watch(args: argparse.Namespace) -> int:
-    """Serve a live view of a running compositor (frames, plots, drivers, controls) until stopped."""
+    """Serve a live view of a running compositor (frames, plots, drivers, controls) until stopped, at a lower
+    priority than the compositor's threads (hmdrt.priority)."""
+    from hmdrt.priority import yield_cores
     from hmdrt.watch.server import WatchOptions, serve
 
+    yield_cores(whole_process=True)  # before the server's threads start: they inherit it
     options = WatchOptions(
         control=control_endpoint(args),
         telemetry=endpoint(args.telemetry, "telemetry") if args.telemetry else "",  # "": the one status names

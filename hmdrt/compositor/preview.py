@@ -4,8 +4,8 @@ pixels, at most MAX_HZ a second of wall time (also in virtual time: it is for a 
 
 Nothing is made while no client subscribes to `preview` by name (Telemetry.subscribed). The display thread only
 puts the shown frame's images in a one-slot queue, where a newer frame replaces one not yet taken; a worker thread
-encodes and publishes it, so neither the render nor the display thread encodes an image. The worker holds the
-images (pooled buffers) only until that preview is published.
+encodes and publishes it, so neither the render nor the display thread encodes an image, at a lower priority than
+theirs (hmdrt.priority). The worker holds the images (pooled buffers) only until that preview is published.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from hmdrt.foveation import METHODS
 from hmdrt.foveation.stages.sampling import pixels_per_degree
 from hmdrt.optics import EyeCamera
 from hmdrt.present.encode import preview_srgb8
+from hmdrt.priority import yield_cores
 from hmdrt.telemetry.report import FrameRecord
 
 log = logging.getLogger(__name__)
@@ -92,6 +93,7 @@ class PreviewPublisher(Sink):
 
     def _run(self) -> None:
         numba.set_num_threads(1)  # this thread's kernels: leave the cores to the render and display threads
+        yield_cores()
         while True:
             self._ready.wait()
             with self._lock:
