@@ -5,17 +5,21 @@
 Runs the config in real time for --duration seconds (bus on free loopback ports), keeps each shown frame's
 work from wake-up to hand-over, then replays those times in order through the pacer on a virtual clock: once
 per tail_window, and once on the filtered mean alone (Monado's plan). It prints the misses each would have
-had and how long before its VSync a frame woke on average (what the plan costs in latency). Every row sees
-the same times, so the comparison does not depend on how busy the machine was. Planning for the largest of
-the last W times, a frame exceeds the plan about once in W + 1 frames when render times are independent;
-the margin catches some of those.
+had, how long before its VSync a frame woke on average (what the plan costs in latency), the VSyncs that showed
+no new frame (a late frame's, and those a two-period interval leaves) and the p99 over VSyncs of the time from the
+shown frame's wake-up to its VSync, in periods: gaze-to-photon less the gaze sample's age, which is what holds
+the run report's gaze-to-photon p99. Every row sees the same times, so the comparison does not depend on how busy
+the machine was. Planning for the largest of the last W times, a frame exceeds the plan about once in W + 1 frames
+when render times are independent; the margin catches some of those.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import msgspec
 
@@ -66,16 +70,34 @@ def measure(config_path: str, duration_s: float) -> tuple[list[int], int, dict]:
     return times, period, settings
 
 
-def replay(times: list[int], period_ns: int, settings: dict) -> tuple[float, float]:
-    """(miss rate, mean ms from wake-up to desired present) of the pacer with these settings on these times."""
+class Replayed(NamedTuple):
+    """What the pacer with some settings made of one run's render times."""
+
+    miss_rate: float
+    lead_ms: float  # mean time from wake-up to desired present
+    repeat_rate: float  # VSyncs without a new frame
+    p99_periods: float  # wake-up of the frame shown to its VSync, p99 over VSyncs
+
+
+def replay(times: list[int], period_ns: int, settings: dict) -> Replayed:
+    """The pacer with these settings on these times: each frame shown from its actual present until the next one's,
+    as the display does."""
     pacer = Pacer(VsyncClock(period_ns, 0), **settings)
     clock = VirtualClock(0)
-    misses, lead_ns = 0, 0
+    misses, lead_ns, shown = 0, 0, []
     for render_ns in times:
-        timing, _, missed = replay_frame(pacer, clock, render_ns)
+        timing, present, missed = replay_frame(pacer, clock, render_ns)
         misses += missed
         lead_ns += timing.desired_present_ns - timing.wake_ns
-    return misses / len(times), lead_ns / len(times) / 1e6
+        shown.append((present, timing.wake_ns))
+    ages = [
+        vsync - wake
+        for (present, wake), (following, _) in zip(shown, shown[1:], strict=False)
+        for vsync in range(present, following, period_ns)
+    ]
+    ages.sort()
+    p99 = ages[min(len(ages) - 1, math.ceil(0.99 * len(ages)) - 1)] / period_ns
+    return Replayed(misses / len(times), lead_ns / len(times) / 1e6, 1 - (len(shown) - 1) / len(ages), p99)
 
 
 def main() -> None:
@@ -89,8 +111,11 @@ def main() -> None:
     rows = [("filtered mean only", {**settings, "tail_quantile": None})]
     rows += [(f"tail_window {w}", {**settings, "tail_window": int(w)}) for w in args.windows.split(",")]
     for name, row in rows:
-        miss, lead = replay(times, period, row)
-        print(f"  {name:20s} misses {miss:6.2%}   wake-up {lead:5.1f} ms before its VSync")
+        r = replay(times, period, row)
+        print(
+            f"  {name:20s} misses {r.miss_rate:6.2%}   wake-up {r.lead_ms:5.1f} ms before its VSync   "
+            f"repeats {r.repeat_rate:6.2%}   wake-up to VSync p99 {r.p99_periods:.2f} periods"
+        )
 
 
 if __name__ == "__main__":
