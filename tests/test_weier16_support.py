@@ -181,7 +181,7 @@ def test_uncovered_pixels_take_the_support_image_not_a_ray():
         image = method.render(request(96, 108, 1, turn), FrameStats())
     buf, support = method._buffers, method._eyes["left"].support
     flags = buf.selection.flags
-    low_uncovered = buf.low_mesh.image.zinv <= 0
+    low_uncovered = method._eyes["left"].low_mesh.image.zinv <= 0
     assert low_uncovered.sum() > 20  # the head turned 8 degrees: new cells at one side
     assert not buf.resample[low_uncovered].any()
     merged = (flags & (TRACED | COVERED)) == 0

@@ -9,7 +9,6 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.stages.reproject import CoarseMesh
 from hmdrt.foveation.weier16.params import INFO
 from hmdrt.trace.gbuffer import LightBuffer
 
@@ -161,13 +160,11 @@ class PostRule(NamedTuple):
 
 class _Buffers:
     """Everything a frame of one size works in, shared by the eyes (they render one after the other), kept
-    across frames: the two coarse meshes, the resampling info, the selection, the sample list given to the
-    tracer and where the support image lies. Replaced when the image or the support size changes."""
+    across frames: the resampling info, the selection, the sample list given to the tracer and where the support
+    image lies. Replaced when the image or the support size changes."""
 
     def __init__(self, w: int, h: int, sw: int, sh: int):
         self.size = (w, h, sw, sh)
-        self.mesh = CoarseMesh()  # at full resolution
-        self.low_mesh = CoarseMesh()  # at support resolution, for the resampling info
         self.resample = np.empty((sh, sw), bool)
         self.taps = RowTaps.empty(w)  # its spread row is also the resampling info's footprints row
         self.low_scratch = InfoScratch(

@@ -11,7 +11,7 @@ import numpy as np
 
 from hmdrt.foveation.base import HISTORY, STOCHASTIC, Checks, Configurable, FrameRequest, Stage, plan, scene_features
 from hmdrt.foveation.registry import register
-from hmdrt.foveation.stages.reproject import MeshImage
+from hmdrt.foveation.stages.reproject import CoarseMesh, MeshImage
 from hmdrt.foveation.stages.sampling import FOVEAL_REGION_KNOBS
 from hmdrt.foveation.weier16.buffers import (
     CacheRule,
@@ -38,7 +38,8 @@ from hmdrt.trace.integrator import Whitted
 
 class _EyeState:
     """One eye's history: the camera of its newest frame, its final colour and cache info double-buffered
-    (the newest is read while the next is written) and the newest support image and G-buffer."""
+    (the newest is read while the next is written), the newest support image and G-buffer, and the two coarse meshes
+    made of it, each eye's own so that a view that holds still rasterises them once (CoarseMesh)."""
 
     def __init__(self, w: int, h: int, sw: int, sh: int):
         self.size = (w, h, sw, sh)
@@ -46,6 +47,8 @@ class _EyeState:
         self.finals = (Final.empty(w, h), Final.empty(w, h))
         self.newest = 0
         self.support = Support.empty(sw, sh)
+        self.mesh = CoarseMesh()  # at full resolution
+        self.low_mesh = CoarseMesh()  # at support resolution, for the resampling info
 
 
 class _Frame(NamedTuple):
@@ -149,11 +152,11 @@ class Weier16(Configurable):
     def _reproject(self, f: _Frame, stats: FrameStats) -> MeshImage:
         """Section 3.2: the previous frame through the coarse mesh of its support G-buffer, at full resolution."""
         if "reproject" not in f.steps:
-            return f.buf.mesh.image
+            return f.eye.mesh.image
         w, h = f.size[:2]
         written = w * h * 3 * np.dtype(np.float32).itemsize  # the mesh image: x, y in the previous frame and 1/z
         with stats.stage("reproject", touches=f.eye.support.depth.nbytes + written):
-            return f.buf.mesh.reproject(f.eye.camera, f.buf.grid.x, f.buf.grid.y, f.eye.support.depth, f.camera, w, h)
+            return f.eye.mesh.reproject(f.eye.camera, f.buf.grid.x, f.buf.grid.y, f.eye.support.depth, f.camera, w, h)
 
     def _resample_info(self, f: _Frame, stats: FrameStats) -> np.ndarray:
         """Section 3.3: the support cells to sample afresh (the no-history stand-in without a previous frame)."""
@@ -162,7 +165,7 @@ class Weier16(Configurable):
         w, h, sw, sh = f.size
         buf, eye, p = f.buf, f.eye, self.params
         with stats.stage("resample_info"):
-            low = buf.low_mesh.reproject(eye.camera, buf.grid.x, buf.grid.y, eye.support.depth, f.camera, sw, sh)
+            low = eye.low_mesh.reproject(eye.camera, buf.grid.x, buf.grid.y, eye.support.depth, f.camera, sw, sh)
             rule = InfoRule(p.eps_depth, p.eps_lum, p.eps_edge, p.eps_motion, self._taps)
             low_cam, previous = camera_arrays(f.camera, sw, sh), eye.finals[eye.newest]
             _resampling_info(
@@ -212,7 +215,7 @@ class Weier16(Configurable):
         buffers it wrote: the other one, or, where the mesh reprojects every pixel onto itself (a still view),
         the previous one in place, whose untraced pixels then keep what they hold instead of being copied."""
         p, t, support, buf = self.params, f.request.frame, f.eye.support, f.buf
-        in_place = f.history and buf.mesh.still
+        in_place = f.history and f.eye.mesh.still
         written = f.eye.newest if in_place else 1 - f.eye.newest
         previous, final = f.eye.finals[f.eye.newest], f.eye.finals[written]
         stochastic = STOCHASTIC in self.features
