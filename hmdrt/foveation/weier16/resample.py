@@ -31,15 +31,15 @@ def _footprint_mean(color, qx, qy, spread, taps):
 
 
 @serial
-def _read_by_tests(tested, y, x):
-    """Whether a test reads cell (y, x): it or a 4-neighbour is tested, as _discontinuous reads them."""
-    h, w = tested.shape
+def _set_near(cells, y, x):
+    """Whether cell (y, x) or one of its 4-neighbours is set: the cells a test at (y, x) reads (_discontinuous)."""
+    h, w = cells.shape
     return (
-        tested[y, x]
-        or (x > 0 and tested[y, x - 1])
-        or (x + 1 < w and tested[y, x + 1])
-        or (y > 0 and tested[y - 1, x])
-        or (y + 1 < h and tested[y + 1, x])
+        cells[y, x] != 0
+        or (x > 0 and cells[y, x - 1] != 0)
+        or (x + 1 < w and cells[y, x + 1] != 0)
+        or (y > 0 and cells[y - 1, x] != 0)
+        or (y + 1 < h and cells[y + 1, x] != 0)
     )
 
 
@@ -47,15 +47,15 @@ def _read_by_tests(tested, y, x):
 def _luminance_rows(y0, y1, prev, color, rule, scratch, tested):
     """Rows [y0, y1) of the reprojected final colour's luminance at the support resolution (section 3.3 renders
     the coarse mesh at that resolution with section 3.2's procedure), NaN where the mesh leaves a cell; only at
-    the cells the tests read (_read_by_tests: on a still view those near the cells showing the support image),
-    the others left as they were."""
+    the cells the tests read (_set_near a tested one: on a still view, those near the cells showing the support
+    image), the others left as they were."""
     covered, lum = scratch.covered, scratch.lum
     h, w = lum.shape
     spread = scratch.footprints[nb.get_thread_id()]
     for y in range(y0, y1):
         row_footprints(prev, covered, 1, y, spread)
         for x in range(w):
-            if not _read_by_tests(tested, y, x):
+            if not _set_near(tested, y, x):
                 continue
             if not covered[y, x]:
                 lum[y, x] = math.nan
@@ -130,19 +130,6 @@ def _grazing(mesh, cur, normal, prev_position, x, y, full_w, full_h, eps):
     return max((nx * vx + ny * vy + nz * vz) * inv, 0.0) < eps
 
 
-@serial
-def _moved_near(moved, y, x):
-    """Whether the reprojection moved cell (y, x) or one of its 4-neighbours, the cells its tests read."""
-    h, w = moved.shape
-    return (
-        moved[y, x] != 0
-        or (x > 0 and moved[y, x - 1] != 0)
-        or (x + 1 < w and moved[y, x + 1] != 0)
-        or (y > 0 and moved[y - 1, x] != 0)
-        or (y + 1 < h and moved[y + 1, x] != 0)
-    )
-
-
 @kernel
 def _resampling_info(mesh, cur, color, normal, unsampled, prev_position, full_w, full_h, rule, scratch, out):
     """weier2016 section 3.3 at support resolution: the previous final colour reprojected through the coarse
@@ -167,7 +154,7 @@ def _resampling_info(mesh, cur, color, normal, unsampled, prev_position, full_w,
             tested = False
             if covered[y, x] != 0:
                 sy, sx = _previous_cell(prev, y, x, ph, pw, full_w, full_h)
-                tested = _moved_near(moved, y, x) or unsampled[sy, sx] != 0
+                tested = _set_near(moved, y, x) or unsampled[sy, sx] != 0  # it or a neighbour moved
             out[y, x] = tested  # the cells tested, then (below) those the tests mark
     for b in nb.prange((h + ROWS - 1) // ROWS):
         _luminance_rows(b * ROWS, min(h, (b + 1) * ROWS), prev, color, rule, scratch, out)
