@@ -19,10 +19,15 @@ log = logging.getLogger(__name__)
 
 
 def cached() -> bool:
-    """Whether numba's cache holds an index of the timewarp's kernel (its compiled versions are listed there)."""
+    """Whether numba's cache holds an index of the timewarp's kernel (its compiled versions are listed there). The
+    index's path is numba's own, not public: a numba that keeps it elsewhere counts as cached (no second process)."""
     from hmdrt.present.timewarp import _warp
 
-    return os.path.exists(_warp._cache._cache_file._index_path)
+    try:
+        index = _warp._cache._cache_file._index_path
+    except AttributeError:
+        return True
+    return os.path.exists(index)
 
 
 def start() -> subprocess.Popen | None:
