@@ -8,7 +8,7 @@ import numba
 import numpy as np
 import pytest
 
-from hmdrt.foveation.stages.reproject import MeshImage
+from hmdrt.foveation.stages.reproject import MeshImage, _distances
 from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
 from hmdrt.foveation.weier16.buffers import CacheRule, Final, RowTaps, Samples, Selection, Support, SupportGrid
 from hmdrt.foveation.weier16.cache import _update
@@ -90,6 +90,8 @@ def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0, in_pla
     finals = (Final.empty(size, size), Final.empty(size, size))
     image = np.empty((size, size, 3), np.float32)
     taps = RowTaps.empty(size)
+    distance = np.empty((size, size), np.float32)  # what CoarseMesh.distances measures, read in place
+    _distances(camera_arrays(cam), mesh.zinv, distance)
     last = []
     threads = numba.get_num_threads()
     numba.set_num_threads(1)  # 16 pixels: starting the thread pool each frame would cost 100x the work
@@ -103,6 +105,7 @@ def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0, in_pla
                 selection,
                 mesh,
                 camera_arrays(cam),
+                distance,
                 previous,
                 samples,
                 Support.empty(size, size),  # every pixel traced: nothing merged from it

@@ -18,7 +18,17 @@ from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.rng import uniform
 from hmdrt.kernels.schedule import claim, dynamic
 from hmdrt.optics.camera import EyeCamera
-from hmdrt.optics.projection import FAR, NEAR, bilinear3, camera_arrays, project, project_view, world_point
+from hmdrt.optics.projection import (
+    FAR,
+    NEAR,
+    CameraArrays,
+    bilinear3,
+    camera_arrays,
+    project,
+    project_view,
+    view_distance,
+    world_point,
+)
 
 
 @kernel
@@ -231,7 +241,8 @@ class CoarseMesh:
     Its buffers persist across frames and are replaced only when the grid or the image changes size. The image
     depends on nothing but those inputs, so a call with the same inputs as the last one, bit for bit (a still
     view: the same cameras and support depth), returns the image it left, rasterised once. `still`: whether
-    the image reprojects every covered pixel onto its own centre (_onto_itself).
+    the image reprojects every covered pixel onto its own centre (_onto_itself). distances() measures the
+    image's pixels once per rasterisation.
     """
 
     def __init__(self):
@@ -240,6 +251,9 @@ class CoarseMesh:
         self._rows, self._spans = np.empty((0, 2), np.int64), np.empty((0, 2), np.int64)
         self._inputs: tuple[np.ndarray, ...] = ()  # the last call's inputs, copied (_unchanged)
         self.still = False
+        self._current: CameraArrays | None = None  # the current camera, of the image
+        self._distance = np.empty((0, 0), np.float32)
+        self._measured = False  # whether _distance holds the image's distances
 
     def _unchanged(self, inputs: tuple[np.ndarray, ...]) -> bool:
         """Whether these inputs are the last call's, bit for bit; remembers them for the next call."""
@@ -280,7 +294,28 @@ class CoarseMesh:
         triangles = TriangleRows(self._rows, self._spans, max(1, height // BANDS))
         dynamic(_raster_mesh, self._vertices, triangles, self.image)
         self.still = _onto_itself(self.image)
+        self._current, self._measured = cur, False
         return self.image
+
+    def distances(self) -> np.ndarray:
+        """Each pixel's distance from the current eye at the depth the image gives it (view_distance at 1 / zinv;
+        inf where the mesh does not cover it), in float32; measured once per rasterisation, so that a still view
+        reads what the cache's surface test would compute pixel by pixel."""
+        if not self._measured:
+            if self._distance.shape != self.image.zinv.shape:
+                self._distance = np.empty(self.image.zinv.shape, np.float32)
+            _distances(self._current, self.image.zinv, self._distance)
+            self._measured = True
+        return self._distance
+
+
+@kernel
+def _distances(cam, zinv, out):
+    """CoarseMesh.distances, a row per task; the row's divisions and roots vectorise."""
+    h, w = zinv.shape
+    for y in nb.prange(h):
+        for x in range(w):
+            out[y, x] = np.float32(view_distance(cam, x + 0.5, y + 0.5, np.divide(1.0, zinv[y, x])))
 
 
 @serial

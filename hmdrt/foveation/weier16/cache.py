@@ -62,6 +62,20 @@ def _unsampled_cells(flags, info, unsampled):
             unsampled[j, i] = shown
 
 
+@inline
+def _merge_support(y, x, support, grid, rule, final):
+    """Section 3.4's merge at pixel (y, x), which nothing covers: the bilinearly upsampled support image, colour
+    and light buffer, with no sample counted."""
+    color, info = final.color, final.info
+    color[y, x, 0], color[y, x, 1], color[y, x, 2] = bilinear3(support.color, grid.u[x], grid.v[y])
+    for c in range(INFO):
+        info[y, x, c] = 0.0
+    if rule.stochastic:
+        final.light[y, x, 0], final.light[y, x, 1], final.light[y, x, 2] = bilinear3(
+            support.light, grid.u[x], grid.v[y]
+        )
+
+
 @serial
 def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid, rule, taps, final, image):
     flags, row_start = selection.flags, selection.row_start
@@ -75,9 +89,8 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid,
     corner, step_x, step_y = taps.index[t, 0], taps.index[t, 1], taps.index[t, 2]
     flat = prev_color.reshape(-1)
     history = zinv.shape[0] == h  # else no pixel is covered, and the mesh buffers may be empty
-    in_place = rule.in_place
     for y in range(y0, y1):
-        if history and not in_place:
+        if history:
             row_footprints(prev, flags, COVERED, y, spread_row)
             px, py = prev[0, y], prev[1, y]
             for x in range(w):
@@ -98,9 +111,7 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid,
             jy = jx = 0
             if covered and not new:  # the previous frame seen through the mesh
                 qx, qy, spread = prev[0, y, x], prev[1, y, x], spread_row[x]
-                if in_place:  # the footprint is the pixel's own texel alone
-                    r, g, b = prev_color[y, x, 0], prev_color[y, x, 1], prev_color[y, x, 2]
-                elif spread <= 1.5 or rule.footprint_samples <= 1:
+                if spread <= 1.5 or rule.footprint_samples <= 1:
                     r, g, b = blend_footprint(flat, corner[x], step_x[x], step_y[x], across[x], down[x])
                 else:
                     key = (y * w + x) * 64 + rule.seed
@@ -123,28 +134,62 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid,
                         light[y, x, c] = alpha * sample_light[s, c] + (1.0 - alpha) * kept
                 s += 1
             elif covered:
-                if not in_place:  # in place, its colour, cache info and light buffer are already there
-                    color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
-                    for c in range(INFO):
-                        info[y, x, c] = prev_info[jy, jx, c]
-                    if rule.stochastic:
-                        for c in range(3):
-                            light[y, x, c] = prev_light[jy, jx, c]
-            else:  # the merge: the bilinearly upsampled support image, colour and light buffer
-                r, g, b = bilinear3(support.color, grid.u[x], grid.v[y])
                 color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
                 for c in range(INFO):
-                    info[y, x, c] = 0.0
+                    info[y, x, c] = prev_info[jy, jx, c]
                 if rule.stochastic:
-                    light[y, x, 0], light[y, x, 1], light[y, x, 2] = bilinear3(support.light, grid.u[x], grid.v[y])
+                    for c in range(3):
+                        light[y, x, c] = prev_light[jy, jx, c]
+            else:
+                _merge_support(y, x, support, grid, rule, final)
                 merged += 1
             for c in range(3):
                 image[y, x, c] = color[y, x, c]
         selection.merged[y] = merged
 
 
+@serial
+def _update_rows_in_place(y0, y1, selection, distance, samples, support, grid, rule, final, image):
+    """_update_rows where the mesh reprojects every covered pixel onto its own texel and `final` is the previous
+    frame: a covered pixel without a sample keeps what it holds, a traced one merges with its own texel, whose
+    surface lies at the mesh's `distance` (CoarseMesh.distances, measured once while the view holds still);
+    the rows then copied into the image in a loop of their own."""
+    flags, row_start, color, info, light = selection.flags, selection.row_start, final.color, final.info, final.light
+    w = flags.shape[1]
+    for y in range(y0, y1):
+        s = row_start[y]
+        merged = 0
+        for x in range(w):
+            f = flags[y, x]
+            covered = (f & COVERED) != 0
+            if f & TRACED:  # the sample merged into the pixel's own colour and cache info, or replacing them
+                new = (f & FRESH) != 0 or not covered or _moved(samples.depth[s], distance[y, x], rule.eps_cache)
+                alpha, rho = 1.0, 1.0
+                if not new:
+                    k = k_of_age(rule.frame - info[y, x, 2], rule.k_min, rule.k_max, rule.t_max)
+                    alpha, rho = running_estimate(info[y, x, 1], k)
+                for c in range(3):
+                    kept = np.float32(0.0) if new else color[y, x, c]
+                    color[y, x, c] = alpha * samples.rgb[s, c] + (1.0 - alpha) * kept
+                info[y, x, 0], info[y, x, 1], info[y, x, 2] = alpha, rho, rule.frame
+                if rule.stochastic:
+                    for c in range(3):
+                        kept = np.float32(0.0) if new else light[y, x, c]
+                        light[y, x, c] = alpha * samples.light[s, c] + (1.0 - alpha) * kept
+                s += 1
+            elif not covered:
+                _merge_support(y, x, support, grid, rule, final)
+                merged += 1
+        selection.merged[y] = merged
+    rows, colors = image[y0:y1].reshape(-1), color[y0:y1].reshape(-1)
+    for i in range(rows.shape[0]):
+        rows[i] = colors[i]
+
+
 @kernel
-def _update(selection, mesh, cur, previous, samples, support, grid, rule, taps, final, image, counter, threads):
+def _update(
+    selection, mesh, cur, distance, previous, samples, support, grid, rule, taps, final, image, counter, threads
+):
     """Sections 3.2 and 3.4 in one pass: each pixel's previous colour and cache info gathered through the
     mesh, its sample (a support pixel's too) merged into them with the running estimate (or replacing them:
     fovea, resampled, uncovered or moved), and pixels left without colour taken from the support image
@@ -157,5 +202,8 @@ def _update(selection, mesh, cur, previous, samples, support, grid, rule, taps, 
         b = claim(counter)
         while b < blocks:
             y0, y1 = b * ROWS, min(h, (b + 1) * ROWS)
-            _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid, rule, taps, final, image)
+            if rule.in_place:
+                _update_rows_in_place(y0, y1, selection, distance, samples, support, grid, rule, final, image)
+            else:
+                _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid, rule, taps, final, image)
             b = claim(counter)

@@ -222,14 +222,15 @@ class Weier16(Configurable):
         lights = (previous.light, final.light, samples.light) if stochastic else ()
         touched = (buf.selection.flags, *mesh, previous.color, previous.info, final.color, final.info, f.image)
         with stats.stage("cache_update", touches=nbytes(*touched, samples.rgb, samples.depth, *lights)):
+            distance = f.eye.mesh.distances() if in_place else buf.no_zinv  # measured once while still
             _gather_support(buf.grid, buf.sample_index, samples, normals, support)
             rule = CacheRule(
                 float(t), p.k_min, p.k_max, p.t_max, p.eps_cache, p.footprint_samples, f.request.seed + t, stochastic,
                 in_place,
             )  # fmt: skip
             dynamic(
-                _update, buf.selection, mesh, camera_arrays(f.camera), previous, samples, support, buf.grid, rule,
-                buf.taps, final, f.image,
+                _update, buf.selection, mesh, camera_arrays(f.camera), distance, previous, samples, support, buf.grid,
+                rule, buf.taps, final, f.image,
             )  # fmt: skip
             _unsampled_cells(buf.selection.flags, final.info, support.unsampled)
         return written
