@@ -1,43 +1,84 @@
-"""The timewarp compiled aside on a first run is the one the compositor then loads: a process warping a frame of
-the default display's size finds it in the cache, compiling nothing (hmdrt.present.compile_aside)."""
+"""The tracer compiled aside on a first run is the one the compositor then loads: after the second process, the
+default config's warm-up finds the tracer's kernel in the cache and compiles it no more (hmdrt.trace.compile_aside);
+a process that fails or outlasts its wait leaves the compile to the tracer."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
+import time
 
-from hmdrt.present import compile_aside
+import numpy as np
+import pytest
+
+from hmdrt.optics import EyeCamera, get_profile
+from hmdrt.scene import load_scene
+from hmdrt.spatial import Pose
+from hmdrt.telemetry.stats import FrameStats
+from hmdrt.trace import compile_aside
+from hmdrt.trace.integrator import Whitted
 
 LOADS = """
-import numpy as np
 from hmdrt.compositor.config import load_config
-from hmdrt.compositor.session import display_profile
-from hmdrt.optics import EyeCamera
-from hmdrt.present import compile_aside
-from hmdrt.present.timewarp import _warp, timewarp
-from hmdrt.spatial import Pose
+from hmdrt.compositor.session import Session
+from hmdrt.trace import compile_aside
+from hmdrt.trace.wavefront import _trace_blocks
 
-assert compile_aside.cached(), "no index of the timewarp in the cache"
-profile = display_profile(load_config("configs/default.toml"))
-camera = EyeCamera.for_eye(profile, Pose.looking([0.0, 1.6, 0.0]), "right")
-timewarp(np.ones((profile.height, profile.width, 3), np.float32), camera, camera)
-print(sum(_warp.stats.cache_hits.values()), sum(_warp.stats.cache_misses.values()))
+assert compile_aside.cached(), "no index of the tracer in the cache"
+session = Session(load_config("configs/default.toml"))
+assert session.tracer._aside is None  # a cache that holds the tracer starts no second process
+session.warm_up()
+session.close()
+print(sum(_trace_blocks.stats.cache_hits.values()), sum(_trace_blocks.stats.cache_misses.values()))
 """
 
 
-def test_the_timewarp_compiled_aside_is_loaded_not_compiled(tmp_path) -> None:
+@pytest.mark.slow
+def test_the_tracer_compiled_aside_is_loaded_by_the_warm_up_not_compiled(tmp_path) -> None:
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
-    run = subprocess.run([sys.executable, "-c", LOADS], env=env, capture_output=True, text=True, timeout=300)
-    assert run.returncode != 0 and "no index of the timewarp" in run.stderr  # an empty cache is seen as one
-    aside = subprocess.run([sys.executable, "-m", compile_aside.__name__], env=env, timeout=300)
+    run = subprocess.run([sys.executable, "-c", LOADS], env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode != 0 and "no index of the tracer" in run.stderr  # an empty cache is seen as one
+    aside = subprocess.run([sys.executable, "-m", compile_aside.__name__], env=env, timeout=600)
     assert aside.returncode == 0
-    run = subprocess.run([sys.executable, "-c", LOADS], env=env, capture_output=True, text=True, timeout=300)
+    run = subprocess.run([sys.executable, "-c", LOADS], env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == ["1", "0"]  # one load from the cache, no compile
 
 
-def test_no_process_when_the_cache_holds_the_timewarp() -> None:
+def test_no_process_when_the_cache_holds_the_tracer() -> None:
     compile_aside.main()  # compiled in this process, or loaded from its cache
     assert compile_aside.cached()
     assert compile_aside.start() is None
+    with Whitted(load_scene("whitted"), threads=1, aside=True) as tracer:
+        assert tracer._aside is None
+
+
+def tiny_trace(tracer: Whitted) -> None:
+    camera = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(4, 4), Pose.looking([0.0, 1.6, 0.0]))
+    xy = [[x + 0.5, 2.5] for x in range(4)]
+    out = tracer.trace_samples(camera, np.array(xy, np.float32), np.arange(4, dtype=np.int64), FrameStats())
+    assert out.shape == (4, 3) and np.isfinite(out).all()
+
+
+def test_a_second_process_that_fails_leaves_the_tracer_to_trace(caplog) -> None:
+    with Whitted(load_scene("whitted"), threads=1) as tracer:
+        tracer._aside = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+        with caplog.at_level("INFO", logger=compile_aside.__name__):
+            tiny_trace(tracer)
+        assert tracer._aside is None
+    assert "exited 3; compiling it here" in caplog.text
+
+
+def test_a_second_process_past_its_wait_is_stopped() -> None:
+    process = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    start = time.monotonic()
+    compile_aside.finish(process, timeout_s=0.2)
+    assert process.returncode is not None and time.monotonic() - start < 30
+
+
+def test_closing_a_tracer_stops_its_second_process() -> None:
+    tracer = Whitted(load_scene("whitted"), threads=1)
+    process = tracer._aside = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    tracer.close()
+    assert process.returncode is not None and tracer._aside is None

@@ -21,7 +21,6 @@ from hmdrt.errors import ConfigError
 from hmdrt.foveation import MethodChoice
 from hmdrt.foveation.base import EYES, Method
 from hmdrt.optics import EyeCamera, HmdProfile, get_profile
-from hmdrt.present import compile_aside
 from hmdrt.present.timewarp import timewarp
 from hmdrt.scene import load_scene
 from hmdrt.spatial import Pose
@@ -54,7 +53,7 @@ class Session:
         self.pools = {eye: BufferPool(shape, ready=READY_RENDERED) for eye in self.eyes}
         self.warp_pools = {eye: BufferPool(shape, ready=READY_WARPED) for eye in self.eyes}
         self.scene = load_scene(config.scene)
-        self.tracer = Whitted(self.scene, threads=config.run.threads or None)
+        self.tracer = Whitted(self.scene, threads=config.run.threads or None, aside=True)
         self.choice = config.method_choice
         try:
             self.method: Method = self.choice.make(self.tracer)
@@ -65,9 +64,11 @@ class Session:
     def warm_up(self) -> None:
         """Render one frame with a throwaway instance of the method and timewarp it, so that the kernels are
         compiled and the tracer's buffers allocated before the first VSync (a compile on the display thread would
-        stall it for seconds); the method itself starts without history. On a first run a second process compiles
-        the timewarp meanwhile (compile_aside)."""
-        aside = compile_aside.start()
+        stall it for seconds); the method itself starts without history. The timewarp goes first, on a tiny frame
+        (its kernel's types do not depend on the size): on a first run it compiles while a second process compiles
+        the tracer (Whitted's aside), which the frame's first trace waits for."""
+        tiny = EyeCamera.for_eye(self.profile.with_resolution(8, 8), self.head(None), self.eyes[0])
+        timewarp(np.zeros((8, 8, 3), np.float32), tiny, tiny)
         method, self.method = self.method, self.choice.make(self.tracer)
         try:
             images, cameras, _ = self.render(0, None, None, 0, FrameStats())
@@ -75,7 +76,6 @@ class Session:
             timewarp(images[0], camera, camera)
         finally:
             self.method = method
-            compile_aside.stop(aside)
 
     @property
     def spec(self) -> str:

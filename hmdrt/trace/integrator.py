@@ -18,7 +18,7 @@ from hmdrt.optics.camera import EyeCamera
 from hmdrt.scene.model import Scene
 from hmdrt.scene.pack import pack
 from hmdrt.telemetry.stats import FrameStats
-from hmdrt.trace import meter
+from hmdrt.trace import compile_aside, meter
 from hmdrt.trace.gbuffer import GBuffer, LightBuffer
 from hmdrt.trace.lighting import light_plan
 from hmdrt.trace.tracer import Tracer
@@ -32,9 +32,11 @@ BLOCKS_PER_THREAD = 4  # smaller blocks for small batches, so that every thread 
 
 class Whitted:
     """Shades camera samples of one scene; build once, call trace_samples per frame (one call at a time:
-    calls from several threads take turns)."""
+    calls from several threads take turns). aside: on a first run, the kernel compiled by a second process while
+    the caller compiles its own (hmdrt.trace.compile_aside); the first trace waits for it."""
 
-    def __init__(self, scene: Scene, threads: int | None = None):
+    def __init__(self, scene: Scene, threads: int | None = None, aside: bool = False):
+        self._aside = compile_aside.start() if aside else None  # first: it has the whole set-up to run alongside
         retain_freed_memory()
         self.packed = pack(scene)
         self.tracer = Tracer(self.packed.geometry, threads)
@@ -77,6 +79,9 @@ class Whitted:
         return min(MAX_BLOCK, max(MIN_BLOCK, -(-n // (self.tracer.threads * BLOCKS_PER_THREAD))))
 
     def close(self) -> None:
+        if self._aside is not None:
+            compile_aside.stop(self._aside)
+            self._aside = None
         self.tracer.close()
 
     def __enter__(self) -> Whitted:
@@ -125,6 +130,9 @@ class Whitted:
             light is not None,
         )
         with self._lock:
+            if self._aside is not None:  # the kernel in the cache before the first call, which then loads it
+                compile_aside.finish(self._aside)
+                self._aside = None
             for lane in self._lanes:
                 lane.tally.fill(0)
             start = time.perf_counter_ns()
