@@ -6,16 +6,16 @@ took longest to compile.
 Runs the compositor for 2 s in a subprocess whose numba cache is a new, empty folder (NUMBA_CACHE_DIR: an editable
 install otherwise caches beside the sources, in __pycache__, and a second run would load it), as a first run does.
 The first VSync is timed from the command to the "started:" line, which the compositor prints as its VSync clock
-starts (the first VSync 50 ms later, daemon.FIRST_PRESENT_NS). numba's compile events give each kernel's CPU
-seconds, not counting the kernels it compiled on the way, and which kernels were compiled after the first VSync
-(none should be: a compile there stalls the frame it happens in). These machines are shared: the load average at
-the start is printed, and CPU seconds vary less with it than the wall time does.
+starts (the first VSync 50 ms later, daemon.FIRST_PRESENT_NS). numba's compile events, in the compositor and in any
+process it starts (the second process that compiles the tracer on a first run: hmdrt.trace.compile_aside), give
+each kernel's CPU seconds, not counting the kernels it compiled on the way, and which kernels the compositor
+compiled after the first VSync (none should be: a compile there stalls the frame it happens in). These machines are
+shared: the load average at the start is printed, and CPU seconds vary less with it than the wall time does.
 """
 
 from __future__ import annotations
 
 import argparse
-import atexit
 import json
 import os
 import re
@@ -23,7 +23,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -36,46 +35,55 @@ FIRST_PRESENT_S = 0.05  # hmdrt.compositor.daemon.FIRST_PRESENT_NS: the first VS
 STEP = re.compile(r"(.+) (\d+(?:\.\d+)?) s")
 
 
-def child(records: str, argv: list[str]) -> int:
-    """`hmdrt` with `argv`, numba's compile events recorded: each kernel compiled (module.name), its CPU seconds
-    less those of the kernels it compiled on the way, and when it ended (time.monotonic), written to `records` as
-    JSON when the process exits."""
-    import numba.core.event as ev
+# Put on the run's PYTHONPATH as sitecustomize, so that every Python process of the run (the compositor and the second
+# process that compiles the tracer, hmdrt.trace.compile_aside) records numba's compile events: each kernel compiled
+# (module.name), its CPU seconds less those of the kernels it compiled on the way, and when it ended
+# (time.monotonic), written as JSON into the folder $HMDRT_COMPILES when the process exits.
+RECORDER = """
+import atexit, json, os, sys, threading, time
+from pathlib import Path
 
-    compiles: list[dict] = []
-    frames = threading.local()  # per thread: [CPU time at start, CPU seconds of nested compiles] of open compiles
+import numba.core.event as ev
 
-    class Compiles(ev.Listener):
-        def on_start(self, event: ev.Event) -> None:
-            if not hasattr(frames, "open"):
-                frames.open = []
-            frames.open.append([time.thread_time(), 0.0])
+compiles = []
+frames = threading.local()  # per thread: [CPU time at start, CPU seconds of nested compiles] of open compiles
 
-        def on_end(self, event: ev.Event) -> None:
-            began, nested = frames.open.pop()
-            spent = time.thread_time() - began
-            if frames.open:
-                frames.open[-1][1] += spent
-            f = event.data["dispatcher"].py_func
-            compiles.append(
-                {"kernel": f"{f.__module__}.{f.__qualname__}", "cpu_s": spent - nested, "end": time.monotonic()}
-            )
 
-    ev.register("numba:compile", Compiles())
-    atexit.register(lambda: Path(records).write_text(json.dumps(compiles)))
-    from hmdrt.cli import main
+class Compiles(ev.Listener):
+    def on_start(self, event):
+        if not hasattr(frames, "open"):
+            frames.open = []
+        frames.open.append([time.thread_time(), 0.0])
 
-    return main(argv)
+    def on_end(self, event):
+        began, nested = frames.open.pop()
+        spent = time.thread_time() - began
+        if frames.open:
+            frames.open[-1][1] += spent
+        f = event.data["dispatcher"].py_func
+        kernel = f"{f.__module__}.{f.__qualname__}"
+        compiles.append({"kernel": kernel, "cpu_s": spent - nested, "end": time.monotonic()})
+
+
+ev.register("numba:compile", Compiles())
+record = Path(os.environ["HMDRT_COMPILES"], f"{os.getpid()}.json")
+atexit.register(lambda: record.write_text(json.dumps({"argv": sys.argv, "compiles": compiles})))
+"""
 
 
 def first_start(config: str, duration_s: float) -> dict:
     """One run of `config` from an empty numba cache: seconds to the first VSync, the start-up's steps (the
     "started:" line's, and the time before them), and the kernels compiled."""
     with tempfile.TemporaryDirectory(prefix="hmdrt-first-start-") as folder:
-        records = Path(folder, "compiles.json")
-        command = [sys.executable, __file__, "--child", str(records), "run", config, "--duration", str(duration_s)]
+        site, records = Path(folder, "site"), Path(folder, "compiles")
+        site.mkdir()
+        records.mkdir()
+        (site / "sitecustomize.py").write_text(RECORDER)
+        command = [sys.executable, "-m", "hmdrt", "run", config, "--duration", str(duration_s)]
         command += ["--report", str(Path(folder, "report.json"))]
-        env = {**os.environ, "NUMBA_CACHE_DIR": str(Path(folder, "numba"))}
+        paths = os.pathsep.join(p for p in (str(site), os.environ.get("PYTHONPATH")) if p)
+        env = {**os.environ, "NUMBA_CACHE_DIR": str(Path(folder, "numba")), "PYTHONPATH": paths}
+        env["HMDRT_COMPILES"] = str(records)
         load = os.getloadavg()[0]
         began = time.monotonic()
         proc = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
@@ -87,7 +95,9 @@ def first_start(config: str, duration_s: float) -> dict:
         proc.stdout.read()
         if proc.wait(timeout=duration_s + 120) != 0 or started is None:
             raise SystemExit(f"hmdrt run {config} failed (exit {proc.returncode}): {line.strip()!r}")
-        compiles = json.loads(records.read_text())
+        processes = {int(f.stem): json.loads(f.read_text()) for f in records.glob("*.json")}
+    compiles = processes.pop(proc.pid)["compiles"]  # the compositor's; the rest are processes it started
+    aside = [record for p in processes.values() for record in p["compiles"]]
     steps = {}
     for part in line.split("started: ", 1)[1].split(";", 1)[0].split(", "):
         found = STEP.fullmatch(part.strip())
@@ -97,12 +107,16 @@ def first_start(config: str, duration_s: float) -> dict:
     kernels: dict[str, list[float]] = defaultdict(list)
     for record in compiles:
         kernels[record["kernel"]].append(record["cpu_s"])
+    for record in aside:
+        kernels[record["kernel"] + " (second process)"].append(record["cpu_s"])
     return {
         "load_average": load,
         "first_vsync_s": started - began + FIRST_PRESENT_S,
         "steps_s": {"before the steps (interpreter, imports, scene and tracer set-up)": before, **steps},
         "compiles": len(compiles),
         "compile_cpu_s": sum(r["cpu_s"] for r in compiles),
+        "aside_compiles": len(aside),
+        "aside_cpu_s": sum(r["cpu_s"] for r in aside),
         "after_first_vsync": sorted({r["kernel"] for r in compiles if r["end"] > started}),
         "kernels": sorted(([k, sum(s), len(s)] for k, s in kernels.items()), key=lambda k: -k[1]),
     }
@@ -113,15 +127,17 @@ def show(run: dict, top: int) -> None:
     for what, seconds in run["steps_s"].items():
         print(f"    {seconds:5.1f} s  {what}")
     late = ", ".join(run["after_first_vsync"]) or "none"
-    print(f"  {run['compiles']} compiles, {run['compile_cpu_s']:.1f} s of CPU; after the first VSync: {late}")
+    print(
+        f"  {run['compiles']} compiles in the compositor, {run['compile_cpu_s']:.1f} s of CPU; "
+        f"{run['aside_compiles']} in a second process, {run['aside_cpu_s']:.1f} s; "
+        f"in the compositor after the first VSync: {late}"
+    )
     print(f"  the {top} longest, CPU seconds without the kernels each compiled on the way (xN: N signatures):")
     for kernel, seconds, signatures in run["kernels"][:top]:
         print(f"    {seconds:5.2f}  {kernel}" + (f" x{signatures}" if signatures > 1 else ""))
 
 
 def main() -> None:
-    if len(sys.argv) > 2 and sys.argv[1] == "--child":
-        raise SystemExit(child(sys.argv[2], sys.argv[3:]))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default="configs/default.toml")
     ap.add_argument("--duration", type=float, default=2.0, help="seconds the compositor runs after its start")
