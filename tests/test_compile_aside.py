@@ -34,6 +34,26 @@ print(sum(_trace_blocks.stats.cache_hits.values()), sum(_trace_blocks.stats.cach
 """
 
 
+ONE_SIGNATURE = """
+from hmdrt.api import render_frame
+from hmdrt.scene import load_scene
+from hmdrt.trace.wavefront import _trace_blocks
+
+for scene in ("whitted", "interior"):
+    for method in ("rrm", "kim21", "weier16", "weier18"):
+        render_frame(load_scene(scene), "sim-cpu", method, resolution=(32, 36), threads=1)
+print(len(_trace_blocks.signatures))
+"""
+
+
+def test_the_tracer_has_one_signature_whatever_the_scene_and_the_method() -> None:
+    """What lets the second process compile the tracer on the built-in scene for any config: in a process of its own
+    (the suite's may have traced otherwise), four methods on two scenes use one compiled version."""
+    run = subprocess.run([sys.executable, "-c", ONE_SIGNATURE], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split()[-1] == "1"
+
+
 @pytest.mark.slow
 def test_the_tracer_compiled_aside_is_loaded_by_the_warm_up_not_compiled(tmp_path) -> None:
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
