@@ -166,6 +166,17 @@ def _lerp(builder: ir.IRBuilder, a: ir.Value, b: ir.Value, t: ir.Value) -> ir.Va
     return builder.call(fmuladd, [t, builder.fsub(b, a), a])
 
 
+def _prefetch(builder: ir.IRBuilder, data: ir.Value, index: ir.Value) -> None:
+    """A hint to bring the cache line of element `index` of data into every cache level (llvm.prefetch: a read,
+    locality 3, data); it never faults, so an index past the image is harmless."""
+    i8p = ir.IntType(8).as_pointer()
+    prefetch = cgutils.get_or_insert_function(
+        builder.module, ir.FunctionType(ir.VoidType(), [i8p, _I32, _I32, _I32]), "llvm.prefetch.p0i8"
+    )
+    address = builder.bitcast(builder.gep(data, [index]), i8p)
+    builder.call(prefetch, [address, ir.Constant(_I32, 0), ir.Constant(_I32, 3), ir.Constant(_I32, 1)])
+
+
 def _vector_at(builder: ir.IRBuilder, data: ir.Value, index: ir.Value, lanes: int) -> ir.Value:
     """A pointer to `lanes` float32 from element `index` of data, for one unaligned load or store."""
     return builder.bitcast(builder.gep(data, [index]), ir.VectorType(ir.FloatType(), lanes).as_pointer())
@@ -178,8 +189,11 @@ def _make_bilerp(pairs: bool) -> object:
 
     pairs: the image is at least two pixels wide and each row's two texels are loaded as four floats from k and
     from k + 2 (a texel and the next one's red; the first one's blue and the next texel), four loads that never
-    reach past the right texel, then one shuffle. Otherwise each texel is loaded as three floats (x86 takes two
-    loads for three), which 1-pixel-wide images need (step_x 0)."""
+    reach past the right texel, then one shuffle; and the texel a row below the lower one is prefetched, the one
+    the next target row reads. A target row's footprints cross 15-20 texel rows where the turned rows bend, each
+    crossing a new stream that the hardware prefetcher takes a few misses to find: on the AMD EPYC the prefetch took
+    both eyes at 640x720 from 3.2-3.9 to 2.3-2.5 ms on one thread. Otherwise each texel is loaded as three floats
+    (x86 takes two loads for three), which 1-pixel-wide images need (step_x 0)."""
 
     def signature(typingctx, image, out, k, j, step_x, step_y, ax, ay):
         def codegen(context, builder, sig, args):
@@ -189,6 +203,7 @@ def _make_bilerp(pairs: bool) -> object:
             lower = builder.add(k, step_y)
             if pairs:
                 two = ir.Constant(ir.IntType(64), 2)
+                _prefetch(builder, src, builder.add(lower, step_y))
                 top, top_right = (
                     builder.load(_vector_at(builder, src, i, 4), align=4) for i in (k, builder.add(k, two))
                 )
