@@ -66,8 +66,62 @@ def test_the_tracer_compiled_aside_is_loaded_by_the_warm_up_not_compiled(tmp_pat
     assert run.stdout.split() == ["1", "0"]  # one load from the cache, no compile
 
 
+PARTS = """
+from hmdrt.scene import load_scene
+from hmdrt.trace.integrator import Whitted
+
+with Whitted(load_scene("whitted"), threads=1) as tracer:
+    tracer.compile_part(0)
+    tracer.compile_part(1)
+"""
+
+TRACE = """
+import numba.core.event as ev
+
+compiled = []
+
+
+class Compiles(ev.Listener):
+    def on_start(self, event):
+        pass
+
+    def on_end(self, event):
+        f = event.data["dispatcher"].py_func
+        compiled.append(f"{f.__module__}.{f.__qualname__}")
+
+
+ev.register("numba:compile", Compiles())
+from hmdrt.trace import compile_aside
+
+compile_aside.main([])
+print(" ".join(sorted({name for name in compiled if name.startswith("hmdrt.")})))
+"""
+
+
+@pytest.mark.slow
+def test_the_two_parts_are_every_kernel_the_tracer_calls(tmp_path) -> None:
+    """Once both parts of the steps' kernels are in the cache, the tracer compiles itself and nothing it calls: the
+    parts run the steps with the types the tracer does (a literal argument types as itself, not as an int)."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    parts = subprocess.run([sys.executable, "-c", PARTS], env=env, capture_output=True, text=True, timeout=600)
+    assert parts.returncode == 0, parts.stderr
+    run = subprocess.run([sys.executable, "-c", TRACE], env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["hmdrt.kernels.schedule.claim", "hmdrt.trace.wavefront._trace_blocks"]
+
+
+def test_a_part_then_the_tracer_once_the_caller_releases_the_process() -> None:
+    """--part compiles (here: loads) its part, then waits for its input to close before it traces."""
+    command = [sys.executable, "-m", compile_aside.__name__, "--part", "0"]
+    process = subprocess.Popen(command, stdin=subprocess.PIPE)
+    with pytest.raises(subprocess.TimeoutExpired):
+        process.wait(8)  # waiting for the caller's part (with a warm cache it would have traced by now)
+    compile_aside.release(process)
+    assert process.wait(120) == 0
+
+
 def test_no_process_when_the_cache_holds_the_tracer() -> None:
-    compile_aside.main()  # compiled in this process, or loaded from its cache
+    compile_aside.main([])  # compiled in this process, or loaded from its cache
     assert compile_aside.cached()
     assert compile_aside.start() is None
     with Whitted(load_scene("whitted"), threads=1, aside=True) as tracer:

@@ -42,7 +42,8 @@ def test_the_end_of_a_run_states_targets_and_verdicts_and_never_none(tmp_path, c
     config = write_config(tmp_path / "run.toml", method="full", eyes="left", drivers=[])
     assert main(["run", str(config), "--frames", "4", "--virtual-time"]) == 0
     first, last = capsys.readouterr().out.strip().splitlines()
-    assert "started: compiling full's kernels and the timewarp" in first and "connecting drivers" in first
+    assert "started: setting up the scene and the tracer" in first
+    assert "compiling full's kernels and the timewarp" in first and "connecting drivers" in first
     assert "miss rate 0.0% (target <= 5%: met)" in last  # the test config's controller's target_miss_rate
     assert "gaze-to-photon p99 n/a (target <= 66.7 ms, 2 periods: n/a)" in last  # no driver: no gaze shown
     assert "None" not in last

@@ -81,6 +81,8 @@ class Compositor:
         server_keys = ServerKeys.load(security.server_key, security.allowed_clients) if security else None
         endpoints = bind_endpoints(configured)
         self.kernel_threads = loops.kernel_threads(config)
+        # on a first run this compiles half of what the tracer calls, while a second process compiles the other half
+        self.startup.step("setting up the scene and the tracer")
         self.session = Session(config)
         self.store = SampleStore()
         self.report = RunReport(self.session.profile.refresh_hz, config.run.warmup_s)

@@ -2,7 +2,11 @@
 compiles everything else (the method's own kernels, the timewarp, a driver's clock fit) on the other core: the
 tracer is 21 s of the 27 s that a first run of the default config compiles (docs/performance.md, "The first run").
 
-    python -m hmdrt.trace.compile_aside
+    python -m hmdrt.trace.compile_aside [--part 0]
+
+The kernels that the tracer's steps call take half of it, and they come in two parts (wavefront.compile_part): with
+--part, the process compiles that part, then waits for its standard input to close, which the caller does once it
+has compiled the other part itself (release), and compiles the tracer around both.
 
 The tracer's kernel has one signature whatever the scene and the method (Frame always carries a G-buffer and a
 light buffer, empty where none is asked for), so tracing a few samples of the built-in `whitted` scene compiles
@@ -13,6 +17,7 @@ process, starts none; a process that fails or outlasts WAIT_S leaves the compile
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
 import subprocess
@@ -21,6 +26,7 @@ import sys
 log = logging.getLogger(__name__)
 
 WAIT_S = 180.0  # the longest a first trace waits for the process (it compiles in about 25 s on these 2 cores)
+PART = 0  # the part of the steps' kernels (wavefront.compile_part) the process compiles; the caller compiles the other
 
 
 def cached() -> bool:
@@ -42,8 +48,8 @@ def start() -> subprocess.Popen | None:
         return None
     try:
         return subprocess.Popen(
-            [sys.executable, "-m", __name__],
-            stdin=subprocess.DEVNULL,
+            [sys.executable, "-m", __name__, "--part", str(PART)],
+            stdin=subprocess.PIPE,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
@@ -52,9 +58,16 @@ def start() -> subprocess.Popen | None:
         return None
 
 
+def release(process: subprocess.Popen) -> None:
+    """Lets `process` go on from its part to the tracer: the caller's part is in the cache, or never will be."""
+    if process.stdin is not None and not process.stdin.closed:
+        process.stdin.close()
+
+
 def finish(process: subprocess.Popen, timeout_s: float = WAIT_S) -> None:
     """Waits for `process` to put the tracer in the cache; one that has not ended within timeout_s is stopped, and
     the caller compiles the tracer itself (as it does when the process failed)."""
+    release(process)
     try:
         code = process.wait(timeout_s)
     except subprocess.TimeoutExpired:
@@ -69,10 +82,15 @@ def stop(process: subprocess.Popen) -> None:
     if process.poll() is None:
         process.kill()
     process.wait()
+    release(process)
 
 
-def main() -> None:
-    """Trace a few samples of the built-in `whitted` scene on one thread: the kernel's types depend on neither."""
+def main(argv: list[str] | None = None) -> None:
+    """Trace a few samples of the built-in `whitted` scene on one thread: the kernel's types depend on neither. With
+    --part, that part of the steps' kernels first, then the tracer once standard input has closed."""
+    ap = argparse.ArgumentParser(prog=f"python -m {__name__}", description=__doc__.splitlines()[0])
+    ap.add_argument("--part", type=int, choices=range(2), help="compile this part first, then wait for stdin to close")
+    args = ap.parse_args(argv)
     import numpy as np
 
     from hmdrt.optics import EyeCamera, get_profile
@@ -85,6 +103,9 @@ def main() -> None:
     camera = EyeCamera.for_eye(profile, Pose.looking([0.0, 1.6, 0.0]), "left")
     xy = np.stack(np.meshgrid(np.arange(8) + 0.5, np.arange(8) + 0.5), -1).reshape(-1, 2).astype(np.float32)
     with Whitted(load_scene("whitted"), threads=1) as tracer:
+        if args.part is not None:
+            tracer.compile_part(args.part)
+            sys.stdin.read()  # until the caller has its part in the cache (release)
         tracer.trace_samples(camera, xy, np.arange(len(xy), dtype=np.int64), FrameStats())
 
 

@@ -22,7 +22,7 @@ from hmdrt.trace import compile_aside, meter
 from hmdrt.trace.gbuffer import GBuffer, LightBuffer
 from hmdrt.trace.lighting import light_plan
 from hmdrt.trace.tracer import Tracer
-from hmdrt.trace.wavefront import Frame, Lane, SceneArgs, lane_empty, trace
+from hmdrt.trace.wavefront import Frame, Lane, SceneArgs, compile_part, lane_empty, trace
 
 RAYS_PER_CHUNK = 1 << 20  # callers that build sample arrays in bands keep a band's rays near this (see chunk)
 MAX_BLOCK = 4096  # samples per block at most: a block's calls cost ~10 us, ~2 ns a sample at this size
@@ -63,6 +63,15 @@ class Whitted:
         # largest level it met (meter.NEED)
         first = MAX_BLOCK * (2 if self.secondary and self.max_depth else 1)
         self._lanes = [self._lane(first) for _ in range(self.tracer.threads)]
+        if self._aside is not None:  # the other part of the steps' kernels, then the second process compiles the tracer
+            try:
+                self.compile_part(1 - compile_aside.PART)
+            finally:
+                compile_aside.release(self._aside)
+
+    def compile_part(self, part: int) -> None:
+        """Part `part` of the kernels the tracer's steps call, compiled or loaded from the cache (compile_part)."""
+        compile_part(self._scene, self._lanes[0], self._no_gbuffer, part)
 
     def _lane(self, capacity: int) -> Lane:
         return lane_empty(capacity, MAX_BLOCK, self.n_point, self.plan.area_total, self.plan.ao_samples)

@@ -23,13 +23,25 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
+from numba import typeof, types
 
 from hmdrt.kernels.jit import inline, serial
 from hmdrt.kernels.schedule import claim
 from hmdrt.optics.camera import eye_direction
 from hmdrt.trace import embree, meter
 from hmdrt.trace.gbuffer import store_block
-from hmdrt.trace.lighting import RayBatch, batch_empty, light_rays_block, shade_block
+from hmdrt.trace.lighting import (
+    RayBatch,
+    _ao_rays,
+    _area_rays,
+    _point_rays,
+    _shade_areas,
+    _shade_finish,
+    _shade_points,
+    batch_empty,
+    light_rays_block,
+    shade_block,
+)
 from hmdrt.trace.secondary import Rays, interaction_block, rays_empty, spawn_block
 from hmdrt.trace.surface import Surface, surface_block, surface_empty
 from hmdrt.trace.tracer import Hits
@@ -187,12 +199,28 @@ def _accumulate(frame, w, rays, radiance, start, count, depth):
 
 
 @inline
-def _store_gbuffer(frame, scene, w, rays, start, count, depth):
+def _store_gbuffer(gbuffer, scene, w, rays, start, count, depth):
     rows = w.rows
     for i in range(count):
         rows[i] = start + rays.owner[i] if depth == 0 or rays.principal[i] else -1
-    attrs = frame.gbuffer.primary if depth == 0 else frame.gbuffer.secondary
+    attrs = gbuffer.primary if depth == 0 else gbuffer.secondary
     store_block(attrs, rows, w.hits.t, w.surf, scene.textured, w.shadow_count, w.kr, w.kt, 0, count)
+
+
+@inline
+def _surface(scene, w, rays, count):
+    surface_block(scene.geometry, scene.materials, rays.directions, w.hits.prim, w.hits.u, w.hits.v, w.surf, 0, count)
+
+
+@inline
+def _light_rays(scene, w, rays, count):
+    light_rays_block(scene.lights, scene.plan, w.surf, rays.key, w.point, w.area, w.ao, 0, count)
+
+
+@inline
+def _interact(scene, w, rays, spawn, count):
+    """The level's hits' reflection and refraction weights and children (when `spawn`); how many hits have any."""
+    return interaction_block(scene.materials, w.surf, rays, spawn, w.kr, w.kt, w.counts, w.spawners, 0, count)
 
 
 @inline
@@ -263,12 +291,10 @@ def _block(scene, frame, lane, start, stop):
         kind = meter.PRIMARY if depth == 0 else meter.SECONDARY
         tally[meter.RAYS_PRIMARY if depth == 0 else meter.RAYS_SECONDARY] += count
         t = meter.tick(tally, clock, kind, t)
-        surface_block(
-            scene.geometry, scene.materials, rays.directions, w.hits.prim, w.hits.u, w.hits.v, w.surf, 0, count
-        )
+        _surface(scene, w, rays, count)
         t = meter.tick(tally, clock, meter.SURFACE, t)
         if n_point + n_area + n_ao:
-            light_rays_block(scene.lights, plan, w.surf, rays.key, w.point, w.area, w.ao, 0, count)
+            _light_rays(scene, w, rays, count)
             t = meter.tick(tally, clock, meter.LIGHTGEN, t)
         if n_point:
             tally[meter.RAYS_SHADOW] += _occlude(scene, packet, w.point, rays, count, n_point, depth)
@@ -286,12 +312,10 @@ def _block(scene, frame, lane, start, stop):
         store = frame.has_gbuffer and depth <= 1
         spawners = 0
         if spawn or store:
-            spawners = interaction_block(
-                scene.materials, w.surf, rays, spawn, w.kr, w.kt, w.counts, w.spawners, 0, count
-            )
+            spawners = _interact(scene, w, rays, spawn, count)
             t = meter.tick(tally, clock, meter.SECONDARY if spawn else meter.GBUFFER, t)
         if store:
-            _store_gbuffer(frame, scene, w, rays, start, count, depth)
+            _store_gbuffer(frame.gbuffer, scene, w, rays, start, count, depth)
             t = meter.tick(tally, clock, meter.GBUFFER, t)
         if not spawn:
             break
@@ -315,6 +339,53 @@ def _trace_blocks(scene, frame, lane, block, counter):
     while b < blocks:
         _block(scene, frame, lane, b * block, min(n, (b + 1) * block))
         b = claim(counter)
+
+
+LITERAL_ZERO = types.literal(0)  # a 0 written at a call site types as itself, and the kernel compiles for that type
+
+
+def _compile(kernel: Callable, *args: object) -> None:
+    """Compiles `kernel` (or loads it from numba's cache) for these arguments' types, a numba type standing for its
+    own (a literal or an omitted argument), without running it."""
+    kernel.compile(tuple(a if isinstance(a, types.Type) else typeof(a) for a in args))
+
+
+def compile_part(scene: SceneArgs, lane: Lane, gbuffer: object, part: int) -> None:
+    """Compiles into numba's cache (or loads from it) the kernels that the steps of a block call, those of a level's
+    first steps (part 0: intersection, surfaces, light rays and G-buffer rows, about 6 s of a first run's CPU) or of
+    its last ones (part 1: occlusion, shading, interactions and spawning, about 6.5 s), each with the argument types
+    _block calls it with, here from the scene's arguments, a lane's scratch and a G-buffer. Two processes compile the
+    two parts side by side on a first run, and the tracer's kernel then loads both (hmdrt.trace.compile_aside):
+    calling them from a kernel of its own would have LLVM compile them again in it. A call site's types that differ
+    from these leave that kernel to the tracer's compile; tests/test_compile_aside.py checks that none does."""
+    w, rays, count, zero = lane.work, lane.rays, 0, LITERAL_ZERO
+    lights, plan, mats, surf = scene.lights, scene.plan, scene.materials, w.surf
+    if part == 0:
+        o, d, hits = rays.origins, rays.directions, w.hits
+        _compile(embree.intersect_rays, scene.handle, scene.args, lane.packet, o, d, None, hits, zero, count)
+        _compile(embree.intersect_selected, scene.handle, scene.args, lane.packet, o, d, rays.through, True, hits, 0)
+        _compile(surface_block, scene.geometry, mats, d, hits.prim, hits.u, hits.v, surf, zero, count)
+        _compile(_point_rays, lights, surf, w.point, zero, count)
+        _compile(_area_rays, lights, plan, surf, rays.key, w.area, zero, count)
+        _compile(_ao_rays, plan, surf, rays.key, w.ao, zero, count)
+        attrs = (gbuffer.primary, w.rows, hits.t, surf, scene.textured, w.shadow_count, w.kr, w.kt, zero, count)
+        _compile(store_block, *attrs)
+    elif part == 1:
+        o, d, far, occluded = w.point
+        omitted = (types.Omitted(None), types.Omitted(False))
+        _compile(embree.occluded_rays, scene.handle, scene.args, lane.packet, o, d, far, occluded, 0, 0, *omitted)
+        through = (rays.through, True)
+        _compile(embree.occluded_rays, scene.handle, scene.args, lane.packet, o, d, far, occluded, 0, 0, *through)
+        shading = (mats, surf, rays.directions)
+        _compile(_shade_points, lights, *shading, w.point, w.acc, w.shadow_count, zero, count)
+        _compile(_shade_areas, lights, plan, *shading, w.area, w.acc, w.shadow_count, zero, count)
+        _compile(_shade_finish, plan, mats, surf, w.ao, w.acc, w.local, w.stochastic, zero, count)
+        weights = (w.kr, w.kt)
+        _compile(interaction_block, mats, surf, rays, True, *weights, w.counts, w.spawners, zero, count)
+        _compile(spawn_block, mats, surf, rays, *weights, w.first, 1, lane.children, w.spawners, 0)
+        _compile(rays_empty, zero)  # typing meets _spawn's total at its first value, 0, on the way to int64
+    else:
+        raise ValueError(f"part {part} of the tracer's kernels: there are two, 0 and 1")
 
 
 def trace(
