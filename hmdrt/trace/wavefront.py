@@ -199,28 +199,12 @@ def _accumulate(frame, w, rays, radiance, start, count, depth):
 
 
 @inline
-def _store_gbuffer(gbuffer, scene, w, rays, start, count, depth):
+def _store_gbuffer(frame, scene, w, rays, start, count, depth):
     rows = w.rows
     for i in range(count):
         rows[i] = start + rays.owner[i] if depth == 0 or rays.principal[i] else -1
-    attrs = gbuffer.primary if depth == 0 else gbuffer.secondary
+    attrs = frame.gbuffer.primary if depth == 0 else frame.gbuffer.secondary
     store_block(attrs, rows, w.hits.t, w.surf, scene.textured, w.shadow_count, w.kr, w.kt, 0, count)
-
-
-@inline
-def _surface(scene, w, rays, count):
-    surface_block(scene.geometry, scene.materials, rays.directions, w.hits.prim, w.hits.u, w.hits.v, w.surf, 0, count)
-
-
-@inline
-def _light_rays(scene, w, rays, count):
-    light_rays_block(scene.lights, scene.plan, w.surf, rays.key, w.point, w.area, w.ao, 0, count)
-
-
-@inline
-def _interact(scene, w, rays, spawn, count):
-    """The level's hits' reflection and refraction weights and children (when `spawn`); how many hits have any."""
-    return interaction_block(scene.materials, w.surf, rays, spawn, w.kr, w.kt, w.counts, w.spawners, 0, count)
 
 
 @inline
@@ -291,10 +275,12 @@ def _block(scene, frame, lane, start, stop):
         kind = meter.PRIMARY if depth == 0 else meter.SECONDARY
         tally[meter.RAYS_PRIMARY if depth == 0 else meter.RAYS_SECONDARY] += count
         t = meter.tick(tally, clock, kind, t)
-        _surface(scene, w, rays, count)
+        surface_block(
+            scene.geometry, scene.materials, rays.directions, w.hits.prim, w.hits.u, w.hits.v, w.surf, 0, count
+        )
         t = meter.tick(tally, clock, meter.SURFACE, t)
         if n_point + n_area + n_ao:
-            _light_rays(scene, w, rays, count)
+            light_rays_block(scene.lights, plan, w.surf, rays.key, w.point, w.area, w.ao, 0, count)
             t = meter.tick(tally, clock, meter.LIGHTGEN, t)
         if n_point:
             tally[meter.RAYS_SHADOW] += _occlude(scene, packet, w.point, rays, count, n_point, depth)
@@ -312,10 +298,12 @@ def _block(scene, frame, lane, start, stop):
         store = frame.has_gbuffer and depth <= 1
         spawners = 0
         if spawn or store:
-            spawners = _interact(scene, w, rays, spawn, count)
+            spawners = interaction_block(
+                scene.materials, w.surf, rays, spawn, w.kr, w.kt, w.counts, w.spawners, 0, count
+            )
             t = meter.tick(tally, clock, meter.SECONDARY if spawn else meter.GBUFFER, t)
         if store:
-            _store_gbuffer(frame.gbuffer, scene, w, rays, start, count, depth)
+            _store_gbuffer(frame, scene, w, rays, start, count, depth)
             t = meter.tick(tally, clock, meter.GBUFFER, t)
         if not spawn:
             break
@@ -360,10 +348,11 @@ def compile_part(scene: SceneArgs, lane: Lane, gbuffer: object, part: int) -> No
     from these leave that kernel to the tracer's compile; tests/test_compile_aside.py checks that none does."""
     w, rays, count, zero = lane.work, lane.rays, 0, LITERAL_ZERO
     lights, plan, mats, surf = scene.lights, scene.plan, scene.materials, w.surf
+    embree_args = (scene.handle, scene.args, lane.packet)
     if part == 0:
         o, d, hits = rays.origins, rays.directions, w.hits
-        _compile(embree.intersect_rays, scene.handle, scene.args, lane.packet, o, d, None, hits, zero, count)
-        _compile(embree.intersect_selected, scene.handle, scene.args, lane.packet, o, d, rays.through, True, hits, 0)
+        _compile(embree.intersect_rays, *embree_args, o, d, None, hits, zero, count)
+        _compile(embree.intersect_selected, *embree_args, o, d, rays.through, True, hits, count)
         _compile(surface_block, scene.geometry, mats, d, hits.prim, hits.u, hits.v, surf, zero, count)
         _compile(_point_rays, lights, surf, w.point, zero, count)
         _compile(_area_rays, lights, plan, surf, rays.key, w.area, zero, count)
@@ -372,17 +361,16 @@ def compile_part(scene: SceneArgs, lane: Lane, gbuffer: object, part: int) -> No
         _compile(store_block, *attrs)
     elif part == 1:
         o, d, far, occluded = w.point
-        omitted = (types.Omitted(None), types.Omitted(False))
-        _compile(embree.occluded_rays, scene.handle, scene.args, lane.packet, o, d, far, occluded, 0, 0, *omitted)
-        through = (rays.through, True)
-        _compile(embree.occluded_rays, scene.handle, scene.args, lane.packet, o, d, far, occluded, 0, 0, *through)
+        omitted = (types.Omitted(None), types.Omitted(False))  # select and want, as the first level leaves them
+        _compile(embree.occluded_rays, *embree_args, o, d, far, occluded, count, count, *omitted)
+        _compile(embree.occluded_rays, *embree_args, o, d, far, occluded, count, count, rays.through, True)
         shading = (mats, surf, rays.directions)
         _compile(_shade_points, lights, *shading, w.point, w.acc, w.shadow_count, zero, count)
         _compile(_shade_areas, lights, plan, *shading, w.area, w.acc, w.shadow_count, zero, count)
         _compile(_shade_finish, plan, mats, surf, w.ao, w.acc, w.local, w.stochastic, zero, count)
         weights = (w.kr, w.kt)
         _compile(interaction_block, mats, surf, rays, True, *weights, w.counts, w.spawners, zero, count)
-        _compile(spawn_block, mats, surf, rays, *weights, w.first, 1, lane.children, w.spawners, 0)
+        _compile(spawn_block, mats, surf, rays, *weights, w.first, 1, lane.children, w.spawners, count)
         _compile(rays_empty, zero)  # typing meets _spawn's total at its first value, 0, on the way to int64
     else:
         raise ValueError(f"part {part} of the tracer's kernels: there are two, 0 and 1")
