@@ -11,12 +11,28 @@ shown frame's wake-up to its VSync, in periods: gaze-to-photon less the gaze sam
 the run report's gaze-to-photon p99. Every row sees the same times, so the comparison does not depend on how busy
 the machine was. Planning for the largest of the last W times, a frame exceeds the plan about once in W + 1 frames
 when render times are independent; the margin catches some of those.
+
+    python bench/pacing.py --controller [--frames 1860] [--scales 0.9,1.0,1.1,1.2] [--jitter 0.1] [--seeds 3]
+                           [--plant FILE]
+
+With --controller it judges the budget controller with the pacer instead, on frames whose cost depends on the
+controller's level: it renders the config's first --frames frames in virtual time (the same gaze, frame by frame)
+with the method's knobs at levels 0, 0.5 and 1, the controller off, then replays the config's pacer and controller
+on a virtual clock, frame k at level L costing its work interpolated between those levels, times a scale (a
+real-time run renders the same frames 1.15-1.2x slower than a virtual-time one on these machines,
+docs/performance.md, "Goal 4 on the EPYC") and a log-normal jitter of --jitter
+(one seeded draw per frame). For each scale it prints goal 4's figures: misses, the p99 over VSyncs of the shown
+frame's wake-up to its VSync plus a 250 Hz sample's mean age (the gaze-to-photon p99), and the share of frames at
+level 0.5 or above. Every row sees the same frames, so a control law is judged apart from the machine's noise;
+with --plant the measured frames are written to FILE, or read from it when it exists, so that two versions of the
+controller can be replayed on the very same frames.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import random
 import sys
 from pathlib import Path
 from typing import NamedTuple
@@ -28,11 +44,17 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 
 from hmdrt.clock import VirtualClock  # noqa: E402
 from hmdrt.compositor.clock import VsyncClock  # noqa: E402
-from hmdrt.compositor.config import Bus, load_config  # noqa: E402
+from hmdrt.compositor.config import Bus, RunConfig, load_config  # noqa: E402
+from hmdrt.compositor.controller import make_controller, spans  # noqa: E402
 from hmdrt.compositor.daemon import Compositor  # noqa: E402
 from hmdrt.compositor.pacer import Pacer, pacing_settings, replay_frame  # noqa: E402
+from hmdrt.foveation import METHODS  # noqa: E402
+from hmdrt.scene import load_scene  # noqa: E402
+from hmdrt.trace.integrator import Whitted  # noqa: E402
 
 ANY_PORT = "tcp://127.0.0.1:*"
+LEVELS = (0.0, 0.5, 1.0)  # the controller's levels the plant is measured at
+SAMPLE_AGE_MS = 2.0  # a gaze sample's mean age at wake-up: half the default trace's 4 ms interval (250 Hz)
 
 
 class Timed(Compositor):
@@ -90,14 +112,125 @@ def replay(times: list[int], period_ns: int, settings: dict) -> Replayed:
         misses += missed
         lead_ns += timing.desired_present_ns - timing.wake_ns
         shown.append((present, timing.wake_ns))
-    ages = [
+    ages = _ages(shown, period_ns)
+    p99 = _p99(ages) / period_ns
+    return Replayed(misses / len(times), lead_ns / len(times) / 1e6, 1 - (len(shown) - 1) / len(ages), p99)
+
+
+def _ages(shown: list[tuple[int, int]], period_ns: int) -> list[int]:
+    """For every VSync, how long before it the frame it showed woke: each (present, wake) shown until the next."""
+    return [
         vsync - wake
         for (present, wake), (following, _) in zip(shown, shown[1:], strict=False)
         for vsync in range(present, following, period_ns)
     ]
-    ages.sort()
-    p99 = ages[min(len(ages) - 1, math.ceil(0.99 * len(ages)) - 1)] / period_ns
-    return Replayed(misses / len(times), lead_ns / len(times) / 1e6, 1 - (len(shown) - 1) / len(ages), p99)
+
+
+def _p99(values: list) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, math.ceil(0.99 * len(ordered)) - 1)]
+
+
+def plant(config: RunConfig, frames: int) -> tuple[list[list[int]], int]:
+    """Each frame's work (ns) in virtual time with the method's knobs at each of LEVELS, the controller off, and
+    the display's period."""
+    choice = config.method_choice
+    method = METHODS[choice.name]
+    knobs = spans(method, choice.params)
+    if not knobs:
+        raise SystemExit(f"{choice.name} has no cost knobs: the controller has nothing to replay")
+    times = []
+    for level in LEVELS:
+        options = {**config.method.options, **{k.field: k.at(level, 0.0) for k in knobs}}
+        run = msgspec.structs.replace(config.run, virtual_time=True, frames=frames, duration_s=0.0)
+        at = msgspec.structs.replace(
+            config,
+            bus=Bus(ANY_PORT, ANY_PORT, ANY_PORT),
+            method=msgspec.structs.replace(config.method, options=options),
+            controller=msgspec.structs.replace(config.controller, kind="none"),
+            run=run,
+        )
+        compositor = Timed(at)
+        try:
+            compositor.run()
+            times.append(compositor.times)
+            period = compositor.vsync.period_ns
+        finally:
+            compositor.close()
+        print(
+            f"  level {level:g} ({', '.join(f'{k}={v:g}' for k, v in options.items())}): "
+            f"work p50 {sorted(times[-1])[len(times[-1]) // 2] / 1e6:.1f} ms, p99 {_p99(times[-1]) / 1e6:.1f} ms"
+        )
+    return times, period
+
+
+def cost(times: list[list[int]], k: int, level: float) -> float:
+    """Frame k's work at `level`, interpolated between the two measured levels around it."""
+    upper = min(max(1, next(i for i, at in enumerate(LEVELS) if at >= level)), len(LEVELS) - 1)
+    lo, hi = LEVELS[upper - 1], LEVELS[upper]
+    w = (level - lo) / (hi - lo)
+    return (1 - w) * times[upper - 1][k] + w * times[upper][k]
+
+
+class Plant(msgspec.Struct, frozen=True):
+    """The frames plant() measured: each level's work per frame (ns) and the display's period."""
+
+    levels: tuple[float, ...]
+    times: list[list[int]]
+    period_ns: int
+
+
+def load_plant(config: RunConfig, frames: int, path: str) -> tuple[list[list[int]], int]:
+    """plant()'s frames, read from `path` when it exists, else measured and written there ("": not kept)."""
+    if path and Path(path).exists():
+        try:
+            kept = msgspec.json.decode(Path(path).read_bytes(), type=Plant)
+        except msgspec.ValidationError as exc:
+            raise SystemExit(f"{path}: not a plant this bench wrote: {exc}") from None
+        if kept.levels != LEVELS or len({len(t) for t in kept.times}) != 1:
+            raise SystemExit(f"{path}: measured at levels {kept.levels}, this bench replays {LEVELS}")
+        print(f"  the plant of {path}: {len(kept.times[0])} frames")
+        return kept.times, kept.period_ns
+    times, period = plant(config, frames)
+    if path:
+        Path(path).write_bytes(msgspec.json.encode(Plant(LEVELS, times, period)))
+    return times, period
+
+
+class Controlled(NamedTuple):
+    """What the pacer and the controller made of the plant at one scale."""
+
+    misses: int
+    frames: int
+    p99_periods: float  # gaze-to-photon p99 over VSyncs: wake-up to VSync plus a sample's mean age
+    level_share: float  # frames at level 0.5 or above
+
+
+def replay_controller(
+    config: RunConfig, times: list[list[int]], period_ns: int, scale: float, jitter: float, seed: int
+) -> Controlled:
+    """The config's pacer and controller on the plant: the frame planned when the one before ended is frame k of
+    the plant at that time, at the level the controller then holds; the controller learns of each frame when it is
+    presented, before the next is planned."""
+    vsync = VsyncClock(period_ns, 0)
+    settings = pacing_settings(config.pacing, vsync.period_ns)
+    pacer, clock, rng = Pacer(vsync, **settings), VirtualClock(0), random.Random(seed)
+    with Whitted(load_scene(config.scene)) as tracer:
+        controller = make_controller(config, config.method_choice.make(tracer))
+    if controller is None:
+        raise SystemExit(f"{config.source}: [controller] kind is none: there is no controller to replay")
+    budget = vsync.period_ns - pacer.margin_ns
+    shown, levels, misses = [], [], 0
+    while (k := round(clock.now_ns() / vsync.period_ns)) < len(times[0]):
+        level = controller.level
+        work = round(cost(times, k, level) * scale * rng.lognormvariate(0.0, jitter))
+        timing, present, missed = replay_frame(pacer, clock, work)
+        controller.update(timing.frame_id, work, budget, missed)
+        misses += missed
+        shown.append((present, timing.wake_ns))
+        levels.append(level)
+    p99 = (_p99(_ages(shown, vsync.period_ns)) / 1e6 + SAMPLE_AGE_MS) / (vsync.period_ns / 1e6)
+    return Controlled(misses, len(shown), p99, sum(at >= 0.5 for at in levels) / len(levels))
 
 
 def main() -> None:
@@ -105,7 +238,32 @@ def main() -> None:
     ap.add_argument("--config", default=str(Path(__file__).resolve().parent.parent / "configs" / "default.toml"))
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--windows", default="30,90,150,300,600")
+    ap.add_argument("--controller", action="store_true", help="replay the budget controller on a measured plant")
+    ap.add_argument("--frames", type=int, default=1860)
+    ap.add_argument("--scales", default="0.9,1.0,1.1,1.2")
+    ap.add_argument("--jitter", type=float, default=0.1)
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--plant", default="", help="keep the measured frames in this file, or read them from it")
     args = ap.parse_args()
+    if args.controller:
+        config = load_config(args.config)
+        print(f"{args.config}: {config.method.name} on {config.scene}, {args.frames} frames in virtual time per level")
+        times, period = load_plant(config, args.frames, args.plant)
+        print(
+            f"replayed through the pacer and the {config.controller.kind} controller, jitter {args.jitter:g}, "
+            f"{args.seeds} seeds (misses, gaze-to-photon p99 in periods, frames at level >= 0.5):"
+        )
+        for scale in (float(x) for x in args.scales.split(",")):
+            rows = [replay_controller(config, times, period, scale, args.jitter, seed) for seed in range(args.seeds)]
+            print(
+                f"  work x{scale:g}   "
+                + "   ".join(
+                    f"{r.misses:3d} of {r.frames} ({r.misses / r.frames:.2%}), p99 {r.p99_periods:.2f}, "
+                    f"level {r.level_share:.0%}"
+                    for r in rows
+                )
+            )
+        return
     times, period, settings = measure(args.config, args.duration)
     print(f"replayed through the pacer (margin {settings['margin_ns'] / 1e6:g} ms, period {period / 1e6:.2f} ms):")
     rows = [("filtered mean only", {**settings, "tail_quantile": None})]
