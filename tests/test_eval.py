@@ -197,7 +197,8 @@ def test_paper_tables_are_filled_from_the_labelled_cells_of_each_scene(tmp_path)
     selective, sel_fov = by["whitted", "ahead", "Selective"], by["whitted", "ahead", "Sel_Fov"]
     reuse = by["whitted", "ahead", "Sel_Fov reuse"]
     assert kim[3][12] == f"{sel_fov['speedup_vs_baseline']:.2f}"
-    assert sel_fov["speedup_vs_baseline"] == pytest.approx(selective["ms_per_frame"] / sel_fov["ms_per_frame"], 1e-3)
+    speedup = selective["ms_per_frame"] / sel_fov["ms_per_frame"]
+    assert sel_fov["speedup_vs_baseline"] == pytest.approx(speedup, abs=5e-4)  # kept to 3 decimals
     assert float(kim[3][13]) == pytest.approx(sel_fov["psnr_fovea"] - selective["psnr_fovea"], abs=0.01)
     assert (kim[1][12], kim[1][13]) == ("1.00", "+0.00")  # full against itself
     # reuse against reuse off: its speed-up and what it costs in the fovea
