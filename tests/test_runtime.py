@@ -169,14 +169,17 @@ def test_a_renderer_slower_than_the_period_drops_to_every_other_vsync_and_repeat
     assert any(turned)  # the head moved between render and display: the repeat is not the frame as rendered
 
 
-def test_hold_budget_controller_lowers_the_quality_of_a_renderer_over_budget(hmdrt_config, hmdrt_compositor):
-    config = hmdrt_config(eyes="left", pacing={"render_delay_ms": 40}, controller={"kind": "hold-budget"})
+@pytest.mark.parametrize("foresight", [False, True])
+def test_hold_budget_controller_lowers_the_quality_of_a_renderer_over_budget(hmdrt_config, hmdrt_compositor, foresight):
+    settings = {"kind": "hold-budget", "foresight": foresight}
+    config = hmdrt_config(eyes="left", pacing={"render_delay_ms": 40}, controller=settings)
     comp = hmdrt_compositor(config, frames=60)
     report, _ = run_bounded(comp)
     records = comp.records
     controller = report["controller"]
     levels = [entry["level"] for entry in controller["trajectory"]]
     assert controller["kind"] == "hold-budget" and levels[0] == 1.0
+    assert controller["foresight"] == foresight and ("fit" in controller and "change_ms" in controller) == foresight
     assert len(levels) >= 2 and levels == sorted(levels, reverse=True) and controller["level"] < 1.0
     lowered = controller["trajectory"][-1]["knobs"]
     assert lowered["fovea_deg"] < 10.0 or lowered["group_w"] > 3
@@ -188,8 +191,10 @@ def test_hold_budget_controller_lowers_the_quality_of_a_renderer_over_budget(hmd
     spread = report["controller_level"]
     assert spread["frames"] == len(new_levels) == report["frames"]
     assert spread["share_at_least_half"] == pytest.approx(np.mean([v >= 0.5 for v in new_levels]), abs=1e-5)
-    nearest_rank_p10 = sorted(new_levels)[math.ceil(0.1 * len(new_levels)) - 1]
-    assert spread["p90"] == 1.0 and spread["p10"] == round(nearest_rank_p10, 2)
+    nearest_rank = {q: sorted(new_levels)[math.ceil(q / 100 * len(new_levels)) - 1] for q in (10, 90)}
+    assert spread["p90"] == round(nearest_rank[90], 2) and spread["p10"] == round(nearest_rank[10], 2)
+    # feedback steps down a frame at a time; foresight, which predicts each frame's time, goes to the floor at once
+    assert spread["p90"] == (0.0 if foresight else 1.0) and (controller["trajectory"][1]["frame"] <= 2) == foresight
 
 
 # --- virtual time -----------------------------------------------------------------------------------------------

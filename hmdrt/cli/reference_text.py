@@ -281,6 +281,8 @@ RUN_MEANINGS = {
     "controller.headroom": "the fraction of the budget the render time aims at",
     "controller.widen_latency_ms": "widen the fovea by gaze speed times this tracker latency",
     "controller.accuracy_deg": "and by this tracker accuracy",
+    "controller.foresight": "pick each frame's quality from its predicted render time: a probe of the fovea where "
+    "the gaze is about to be and a model of the rest of the frame (docs/runtime.md); `false`: by feedback alone",
     "output.report": 'the run report JSON (`""`: none, unless `--report`)',
     "output.frames_dir": 'a folder for the presented frames as PNG (`""`: none)',
     "output.video": 'the presented frames as an H.264 video at refresh / `every` fps (`""`: none; needs the '

@@ -101,6 +101,7 @@ class Controller(_Section):
     headroom: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 0.85
     widen_latency_ms: Ms = 0.0  # widen the fovea by gaze speed times this tracker latency
     accuracy_deg: Annotated[float, msgspec.Meta(ge=0.0, le=30.0)] = 0.0  # and by this tracker accuracy
+    foresight: bool = True  # each frame's level from its predicted render time (a probe of the fovea), not feedback
 
 
 class Output(_Section):

@@ -1,14 +1,15 @@
 """The "hold-budget" controller: trades a method's quality for time so that deadline misses stay under a
 configured rate, and widens the fovea for gaze speed and tracker error.
 
-The compositor calls update() once per presented frame. One quality level in [0, 1] drives the method's
-cost knobs (Method.knobs, each method's own declaration): 1 is the parameters the method was configured
-with, 0 a floor from the papers, and each knob moves linearly between the two (integer knobs rounded), so
-every knob is monotonic in the level and one number tells the story in the run report. A floor never asks
+The compositor calls update() once per presented frame (and, with foresight, anticipate() before each frame).
+One quality level in [0, 1] drives the method's cost knobs (Method.knobs, each method's own declaration): 1 is
+the parameters the method was configured with, 0 a floor from the papers, and each knob moves linearly between
+the two (integer knobs rounded), so every knob is monotonic in the level and one number tells the story in the
+run report. A floor never asks
 for more than the configured value: a knob configured below its floor stays where it is. A method without
 knobs (full, regular) is left alone, and the trajectory says so.
 
-Control law, with r = render time / (headroom x budget) per frame:
+Feedback's control law, with r = render time / (headroom x budget) per frame:
 - after a level change, wait settle_frames frames (temporal methods need them to settle); then
 - a miss while more than target_miss_rate of the last miss_window frames missed: lower the level by
   max(miss_step, gain (mean r - aim)), mean r over the last settle_frames frames;
@@ -17,6 +18,16 @@ Control law, with r = render time / (headroom x budget) per frame:
   up_step. Between raise_below and 1 the level holds, so it does not hunt; a drop aims at the middle of
   that band, aim = (1 + raise_below) / 2, so that render-time noise does not push it out again.
 At level 0 the controller can do no more: at_floor is set and the compositor reports the rate achieved.
+
+Foresight (foresight on: the run config's default): feedback learns of a costly frame only once it has missed, and
+the frame that misses is the one whose fovea has just landed on costly content (a saccade onto glass). So before
+each frame is rendered, anticipate() takes a probe's reading of the fovea where the gaze is about to be and the
+cost model's prediction of the frame at every level (hmdrt.compositor.foresight), and renders the frame at the
+highest level predicted within `fit` x headroom x budget, else at the quickest; update() then teaches the model the
+frame's time and rays instead of stepping the level. The level comes back as soon as the fovea is back on cheaper
+content. A miss while misses exceed target_miss_rate tightens the fit by miss_step (down to miss_step), and
+raise_after frames without one ease it back by up_step, up to foresight_fit. A method without a foveal knob has no
+fovea to probe: its controller acts by feedback.
 
 Foveal widening: each foveal radius knob (Knob.foveal) is its level value + gaze speed x widen_latency_ms +
 accuracy_deg, clamped to the field's valid range, so the fovea still covers where the eye is when the frame
@@ -36,9 +47,11 @@ from typing import NamedTuple
 import msgspec
 
 from hmdrt.compositor.config import RunConfig
+from hmdrt.compositor.foresight import GRID, CostModel, Foresight
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.base import Method
 
+FORESEEN = 8  # frames anticipated and not yet learnt of, kept: a frame is learnt of a VSync or two after it is rendered
 # trajectory entries kept after the start, the newest: the `stats` topic sends them every second, and a daemon
 # runs for hours; `changes` counts them all, and every frame record carries the knobs it was rendered with
 LOGGED = 100
@@ -62,6 +75,8 @@ class ControllerConfig:
     up_step: float = 0.05  # one rise
     widen_step_deg: float = 0.5  # the widening rounds up to a multiple of this (0: exact)
     adjust_level: bool = True  # False: the level stays at 1 and only the widening acts (no controller configured)
+    foresight: bool = False  # pick each frame's level from its predicted render time (anticipate), not feedback
+    foresight_fit: float = 0.85  # foresight renders within this fraction of headroom x budget, as predicted
 
     def __post_init__(self) -> None:
         checks = {
@@ -78,6 +93,7 @@ class ControllerConfig:
             "miss_step": 0.0 < self.miss_step <= 1.0,
             "up_step": 0.0 < self.up_step <= 1.0,
             "widen_step_deg": self.widen_step_deg >= 0.0,
+            "foresight_fit": 0.0 < self.foresight_fit <= 1.0,
         }
         bad = [f"{name}={getattr(self, name)}" for name, ok in checks.items() if not ok]
         if bad:
@@ -151,6 +167,22 @@ class BudgetController:
         reason = "start" if self._spans else f"{method.name} has no cost knobs: nothing to tune"
         self.trajectory: list[dict] = [self._entry(None, reason)]
         self.changes = 0  # trajectory entries after the start, also those no longer kept
+        # frame -> its level and foveal radius, the probe's reading, whether its level changed
+        self._foreseen: dict[int, tuple[float, float, Foresight, bool]] = {}
+        self.model = CostModel()
+        self.fit = config.foresight_fit  # what anticipate() renders within; tightened by misses over the target
+        self._budget_ns = 0
+        self._calm = 0  # frames since the last miss or easing of the fit
+
+    @property
+    def foresees(self) -> bool:
+        """Whether anticipate() can act: foresight on, the level adjusted, and a foveal knob to probe around."""
+        return self.config.foresight and self.config.adjust_level and self.fovea_deg is not None
+
+    @property
+    def fovea_deg(self) -> float | None:
+        """The applied value of the method's first foveal knob (its foveal radius), None without one."""
+        return next((self._applied[s.field] for s in self._spans if s.foveal), None)
 
     @property
     def level(self) -> float:
@@ -170,11 +202,13 @@ class BudgetController:
         missed: bool,
         gaze_speed_deg_s: float | None = None,
         extra_widen_deg: float = 0.0,
+        rays: int = 0,
     ) -> dict[str, float] | None:
         """Take one presented frame's render time against its budget; the knob values applied from the
         next frame on, or None when they stay. gaze_speed_deg_s None (or not finite): unknown, no widening
-        for speed; extra_widen_deg widens the fovea further (a silent tracker, hmdrt.compositor.fallback).
-        The trajectory lists every level change and refusal (frame, level, knobs, reason)."""
+        for speed; extra_widen_deg widens the fovea further (a silent tracker, hmdrt.compositor.fallback);
+        rays: the frame's rays, for foresight. The trajectory lists every level change and refusal (frame,
+        level, knobs, reason)."""
         if not self._spans:
             return None
         if budget_ns <= 0:
@@ -182,9 +216,65 @@ class BudgetController:
         self._ratios.append(render_ns / (self.config.headroom * budget_ns))
         self._misses.append(missed)
         self._since_change += 1
-        step, reason = self._decide(missed)
-        level = min(max(self._level + step, 0.0), 1.0)
+        self._budget_ns = budget_ns
         widen = self._widening(gaze_speed_deg_s, extra_widen_deg)
+        if self.foresees:
+            foreseen = self._foreseen.pop(frame_id, None)
+            if foreseen is not None:
+                self.model.learn(foreseen[0], foreseen[1], render_ns, rays, foreseen[2], foreseen[3])
+            self._tighten(missed)
+            return self._move(frame_id, self._level, "", widen)
+        step, reason = self._decide(missed)
+        return self._move(frame_id, self._level + step, reason, widen)
+
+    def anticipate(self, frame_id: int, fore: Foresight) -> dict[str, float] | None:
+        """Before frame `frame_id` is rendered, what the probe read of its fovea: the highest level of the grid whose
+        predicted render time (with what a change costs, for a level other than the held one) is within `fit` of the
+        target, else the quickest (module docstring, "Foresight"); the knob values it is rendered with when they
+        change, else None."""
+        if not self.foresees:
+            return None
+        held, level, reason = self._level, self._level, ""
+        ahead = self._ahead(fore) if self._budget_ns else {}
+        if ahead:
+            target = self.fit * self.config.headroom * self._budget_ns
+            fits = [at for at, ns in ahead.items() if ns <= target]
+            level = max(fits) if fits else min(ahead, key=lambda at: (ahead[at], -at))
+            reason = f"foresight: {ahead[level] / 1e6:.1f} ms ahead at this level"
+        values = self._move(frame_id, level, reason, self.widen_deg)
+        self._foreseen[frame_id] = (self._level, self.fovea_deg, fore, self._level != held)
+        while len(self._foreseen) > FORESEEN:
+            del self._foreseen[next(iter(self._foreseen))]
+        return values
+
+    def _ahead(self, fore: Foresight) -> dict[float, float]:
+        """Each level of the grid's predicted render time (ns), a change's cost added to every level but the held one;
+        empty before the model has learnt a frame."""
+        radius = next(s for s in self._spans if s.foveal)
+        change = self.model.change_ns
+        ahead = {}
+        for i in range(GRID + 1):
+            at = i / GRID
+            ns = self.model.predict(at, fore, radius.at(at, self.widen_deg))
+            if math.isnan(ns):
+                return {}
+            ahead[at] = ns + (0.0 if at == self._level else change)
+        return ahead
+
+    def _tighten(self, missed: bool) -> None:
+        """Foresight's fit: tightened by miss_step on a miss while misses exceed the target rate, eased back by
+        up_step after raise_after frames without one."""
+        c = self.config
+        window = list(islice(reversed(self._misses), c.miss_window))
+        if missed and sum(window) / len(window) > c.target_miss_rate:
+            self.fit, self._calm = max(self.fit - c.miss_step, c.miss_step), 0
+        elif self._calm >= c.raise_after and self.fit < c.foresight_fit:
+            self.fit, self._calm = min(self.fit + c.up_step, c.foresight_fit), 0
+        self._calm = 0 if missed else self._calm + 1
+
+    def _move(self, frame_id: int, level: float, reason: str, widen: float) -> dict[str, float] | None:
+        """Apply `level` (clamped to [0, 1]) and the widening: the knob values when they change, else None."""
+        level = min(max(level, 0.0), 1.0)
         values = self._values(level, widen)
         if values == self._refused:
             return None  # neither the level nor the widening is taken while the method refuses its knobs
@@ -278,6 +368,7 @@ def make_controller(config: RunConfig, method: Method) -> BudgetController | Non
         headroom=c.headroom,
         widen_latency_ms=c.widen_latency_ms,
         accuracy_deg=c.accuracy_deg,
+        foresight=c.foresight,
     )
     return BudgetController(method, settings)
 

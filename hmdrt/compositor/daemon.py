@@ -184,7 +184,7 @@ class Compositor:
             if record.shown != "repeat":
                 if self._paced:
                     self.pacer.presented(record.frame_id, record.actual_present_ns)
-                self.builder.presents.append((record.frame_id, record.frame_ms, record.missed))
+                self.builder.presents.append((record.frame_id, record.frame_ms, record.missed, record.rays))
             self.report.add(record)
         self.shown_images = images
         shown = Shown(record, images, self.display.last)
@@ -196,7 +196,7 @@ class Compositor:
             if self._paced:
                 self.pacer.presented(frame.timing.frame_id, t_vsync)
             self.report.drop(t_vsync)
-        self.builder.presents.append((frame.timing.frame_id, frame.frame_ms, True))
+        self.builder.presents.append((frame.timing.frame_id, frame.frame_ms, True, frame.rays))
 
     # --- running --------------------------------------------------------------------------------------------------
 

@@ -1,8 +1,9 @@
 """One frame's work on the render thread, from its wake-up to the Frame handed to the display: gaze and head pose
 predicted for the frame's display time from what has arrived (hmdrt.compositor.samples), with the fallback for a
 silent gaze tracker (hmdrt.compositor.fallback); a step of the budget controller on the frames shown or dropped since
-the last (hmdrt.compositor.controller); and the method's render (hmdrt.compositor.session). Also what a repeated
-frame is warped to: the eye cameras at the head pose predicted for its VSync.
+the last (hmdrt.compositor.controller), and its foresight of this one (a probe of the fovea where the gaze is about to
+be, hmdrt.compositor.foresight); and the method's render (hmdrt.compositor.session). Also what a repeated frame is
+warped to: the eye cameras at the head pose predicted for its VSync.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from hmdrt.compositor.config import RunConfig
 from hmdrt.compositor.controller import BudgetController
 from hmdrt.compositor.display import Frame
 from hmdrt.compositor.fallback import Outages
+from hmdrt.compositor.foresight import FovealProbe
 from hmdrt.compositor.pacer import FrameTiming, Pacer
 from hmdrt.compositor.samples import GazeEstimate, PoseEstimate, SampleStore
 from hmdrt.compositor.session import Session
@@ -36,7 +38,7 @@ def sample_use(estimate: GazeEstimate | PoseEstimate | None) -> SampleUse | None
 @dataclass(eq=False)
 class FrameBuilder:
     """Builds the frames; `config` and `controller` are the compositor's to set (at start and on a reload), and
-    `presents` takes (frame id, frame ms, missed) of each frame shown new or dropped, from the display thread."""
+    `presents` takes (frame id, frame ms, missed, rays) of each frame shown new or dropped, from the display thread."""
 
     config: RunConfig
     session: Session
@@ -45,7 +47,11 @@ class FrameBuilder:
     clock: Clock
     pacer: Pacer
     controller: BudgetController | None = None
-    presents: deque[tuple[int, float, bool]] = field(default_factory=deque)
+    presents: deque[tuple[int, float, bool, int]] = field(default_factory=deque)
+    probe: FovealProbe = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.probe = FovealProbe(self.session.tracer)
 
     def estimates(self, t_display: int, now: int) -> tuple[GazeEstimate | None, PoseEstimate | None, float]:
         """Gaze and pose for the display time, and the fallback's foveal widening in degrees: while the gaze
@@ -72,6 +78,11 @@ class FrameBuilder:
         gaze, pose, widen_deg = self.estimates(timing.predicted_display_ns, woke)
         self.tune(None if gaze is None else gaze.speed_deg_s, widen_deg)
         stats = FrameStats()
+        if self.controller is not None and self.controller.foresees:
+            with stats.stage("foresight"):
+                cameras = self.session.cameras_for(pose)
+                fore = self.probe.read(cameras, self.session.directions(gaze)[0], self.controller.fovea_deg)
+                self.controller.anticipate(timing.frame_id, fore)
         start = self.clock.now_ns()
         delay = int(self.config.pacing.render_delay_ms * 1e6)
         images, cameras, render_ns = self.session.render(
@@ -105,7 +116,7 @@ class FrameBuilder:
         (also in virtual time) against one period less the margin, the budget of the display's own rate; it
         widens the fovea for the gaze speed of the frame about to be rendered and the fallback's widen_deg."""
         while self.presents:  # only the render thread takes from it: not empty stays not empty
-            frame_id, frame_ms, missed = self.presents.popleft()
+            frame_id, frame_ms, missed, rays = self.presents.popleft()
             if self.controller is None:
                 continue
             self.controller.update(
@@ -115,4 +126,5 @@ class FrameBuilder:
                 missed,
                 gaze_speed_deg_s,
                 widen_deg,
+                rays,
             )

@@ -16,7 +16,7 @@ import numpy as np
 
 from hmdrt.compositor.buffers import BufferPool
 from hmdrt.compositor.config import RunConfig
-from hmdrt.compositor.samples import PoseEstimate
+from hmdrt.compositor.samples import GazeEstimate, PoseEstimate
 from hmdrt.errors import ConfigError
 from hmdrt.foveation import MethodChoice
 from hmdrt.foveation.base import EYES, Method
@@ -104,10 +104,7 @@ class Session:
         """The eyes' images for a gaze and head-pose estimate (None: straight ahead, the scene's
         start pose), the eye cameras they were rendered with, and the nanoseconds the method's render took
         (with delay_ns of sleep added: a slower renderer, for tests and benchmarks)."""
-        if gaze is None:
-            directions, depth = {"left": AHEAD, "right": AHEAD}, None
-        else:
-            directions, depth = {"left": gaze.left, "right": gaze.right}, gaze.depth_m
+        directions, depth = self.directions(gaze)
         frame = FrameInput(frame_id, 0, self.head(pose), directions, depth)
         cameras = self.cameras_for(pose)
         images, start = [], time.perf_counter_ns()
@@ -118,6 +115,13 @@ class Session:
                 time.sleep(delay_ns / 1e9)
         took = time.perf_counter_ns() - start
         return images, cameras, took
+
+    @staticmethod
+    def directions(gaze: GazeEstimate | None) -> tuple[dict[str, np.ndarray], float | None]:
+        """Each eye's gaze direction (head frame) and the vergence depth of a gaze estimate (None: straight ahead)."""
+        if gaze is None:
+            return {"left": AHEAD, "right": AHEAD}, None
+        return {"left": gaze.left, "right": gaze.right}, gaze.depth_m
 
     def head(self, pose: PoseEstimate | None) -> Pose:
         """The head in the scene at a pose estimate, which is relative to where its trace started (None: the scene's

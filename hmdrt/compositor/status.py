@@ -167,7 +167,11 @@ def summary(comp: Parts) -> dict:
             "target_miss_rate": config.controller.target_miss_rate,
             "level": controller.level,
             "at_floor": controller.at_floor,
+            "foresight": controller.foresees,
             "changes": controller.changes,
             "trajectory": list(controller.trajectory),
         }
+        if controller.foresees:  # what its predictions are held to now, and what a change of level has cost
+            report["controller"]["fit"] = round(controller.fit, 3)
+            report["controller"]["change_ms"] = round(controller.model.change_ns / 1e6, 3)
     return report
