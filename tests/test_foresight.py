@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hmdrt.compositor.controller import BudgetController, ControllerConfig
-from hmdrt.compositor.foresight import GRID, CostModel, Foresight, FovealProbe
+from hmdrt.compositor.foresight import GRID, STALE, CostModel, Foresight, FovealProbe
 from hmdrt.foveation import make_method
 from hmdrt.foveation.stages.sampling import pixels_per_degree
 from hmdrt.optics import EyeCamera, get_profile
@@ -126,6 +126,16 @@ def test_a_change_of_level_costs_what_it_has_cost_beyond_the_prediction():
     assert model.change_ns == pytest.approx(5_000_000)
 
 
+def test_a_level_left_long_ago_gives_way_to_the_fresh_ones():
+    model, fore = CostModel(), Foresight(1.0, 1000, 10.0)
+    model.learn(1.0, 10.0, 90_000_000, 10_000, fore, False)  # a warm-up frame: 9000 ns a ray
+    for _ in range(STALE - 1):
+        model.learn(0.0, 10.0, 10_000_000, 10_000, fore, False)
+    stale = model.predict(1.0, fore, 10.0)
+    model.learn(0.0, 10.0, 10_000_000, 10_000, fore, False)
+    assert stale > 20_000_000 and model.predict(1.0, fore, 10.0) == pytest.approx(model.predict(0.0, fore, 10.0))
+
+
 class Frames:
     """A foresighted controller over real rrm, fed frames whose cost is rays x 1000 ns: its fovea's pixels at the
     level's radius times the rays per pixel of where the gaze is, plus a rest that falls with the level."""
@@ -140,14 +150,14 @@ class Frames:
         fore = Foresight(rays_per_pixel, round(100 * radius**2), radius)
         return fore, round(5000 + 10_000 * self.ctl.level + fore.rays(radius))
 
-    def feed(self, rays_per_pixel: float, missed: bool = False) -> float:
-        """One frame: the probe reads the fovea, the controller picks the level, the frame is rendered and learnt
-        of; the level it was rendered at."""
+    def feed(self, rays_per_pixel: float, missed: bool = False, scale: float = 1.0) -> float:
+        """One frame: the probe reads the fovea, the controller picks the level, the frame is rendered (in `scale` x
+        its time) and learnt of; the level it was rendered at."""
         radius = self.method.params.fovea_deg
         self.ctl.anticipate(self.frame, Foresight(rays_per_pixel, round(100 * radius**2), radius))
         fore, rays = self.rays(rays_per_pixel)
         self.levels.append(self.ctl.level)
-        self.ctl.update(self.frame, rays * 1000, BUDGET_NS, missed, rays=rays)
+        self.ctl.update(self.frame, round(rays * 1000 * scale), BUDGET_NS, missed, rays=rays)
         self.frame += 1
         return self.levels[-1]
 
@@ -168,6 +178,18 @@ def test_a_landing_on_costly_content_lowers_the_level_before_its_frame_and_leavi
     for _ in range(3):
         f.feed(4.0)
     assert f.feed(1.0) == calm  # back on the floor: the level it held there, at once
+
+
+def test_a_slow_start_does_not_hold_the_level_down(tracer):
+    """The warm-up's first frames take several times their due (compiles, a watcher connecting): the levels left then
+    are predicted afresh once STALE frames have passed, and the level climbs back."""
+    f = Frames(tracer)
+    for _ in range(20):
+        f.feed(1.0, scale=4.0)
+    assert f.levels[-1] == 0.0
+    for _ in range(STALE + 30):
+        f.feed(1.0)
+    assert f.levels[-1] >= 0.6
 
 
 def test_misses_over_the_target_tighten_the_fit_and_calm_frames_ease_it_back(tracer):

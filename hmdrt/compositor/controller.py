@@ -25,7 +25,7 @@ each frame is rendered, anticipate() takes a probe's reading of the fovea where 
 cost model's prediction of the frame at every level (hmdrt.compositor.foresight), and renders the frame at the
 highest level predicted within `fit` x headroom x budget, else at the quickest; update() then teaches the model the
 frame's time and rays instead of stepping the level. The level comes back as soon as the fovea is back on cheaper
-content. A miss while misses exceed target_miss_rate tightens the fit by miss_step (down to miss_step), and
+content. A miss while misses exceed target_miss_rate tightens the fit by miss_step (to half foresight_fit), and
 raise_after frames without one ease it back by up_step, up to foresight_fit. A method without a foveal knob has no
 fovea to probe: its controller acts by feedback.
 
@@ -262,12 +262,12 @@ class BudgetController:
         return ahead
 
     def _tighten(self, missed: bool) -> None:
-        """Foresight's fit: tightened by miss_step on a miss while misses exceed the target rate, eased back by
-        up_step after raise_after frames without one."""
+        """Foresight's fit: tightened by miss_step on a miss while misses exceed the target rate (to half of
+        foresight_fit at most), eased back by up_step after raise_after frames without one."""
         c = self.config
         window = list(islice(reversed(self._misses), c.miss_window))
         if missed and sum(window) / len(window) > c.target_miss_rate:
-            self.fit, self._calm = max(self.fit - c.miss_step, c.miss_step), 0
+            self.fit, self._calm = max(self.fit - c.miss_step, c.foresight_fit / 2), 0
         elif self._calm >= c.raise_after and self.fit < c.foresight_fit:
             self.fit, self._calm = min(self.fit + c.up_step, c.foresight_fit), 0
         self._calm = 0 if missed else self._calm + 1

@@ -34,6 +34,7 @@ from hmdrt.trace.integrator import Whitted
 GRID = 20  # levels the model knows: 0, 1 / GRID, ..., 1
 SMOOTHING = 0.3  # weight of the newest frame in the model's running means
 SLOW = 0.02  # and in the covariance that tells a foveal ray's cost apart (a landing or two a second)
+STALE = 300  # frames after which a level's rest gives way to its fresher neighbours' (10 s at 30 Hz)
 SPREAD = 0.1  # the foveal rays' spread about their level's mean, relative to their size, that a slope needs
 
 
@@ -106,6 +107,9 @@ class CostModel:
 
     def __init__(self) -> None:
         self._rest = [math.nan] * (GRID + 1)  # ns of what is not the fovea's rays, per level
+        self._learnt = [-STALE] * (GRID + 1)  # when each level's rest was last learnt, in frames learnt
+        self._frames = 0
+        self._fresh: tuple[int, list[bool]] = (-1, [])
         self._fovea = [math.nan] * (GRID + 1)  # mean foveal rays per level, for the covariance below
         self._time = [math.nan] * (GRID + 1)  # mean render ns per level
         self._cov = self._var = math.nan  # of render time and foveal rays about their level's means
@@ -146,18 +150,25 @@ class CostModel:
         self._fovea[i] = _running(self._fovea[i], fovea)
         self._time[i] = _running(self._time[i], render_ns)
         self._rest[i] = _running(self._rest[i], render_ns - self.ns_per_foveal_ray * fovea)
+        self._frames += 1
+        self._learnt[i] = self._frames
 
     def predict(self, level: float, fore: Foresight, radius_deg: float) -> float:
         """Nanoseconds a frame at `level` with a foveal radius of radius_deg would take where the probe read `fore`;
-        NaN before any frame is learnt. The rest at a level not yet seen is taken from the levels around it
-        (interpolated, or the nearest)."""
+        NaN before any frame is learnt. The rest at a level not seen in the last STALE frames is taken from the
+        levels around it that were (interpolated, or the nearest): a level left long ago (the warm-up's slow frames,
+        a busier machine) must not hold the controller below it."""
         return self._rest_at(round(level * GRID)) + self.ns_per_foveal_ray * fore.rays(radius_deg)
 
     def _rest_at(self, i: int) -> float:
-        if not math.isnan(self._rest[i]):
+        if self._fresh[0] != self._frames:  # which levels are fresh changes only when a frame is learnt
+            rests = zip(self._rest, self._learnt, strict=True)
+            self._fresh = (self._frames, [not math.isnan(r) and self._frames - t < STALE for r, t in rests])
+        fresh = self._fresh[1]
+        if fresh[i]:
             return self._rest[i]
-        below = next((j for j in range(i - 1, -1, -1) if not math.isnan(self._rest[j])), None)
-        above = next((j for j in range(i + 1, GRID + 1) if not math.isnan(self._rest[j])), None)
+        below = next((j for j in range(i - 1, -1, -1) if fresh[j]), None)
+        above = next((j for j in range(i + 1, GRID + 1) if fresh[j]), None)
         if below is None or above is None:
             nearest = above if below is None else below
             return math.nan if nearest is None else self._rest[nearest]
