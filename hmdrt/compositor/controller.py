@@ -23,7 +23,7 @@ Foresight (foresight on: the run config's default): feedback learns of a costly 
 the frame that misses is the one whose fovea has just landed on costly content (a saccade onto glass). So before
 each frame is rendered, anticipate() takes a probe's reading of the fovea where the gaze is about to be and the
 cost model's prediction of the frame at every level (hmdrt.compositor.foresight), and renders the frame at the
-highest level predicted within `fit` x headroom x budget, else at the quickest; update() then teaches the model the
+highest level predicted within `fit` x headroom x budget, else at level 0; update() then teaches the model the
 frame's time and rays instead of stepping the level. The level comes back as soon as the fovea is back on cheaper
 content. A miss while misses exceed target_miss_rate tightens the fit by miss_step (to half foresight_fit), and
 raise_after frames without one ease it back by up_step, up to foresight_fit. A method without a foveal knob has no
@@ -230,7 +230,7 @@ class BudgetController:
     def anticipate(self, frame_id: int, fore: Foresight) -> dict[str, float] | None:
         """Before frame `frame_id` is rendered, what the probe read of its fovea: the highest level of the grid whose
         predicted render time (with what a change costs, for a level other than the held one) is within `fit` of the
-        target, else the quickest (module docstring, "Foresight"); the knob values it is rendered with when they
+        target, else level 0 (module docstring, "Foresight"); the knob values it is rendered with when they
         change, else None."""
         if not self.foresees:
             return None
@@ -239,7 +239,7 @@ class BudgetController:
         if ahead:
             target = self.fit * self.config.headroom * self._budget_ns
             fits = [at for at, ns in ahead.items() if ns <= target]
-            level = max(fits) if fits else min(ahead, key=lambda at: (ahead[at], -at))
+            level = max(fits) if fits else 0.0  # the knobs are monotonic: the floor is the cheapest
             reason = f"foresight: {ahead[level] / 1e6:.1f} ms ahead at this level"
         values = self._move(frame_id, level, reason, self.widen_deg)
         self._foreseen[frame_id] = (self._level, self.fovea_deg, fore, self._level != held)
