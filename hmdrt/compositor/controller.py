@@ -22,14 +22,12 @@ At level 0 the controller can do no more: at_floor is set and the compositor rep
 Foresight (foresight on: the run config's default): feedback learns of a costly frame only once it has missed, and
 the frame that misses is the one whose fovea has just landed on costly content (a saccade onto glass). So before
 each frame is rendered, anticipate() takes a probe's reading of the fovea where the gaze is about to be and the
-cost model's prediction of the frame at every level (hmdrt.compositor.foresight), and renders the frame with its
-foveal knobs at the highest level predicted within `fit` x headroom x budget, else at level 0; update() teaches the
-model the frame's time and rays. The level comes back as soon as the fovea is back on cheaper content. The knobs
-that are not foveal (rrm's refresh cycle, weier's p_min, kim21's sample counts) shape what the next frames reuse,
-so feedback's law above moves them, on its own level, and `level` reports the lower of the two. A miss while
-misses exceed target_miss_rate tightens the fit by miss_step (to half foresight_fit), and raise_after frames
-without one ease it back by up_step, up to foresight_fit. A method without a foveal knob has no fovea to probe: its
-controller acts by feedback.
+cost model's prediction of the frame at every level (hmdrt.compositor.foresight), and renders the frame at the
+highest level predicted within `fit` x headroom x budget, else at level 0; update() then teaches the model the
+frame's time and rays instead of stepping the level. The level comes back as soon as the fovea is back on cheaper
+content. A miss while misses exceed target_miss_rate tightens the fit by miss_step (to half foresight_fit), and
+raise_after frames without one ease it back by up_step, up to foresight_fit. A method without a foveal knob has no
+fovea to probe: its controller acts by feedback.
 
 Foveal widening: each foveal radius knob (Knob.foveal) is its level value + gaze speed x widen_latency_ms +
 accuracy_deg, clamped to the field's valid range, so the fovea still covers where the eye is when the frame
@@ -159,9 +157,7 @@ class BudgetController:
         self._level = 1.0
         self._ratios: deque[float] = deque(maxlen=config.raise_after)
         self._misses: deque[bool] = deque(maxlen=max(config.miss_window, config.raise_after))
-        self._since_change = 0  # frames since the level (with foresight: the periphery's level) last moved
-        self._foveal = any(span.foveal for span in self._spans)
-        self._base = 1.0  # with foresight, the level of the knobs that are not foveal, moved by feedback
+        self._since_change = 0
         self._since_grow = 0
         self.widen_deg = 0.0
         self.widenings = 0  # knob changes made by the widening alone (not in the trajectory)
@@ -181,7 +177,7 @@ class BudgetController:
     @property
     def foresees(self) -> bool:
         """Whether anticipate() can act: foresight on, the level adjusted, and a foveal knob to probe around."""
-        return self.config.foresight and self.config.adjust_level and self._foveal
+        return self.config.foresight and self.config.adjust_level and self.fovea_deg is not None
 
     @property
     def fovea_deg(self) -> float | None:
@@ -190,14 +186,13 @@ class BudgetController:
 
     @property
     def level(self) -> float:
-        """1.0: the method's own parameters (best quality); 0.0: the knob floor. With foresight, the lower of the
-        fovea's level and the periphery's."""
-        return min(self._level, self._base) if self.foresees else self._level
+        """1.0: the method's own parameters (best quality); 0.0: the knob floor."""
+        return self._level
 
     @property
     def at_floor(self) -> bool:
         """Whether the controller cannot lower the cost any further (level 0, or no knobs at all)."""
-        return not self._spans or max(self._level, self._base if self.foresees else 0.0) <= 0.0
+        return not self._spans or self._level <= 0.0
 
     def update(
         self,
@@ -228,13 +223,7 @@ class BudgetController:
             if foreseen is not None:
                 self.model.learn(foreseen[0], foreseen[1], render_ns, rays, foreseen[2], foreseen[3])
             self._tighten(missed)
-            step, reason = self._decide(missed)
-            if step:
-                self._base, self._since_change = min(max(self._base + step, 0.0), 1.0), 0
-            values = self._move(frame_id, self._level, "", widen)
-            if step:
-                self._log(frame_id, f"periphery to {self._base:.2f}, {reason}")
-            return values
+            return self._move(frame_id, self._level, "", widen)
         step, reason = self._decide(missed)
         return self._move(frame_id, self._level + step, reason, widen)
 
@@ -300,10 +289,8 @@ class BudgetController:
         else:
             values = None
         if level != self._level:
-            self._level = level
-            if not self.foresees:  # with foresight the fovea's level moves every frame, the periphery's by feedback
-                self._since_change = 0
-            self._log(frame_id, reason + (" (floor)" if self.at_floor else ""))
+            self._level, self._since_change = level, 0
+            self._log(frame_id, reason + (" (floor)" if level <= 0.0 else ""))
         elif values is not None:
             self.widenings += 1
         return values
@@ -342,9 +329,7 @@ class BudgetController:
         return self.widen_deg
 
     def _values(self, level: float, widen_deg: float) -> dict[str, float]:
-        """The knobs at `level`; with foresight, those that are not foveal at the periphery's level."""
-        base = self._base if self.foresees else level
-        return {s.field: s.at(level if s.foveal else base, widen_deg) for s in self._spans}
+        return {s.field: s.at(level, widen_deg) for s in self._spans}
 
     def _params(self, values: dict[str, float]) -> msgspec.Struct:
         """The configured parameters with `values`, validated by the Params struct; exactly the configured
@@ -363,7 +348,7 @@ class BudgetController:
     def _entry(self, frame_id: int | None, reason: str) -> dict:
         return {
             "frame": frame_id,
-            "level": round(self.level, 4),
+            "level": round(self._level, 4),
             "knobs": {k: round(v, 4) for k, v in self._applied.items()},
             "widen_deg": self.widen_deg,
             "reason": reason,
