@@ -78,15 +78,15 @@ class FrameBuilder:
         gaze, pose, widen_deg = self.estimates(timing.predicted_display_ns, woke)
         self.tune(None if gaze is None else gaze.speed_deg_s, widen_deg)
         stats = FrameStats()
+        cameras = self.session.cameras_for(pose)
         if self.controller is not None and self.controller.foresees:
             with stats.stage("foresight"):
-                cameras = self.session.cameras_for(pose)
                 fore = self.probe.read(cameras, self.session.directions(gaze)[0], self.controller.fovea_deg)
                 self.controller.anticipate(timing.frame_id, fore)
         start = self.clock.now_ns()
         delay = int(self.config.pacing.render_delay_ms * 1e6)
         images, cameras, render_ns = self.session.render(
-            timing.frame_id, gaze, pose, self.config.run.seed, stats, delay
+            timing.frame_id, gaze, pose, self.config.run.seed, stats, delay, cameras
         )
         end = self.clock.now_ns()
         frame = Frame(

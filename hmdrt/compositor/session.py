@@ -99,14 +99,22 @@ class Session:
         return MethodChoice(self.method.name, self.method.params)
 
     def render(
-        self, frame_id: int, gaze, pose, seed: int, stats: FrameStats, delay_ns: int = 0
+        self,
+        frame_id: int,
+        gaze,
+        pose,
+        seed: int,
+        stats: FrameStats,
+        delay_ns: int = 0,
+        cameras: dict[str, EyeCamera] | None = None,
     ) -> tuple[list[np.ndarray], dict, int]:
         """The eyes' images for a gaze and head-pose estimate (None: straight ahead, the scene's
-        start pose), the eye cameras they were rendered with, and the nanoseconds the method's render took
-        (with delay_ns of sleep added: a slower renderer, for tests and benchmarks)."""
+        start pose), the eye cameras they were rendered with (`cameras`: cameras_for(pose), when the caller has
+        them already), and the nanoseconds the method's render took (with delay_ns of sleep added: a slower
+        renderer, for tests and benchmarks)."""
         directions, depth = self.directions(gaze)
         frame = FrameInput(frame_id, 0, self.head(pose), directions, depth)
-        cameras = self.cameras_for(pose)
+        cameras = self.cameras_for(pose) if cameras is None else cameras
         images, start = [], time.perf_counter_ns()
         for request in frame_requests(frame, cameras, seed):
             images.append(self.method.render(request, stats, self.pools[request.eye].take()))
