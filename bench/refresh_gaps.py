@@ -3,13 +3,14 @@
     python bench/refresh_gaps.py FRAMES.jsonl [FRAMES.jsonl ...]
 
 smith2013's refresh rate modulation (section 3.2.1) refreshes each peripheral pixel once every N = group_w x group_h
-frames; the user study (section 4) found N up to 20 unnoticed. A change of N rebuilds the schedule, so a pixel can
+frames; the user study (section 4) found N up to 20 unnoticed. A change of N regroups the cells, so a pixel can
 wait longer across changes, and the controller (foresight above all) changes N as the gaze lands on costly content
-and leaves it. For each frames log of an rrm run (`hmdrt run ... --frames-log FRAMES.jsonl`), this follows the
-schedule of the parameters each shown frame was rendered with (hmdrt.foveation.rrm.refresh_phase) and prints how
-often N changed and, over the pixels of one eye at the profile's size (the schedule repeats every group_h rows and
-block x group_w columns, so the size barely matters), the longest wait between two scheduled refreshes: p50, p99
-and max, in frames. Refreshes by the foveal rectangle are not counted, so the waits are an upper bound.
+and leaves it. For each frames log of an rrm run (`hmdrt run ... --frames-log FRAMES.jsonl`), this replays rrm's
+schedule (hmdrt.foveation.stages.refresh.RefreshSchedule) on the parameters each shown frame was rendered with, or
+with --fixed the schedule of a fixed N (frame mod N, rrm's until 12-06), and prints how often N changed and, over
+the pixels of one eye at the profile's size (the schedule repeats every group_h rows and block x group_w columns,
+so the size barely matters), the longest wait between two scheduled refreshes: p50, p99 and max, in frames.
+Refreshes by the foveal rectangle are not counted, so the waits are an upper bound.
 """
 
 from __future__ import annotations
@@ -25,12 +26,13 @@ import numpy as np
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 from hmdrt.errors import HmdrtError  # noqa: E402
-from hmdrt.foveation.rrm import RrmParams, refresh_phase  # noqa: E402
+from hmdrt.foveation.rrm import RrmParams  # noqa: E402
+from hmdrt.foveation.stages.refresh import RefreshSchedule, refresh_phase  # noqa: E402
 from hmdrt.optics import get_profile  # noqa: E402
 from hmdrt.telemetry.frames_log import read_frames_log  # noqa: E402
 
 
-def gaps(path: str) -> str:
+def gaps(path: str, fixed: bool = False) -> str:
     """One log's line: frames, changes of N, and the longest scheduled wait per pixel (p50, p99, max)."""
     reading = read_frames_log(path)
     if reading.header.method.split("?")[0] != "rrm":
@@ -40,15 +42,17 @@ def gaps(path: str) -> str:
     last, longest = np.full(shape, -1, np.int64), np.zeros(shape, np.int64)
     phases: dict[RrmParams, np.ndarray] = {}
     frames = changes = 0
+    rrm = RefreshSchedule()
     before = None
     for record in reading.records:
         if record.shown == "repeat":
             continue
-        schedule = {k: v for k, v in record.params.items() if k in ("group_w", "group_h", "block", "order")}
-        p = msgspec.convert(schedule, RrmParams)
+        cycle = {k: v for k, v in record.params.items() if k in ("group_w", "group_h", "block", "order")}
+        p = msgspec.convert(cycle, RrmParams)
         if p not in phases:
             phases[p] = refresh_phase(profile.width, profile.height, p)
-        refreshed = phases[p] == record.frame_id % p.cycle
+        phase = record.frame_id % p.cycle if fixed else rrm.phase(record.frame_id, profile.width, p)
+        refreshed = phases[p] == phase
         waited = refreshed & (last >= 0)
         longest[waited] = np.maximum(longest[waited], record.frame_id - last[waited])
         last[refreshed] = record.frame_id
@@ -67,10 +71,11 @@ def gaps(path: str) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("logs", nargs="+", help="frames logs of rrm runs")
+    ap.add_argument("--fixed", action="store_true", help="replay frame mod N instead of rrm's schedule")
     args = ap.parse_args()
     for path in args.logs:
         try:
-            print(gaps(path))
+            print(gaps(path, args.fixed))
         except (HmdrtError, msgspec.ValidationError) as exc:
             message = str(exc)  # read_frames_log's errors name the file already
             print(message if path in message else f"{path}: {message}", file=sys.stderr)

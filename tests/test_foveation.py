@@ -10,8 +10,9 @@ from hmdrt.evaluate.quality import band_psnr
 from hmdrt.foveation import METHODS, FrameRequest, MethodChoice, make_method
 from hmdrt.foveation.base import EYES, pixel_keys
 from hmdrt.foveation.registry import temporal_methods
-from hmdrt.foveation.rrm import Rrm, RrmParams, foveal_rectangle, refresh_phase
+from hmdrt.foveation.rrm import Rrm, RrmParams, foveal_rectangle
 from hmdrt.foveation.stages.dof import MAX_BLUR_PX
+from hmdrt.foveation.stages.refresh import RefreshSchedule, refresh_phase
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.scene import load_scene
 from hmdrt.spatial import gaze_direction
@@ -103,6 +104,27 @@ def test_rrm_traces_its_cell_and_the_foveal_rectangle_in_row_major_order(options
         expected.reshape(-1, 3)[pixels] = keys[:, None]
         assert image is out
         np.testing.assert_array_equal(image, expected)
+
+
+def test_rrm_refreshes_the_stalest_cells_first_when_its_cycle_changes():
+    """With group_w moved every few frames (as the budget controller does), each eye traces the cells its
+    RefreshSchedule gives, and every peripheral pixel is refreshed within the new N frames of the last change."""
+    profile = get_profile("sim-cpu").with_resolution(61, 23)
+    cam = EyeCamera.for_eye(profile, load_scene("whitted").start)
+    g = np.array(gaze_direction(80.0, 0.0))  # the foveal rectangle off the image: the periphery alone
+    tracer, schedule = RecordingTracer(), RefreshSchedule()
+    method = Rrm(tracer, RrmParams(smoothing=1.0))
+    cycles = [3, 3, 5, 1, 4, 4, 2, 5, 3, 1, 1, 5, 2] + [4] * 16
+    last = np.full((cam.height, cam.width), -1)
+    for frame, group_w in enumerate(cycles, start=40):
+        params = RrmParams(group_w=group_w, smoothing=1.0)
+        method.set_params(params)
+        method.render(FrameRequest(cam, g, frame, seed=3), FrameStats())
+        mask = refresh_phase(cam.width, cam.height, params) == schedule.phase(frame, cam.width, params)
+        xy, _ = tracer.calls[-1]
+        np.testing.assert_array_equal(xy, np.stack(np.nonzero(mask)[::-1], axis=1) + 0.5)
+        last[mask] = frame
+    assert np.all(last >= 40 + len(cycles) - 16)
 
 
 def test_rrm_refuses_an_out_buffer_of_another_shape():

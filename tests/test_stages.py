@@ -7,7 +7,7 @@ import pytest
 
 from hmdrt.errors import ConfigError
 from hmdrt.foveation.kim21 import Kim21Params, alpha_of_eccentricity, bezier_controls, tau_fov_array
-from hmdrt.foveation.rrm import RrmParams, refresh_phase, visit_order
+from hmdrt.foveation.rrm import RrmParams
 from hmdrt.foveation.stages.dof import (
     DOF_PRESETS,
     REFERENCE_PPD,
@@ -16,6 +16,7 @@ from hmdrt.foveation.stages.dof import (
     focal_lengths,
 )
 from hmdrt.foveation.stages.gaze import FixationFilter, vergence_depth
+from hmdrt.foveation.stages.refresh import RefreshSchedule, refresh_phase, visit_order
 from hmdrt.foveation.stages.sampling import (
     FRC_PRESETS,
     bernoulli_mask,
@@ -335,6 +336,52 @@ def test_refresh_orders_differ_in_sequence():
     # scattered: consecutive refreshes are never neighbours in the group
     rows, cols = sc // 3, sc % 3
     assert np.all(np.abs(np.diff(rows)) + np.abs(np.diff(cols)) > 1)
+
+
+def _waits(schedule_of, cycles, width=61, height=23, start=0):
+    """Replays frames start.. with group_w cycles[i] on frame start + i; returns each pixel's longest wait between
+    two refreshes and the pixels' last refresh, following schedule_of(frame, width, params)'s phase."""
+    last, longest = np.full((height, width), -1), np.zeros((height, width), int)
+    for i, group_w in enumerate(cycles):
+        frame, params = start + i, RrmParams(group_w=group_w)
+        refreshed = refresh_phase(width, height, params) == schedule_of(frame, width, params)
+        waited = refreshed & (last >= 0)
+        longest[waited] = np.maximum(longest[waited], frame - last[waited])
+        last[refreshed] = frame
+    return longest, last
+
+
+@pytest.mark.parametrize("start", [0, 7, 1000])
+def test_while_n_holds_the_schedule_is_frame_mod_n(start):
+    schedule = RefreshSchedule()
+    for frame in range(start, start + 40):
+        params = RrmParams(order="scattered", group_w=5)
+        assert schedule.phase(frame, 61, params) == frame % params.cycle
+        assert schedule.phase(frame, 61, params) == frame % params.cycle  # the same frame again: the same phase
+
+
+def test_after_a_change_of_n_every_pixel_is_refreshed_within_the_new_n_frames():
+    """smith2013 section 3.2.1's bound, N frames, holds again once the new N is held for N frames, and no pixel
+    waits longer than the N before a change and the N after."""
+    cycles = [3] * 30 + [4] * 16 + [2] * 8 + [5] * 20 + [1] * 4 + [5] * 20  # each N held for N frames
+    changes = np.flatnonzero(np.diff(cycles)) + 1
+    for at in changes:
+        replay = RefreshSchedule()
+        _, last = _waits(replay.phase, cycles[: at + 4 * cycles[at]])
+        assert np.all(last >= at), at
+    longest, _ = _waits(RefreshSchedule().phase, cycles)
+    assert longest.max() <= max(4 * (cycles[at - 1] + cycles[at]) - 1 for at in changes)
+
+
+def test_waits_stay_near_the_largest_n_when_n_moves_every_few_frames():
+    """The budget controller may move N every frame or two; frame mod N then leaves pixels waiting for the sum
+    of the cycles they crossed."""
+    rng = np.random.default_rng(4)
+    cycles = np.repeat(rng.integers(1, 6, 120), rng.integers(1, 12, 120))  # N from 4 to 20, held 1-11 frames
+    longest, last = _waits(RefreshSchedule().phase, cycles)
+    longest_mod, _ = _waits(lambda frame, width, params: frame % params.cycle, cycles)
+    assert np.all(last >= len(cycles) - 20)
+    assert longest.max() <= 30 < 40 < longest_mod.max()
 
 
 def test_fixation_filter_smooths_jitter_and_follows_saccades():

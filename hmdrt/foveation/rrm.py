@@ -4,7 +4,8 @@ A foveal rectangle around the fixation is ray traced every frame. The periphery 
 blocks of `block` consecutive pixels, grouped into refresh cycle groups of group_w x group_h blocks
 (default 3 x 4, N = 12); each frame refreshes one block per group, so every peripheral pixel is
 refreshed once every N frames, in a refresh order that sets the fragmentation style: horizontal,
-serpentine or scattered. The rest of the image is a persistent pixel buffer that is never cleared,
+serpentine or scattered (hmdrt.foveation.stages.refresh, which also keeps the waits near N while
+the budget controller changes N). The rest of the image is a persistent pixel buffer that is never cleared,
 so a still scene resolves to the full image after N frames. A fixation smoothing filter sits between
 tracker and renderer (section 3.2). The paper gives no size for the foveal rectangle; ours spans
 +-fovea_deg around the fixation at the display's central pixel density.
@@ -17,7 +18,7 @@ into the caller's image.
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal, NamedTuple
+from typing import Annotated, NamedTuple
 
 import msgspec
 import numba as nb
@@ -26,6 +27,7 @@ import numpy as np
 from hmdrt.foveation.base import Checks, Configurable, FrameRequest, Knob, Stage
 from hmdrt.foveation.registry import register
 from hmdrt.foveation.stages.gaze import FixationFilter
+from hmdrt.foveation.stages.refresh import Order, RefreshSchedule, visit_order
 from hmdrt.foveation.stages.sampling import SMALL_R0, pixels_per_degree
 from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.schedule import claim, dynamic
@@ -33,7 +35,6 @@ from hmdrt.optics.camera import EyeCamera
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
 
-Order = Literal["horizontal", "serpentine", "scattered"]
 UPDATE_ROWS = 16  # rows per block of the update kernel
 MAX_CYCLE = 20  # the budget controller's largest N = group_w x group_h (Rrm.knobs)
 
@@ -50,33 +51,6 @@ class RrmParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     @property
     def cycle(self) -> int:
         return self.group_w * self.group_h
-
-
-def visit_order(group_w: int, group_h: int, order: Order) -> np.ndarray:
-    """The cells of a cycle group (row-major indices) in the order they are refreshed.
-
-    horizontal: row by row, left to right. serpentine: row by row, alternating direction. scattered:
-    a stride through the cells coprime to N and near N / golden ratio, so consecutive refreshes are far apart.
-    """
-    n = group_w * group_h
-    if order == "horizontal":
-        return np.arange(n)
-    if order == "serpentine":
-        rows = [np.arange(r * group_w, (r + 1) * group_w) for r in range(group_h)]
-        return np.concatenate([row if r % 2 == 0 else row[::-1] for r, row in enumerate(rows)])
-    target = n / 1.618033988749895
-    stride = min((s for s in range(1, n + 1) if math.gcd(s, n) == 1), key=lambda s: (abs(s - target), s))
-    return (np.arange(n) * stride) % n
-
-
-def refresh_phase(width: int, height: int, params: RrmParams) -> np.ndarray:
-    """(height, width) int: the frame phase (0 .. N-1) at which each peripheral pixel is refreshed: the schedule's
-    definition, which Rrm follows cell by cell (Refresh) without building this map."""
-    rank = np.empty(params.cycle, dtype=np.int32)
-    rank[visit_order(params.group_w, params.group_h, params.order)] = np.arange(params.cycle)
-    bx = (np.arange(width) // params.block) % params.group_w
-    by = np.arange(height) % params.group_h
-    return rank[by[:, None] * params.group_w + bx[None, :]]
 
 
 def foveal_rectangle(camera: EyeCamera, gaze: np.ndarray, params: RrmParams) -> tuple[int, int, int, int]:
@@ -233,6 +207,7 @@ class Rrm(Configurable):
         self.tracer = tracer
         self._buffers: dict[str, np.ndarray] = {}
         self._filters: dict[str, FixationFilter] = {}
+        self._schedules: dict[str, RefreshSchedule] = {}
         self._cells: tuple[np.ndarray, np.ndarray] | None = None  # visit order as (cell row, cell column)
         self._cols: dict[tuple[int, int], np.ndarray] = {}  # (width, cell column) -> block_columns
         self._samples: Samples | None = None
@@ -240,9 +215,10 @@ class Rrm(Configurable):
 
     def _configure(self, params: RrmParams) -> None:
         """Keeps the persistent buffers and each eye's smoothed fixation (a new smoothing or saccade_deg
-        applies from the next sample). A new cycle (group_w, group_h, block or order) rebuilds the refresh
-        schedule: every peripheral pixel is then refreshed within the new N frames, and the buffer shows
-        the older pixels until then. fovea_deg needs nothing: the rectangle is placed every frame."""
+        applies from the next sample). A new cycle (group_w, group_h, block or order) regroups the cells:
+        each eye's RefreshSchedule takes the cells holding the stalest pixels first, so every peripheral pixel
+        is refreshed within the new N frames, and the buffer shows the older pixels until then. fovea_deg
+        needs nothing: the rectangle is placed every frame."""
         order = visit_order(params.group_w, params.group_h, params.order)
         self._cells = (order // params.group_w, order % params.group_w)
         self._cols.clear()
@@ -266,10 +242,12 @@ class Rrm(Configurable):
             )
         return s
 
-    def _schedule(self, camera: EyeCamera, gaze: np.ndarray, frame: int) -> tuple[Refresh, tuple[int, int, int, int]]:
+    def _schedule(
+        self, camera: EyeCamera, gaze: np.ndarray, frame: int, eye: str
+    ) -> tuple[Refresh, tuple[int, int, int, int]]:
         p = self.params
         rows, columns = self._cells
-        phase = frame % p.cycle
+        phase = self._schedules.setdefault(eye, RefreshSchedule()).phase(frame, camera.width, p)
         key = (camera.width, int(columns[phase]))
         if key not in self._cols:
             self._cols[key] = block_columns(camera.width, p, key[1])
@@ -290,7 +268,7 @@ class Rrm(Configurable):
             filt = self._filters.setdefault(request.eye, FixationFilter(p.smoothing, p.saccade_deg))
             gaze = filt(request.gaze)
         with stats.stage("schedule"):
-            refresh, (x0, x1, y0, y1) = self._schedule(cam, gaze, request.frame)
+            refresh, (x0, x1, y0, y1) = self._schedule(cam, gaze, request.frame, request.eye)
             samples = self._sample_arrays(cam)
             n = _row_starts(refresh, samples.row_start)
             _fill(refresh, samples, request.seed)
