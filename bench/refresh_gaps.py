@@ -10,7 +10,8 @@ schedule (hmdrt.foveation.stages.refresh.RefreshSchedule) on the parameters each
 with --fixed the schedule of a fixed N (frame mod N, rrm's until 12-06), and prints how often N changed and, over
 the pixels of one eye at the profile's size (the schedule repeats every group_h rows and block x group_w columns,
 so the size barely matters), the longest wait between two scheduled refreshes: p50, p99 and max, in frames.
-Refreshes by the foveal rectangle are not counted, so the waits are an upper bound.
+Refreshes by the foveal rectangle are not counted, so the waits are an upper bound. A frame rendered but never
+shown (the report's `dropped`) is not in the log, so after one the replay can differ from the run by a cell.
 """
 
 from __future__ import annotations

@@ -6,5 +6,6 @@ temporal: combining frames (running estimate, exponential smoothing, depth-aware
 pyramid: mipmap pyramids with pull-push reconstruction and quincunx lookups
 filters: spatial filters (separable Gaussian, upsampling, contrast enhancement)
 gaze: fixation smoothing and gaze depth
+refresh: which peripheral pixels a frame of refresh rate modulation refreshes
 dof: thin-lens circles of confusion and the layered depth-of-field blur
 """
