@@ -12,10 +12,12 @@ from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
 from hmdrt.scene import Scene, load_scene
 from hmdrt.scene.model import AreaLight, Checker, Image, Material, Noise, PointLight
+from hmdrt.scene.noise import _grad
 from hmdrt.scene.pack import pack
 from hmdrt.scene.shapes import quad, sphere
 from hmdrt.spatial import Pose
 from hmdrt.trace.bsdf import fresnel_dielectric, reflect, refract, split
+from hmdrt.trace.sampling import cosine_hemisphere, sincos_turn, tangent_frame
 from hmdrt.trace.textures import sample_texture
 
 from .helpers import render
@@ -241,3 +243,40 @@ def test_area_light_must_have_area():
             {"kind": "area", "corner": [0, 0, 0], "edge_u": [1, 0, 0], "edge_v": [2, 0, 0], "radiance": [1, 1, 1]},
             AreaLight,
         )
+
+
+# -- the light rays' sampling: fast sine and cosine, the cosine-weighted hemisphere, Perlin's gradients --
+
+
+def test_sincos_turn_matches_libm_across_every_quadrant():
+    t = np.concatenate([np.linspace(0.0, 1.0, 4097), np.random.default_rng(1).random(20_000)])
+    got = np.array([sincos_turn(v) for v in t])
+    np.testing.assert_allclose(got[:, 0], np.sin(2 * np.pi * t), rtol=0, atol=2e-15)
+    np.testing.assert_allclose(got[:, 1], np.cos(2 * np.pi * t), rtol=0, atol=2e-15)
+
+
+@pytest.mark.parametrize("normal", [(0.0, 0.0, 1.0), (0.0, 0.0, -1.0), (0.6, -0.48, -0.64), (1.0, 0.0, 0.0)])
+def test_ao_directions_are_cosine_weighted_about_the_normal(normal):
+    """Unit directions in the normal's hemisphere whose cosine to it has the cosine-weighted mean 2/3 and
+    second moment 1/2, and no azimuth preferred."""
+    n = np.array(normal)
+    frame = tangent_frame(*n)
+    np.testing.assert_allclose(np.array([n, *frame]) @ np.array([n, *frame]).T, np.eye(3), atol=1e-12)
+    st_ = np.random.default_rng(2).random((40_000, 2))
+    d = np.array([cosine_hemisphere(tuple(n), *frame, s, t) for s, t in st_])
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    cos = d @ n
+    assert cos.min() >= 0.0
+    assert abs(cos.mean() - 2 / 3) < 0.01 and abs((cos**2).mean() - 0.5) < 0.01
+    assert np.linalg.norm((d - np.outer(cos, n)).mean(axis=0)) < 0.01
+
+
+def test_noise_gradients_are_perlins_twelve_edges():
+    """Improved Perlin noise's gradients (Perlin 2002, in his reference code's order): h & 15 picks one of the
+    cube's 12 edge directions, four of them twice."""
+    edges = [(1, 1, 0), (-1, 1, 0), (1, -1, 0), (-1, -1, 0), (1, 0, 1), (-1, 0, 1), (1, 0, -1), (-1, 0, -1)]
+    edges += [(0, 1, 1), (0, -1, 1), (0, 1, -1), (0, -1, -1), (1, 1, 0), (0, -1, 1), (-1, 1, 0), (0, -1, -1)]
+    x, y, z = 0.3, -0.7, 1.9
+    for h in range(64):
+        gx, gy, gz = edges[h & 15]
+        assert _grad(h, x, y, z) == pytest.approx(gx * x + gy * y + gz * z, abs=1e-15), h

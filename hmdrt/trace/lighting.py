@@ -15,7 +15,7 @@ import numpy as np
 from hmdrt.kernels.jit import inline, serial
 from hmdrt.scene.model import Scene
 from hmdrt.scene.pack import Lights
-from hmdrt.trace.sampling import DIM_AO, DIM_AREA, cosine_hemisphere, grid_shape, stratified
+from hmdrt.trace.sampling import DIM_AO, DIM_AREA, cosine_hemisphere, grid_shape, stratified, tangent_frame
 
 AREA_SHORTEN = 1.0 - 1e-4  # stop area shadow rays just short of the emitter's own geometry
 
@@ -70,18 +70,29 @@ def light_plan(lights: Lights, scene: Scene) -> LightPlan:
 
 
 @inline
-def _spawn(origins, directions, far, j, position, ng, offset, i, tx, ty, tz, shorten):
-    """Ray j from hit i towards (tx, ty, tz), starting on the side of the geometric normal."""
+def _origin(position, ng, offset, i):
+    """Where hit i's light rays start: its point moved off the surface along the geometric normal."""
     off = offset[i]
-    ox = position[i, 0] + ng[i, 0] * off
-    oy = position[i, 1] + ng[i, 1] * off
-    oz = position[i, 2] + ng[i, 2] * off
+    return position[i, 0] + ng[i, 0] * off, position[i, 1] + ng[i, 1] * off, position[i, 2] + ng[i, 2] * off
+
+
+@inline
+def _put(origins, directions, far, j, ox, oy, oz, dx, dy, dz, tfar):
+    origins[j, 0], origins[j, 1], origins[j, 2] = ox, oy, oz
+    directions[j, 0], directions[j, 1], directions[j, 2] = dx, dy, dz
+    far[j] = tfar
+
+
+@inline
+def _spawn(origins, directions, far, j, ox, oy, oz, tx, ty, tz, shorten):
+    """Ray j from (ox, oy, oz) towards (tx, ty, tz), ending `shorten` of the way there."""
     dx, dy, dz = tx - ox, ty - oy, tz - oz
     dist = math.sqrt(dx * dx + dy * dy + dz * dz)
-    inv = 1.0 / dist if dist > 0.0 else 0.0
-    origins[j, 0], origins[j, 1], origins[j, 2] = ox, oy, oz
-    directions[j, 0], directions[j, 1], directions[j, 2] = dx * inv, dy * inv, dz * inv
-    far[j] = dist * shorten if dist > 0.0 else -1.0
+    if dist > 0.0:
+        inv = 1.0 / dist
+        _put(origins, directions, far, j, ox, oy, oz, dx * inv, dy * inv, dz * inv, dist * shorten)
+    else:
+        _inactive(origins, directions, far, j)
 
 
 @inline
@@ -114,11 +125,12 @@ def _point_rays(lights, surf, point, start, stop):
         hit = hits[i]
         px, py, pz = position[i, 0], position[i, 1], position[i, 2]
         gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
+        ox, oy, oz = _origin(position, ng, offset, i)
         for l in range(n_point):
             j = i * n_point + l
             lx, ly, lz = l_pos[l, 0], l_pos[l, 1], l_pos[l, 2]
             if hit and (lx - px) * gx + (ly - py) * gy + (lz - pz) * gz > 0.0:
-                _spawn(p_org, p_dir, p_far, j, position, ng, offset, i, lx, ly, lz, 1.0)
+                _spawn(p_org, p_dir, p_far, j, ox, oy, oz, lx, ly, lz, 1.0)
             else:
                 _inactive(p_org, p_dir, p_far, j)
 
@@ -139,6 +151,7 @@ def _area_rays(lights, plan, surf, keys, area, start, stop):
         hit = hits[i]
         px, py, pz = position[i, 0], position[i, 1], position[i, 2]
         gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
+        ox, oy, oz = _origin(position, ng, offset, i)
         for a in range(a_base.shape[0]):
             for k in range(a_samples[a]):
                 j = i * a_total + a_base[a] + k
@@ -153,7 +166,7 @@ def _area_rays(lights, plan, surf, keys, area, start, stop):
                 facing_light = lx * gx + ly * gy + lz * gz > 0.0
                 emits = lx * a_normal[a, 0] + ly * a_normal[a, 1] + lz * a_normal[a, 2] < 0.0
                 if facing_light and emits:
-                    _spawn(a_org, a_dir, a_far, j, position, ng, offset, i, qx, qy, qz, AREA_SHORTEN)
+                    _spawn(a_org, a_dir, a_far, j, ox, oy, oz, qx, qy, qz, AREA_SHORTEN)
                 else:
                     _inactive(a_org, a_dir, a_far, j)
 
@@ -164,17 +177,18 @@ def _ao_rays(plan, surf, keys, ao, start, stop):
     hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
     o_org, o_dir, o_far = ao.origins, ao.directions, ao.tfar
     for i in range(start, stop):
-        px, py, pz = position[i, 0], position[i, 1], position[i, 2]
-        gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
+        normal = (np.float64(ng[i, 0]), np.float64(ng[i, 1]), np.float64(ng[i, 2]))
+        tangent, bitangent = tangent_frame(normal[0], normal[1], normal[2])
+        ox, oy, oz = _origin(position, ng, offset, i)
+        hit = hits[i]
         for k in range(ao_n):
             j = i * ao_n + k
-            if not hits[i]:
+            if not hit:
                 _inactive(o_org, o_dir, o_far, j)
                 continue
             s, t = stratified(keys[i], k, DIM_AO, ao_nx, ao_ny)
-            dx, dy, dz = cosine_hemisphere(gx, gy, gz, s, t)
-            _spawn(o_org, o_dir, o_far, j, position, ng, offset, i, px + dx, py + dy, pz + dz, 0.0)
-            o_far[j] = ao_dist
+            dx, dy, dz = cosine_hemisphere(normal, tangent, bitangent, s, t)
+            _put(o_org, o_dir, o_far, j, ox, oy, oz, dx, dy, dz, ao_dist)
 
 
 @inline

@@ -38,19 +38,67 @@ def stratified(key, k, dim, nx, ny):
     return (ix + uniform(key, dim, 2 * k)) / nx, (iy + uniform(key, dim, 2 * k + 1)) / ny
 
 
+# Taylor coefficients of sin x / x and cos x in x^2: on [-pi/4, pi/4] the first terms left out are below 1e-15
+S1, S2, S3, S4, S5, S6, S7 = (
+    -1.0 / 6,
+    1.0 / 120,
+    -1.0 / 5040,
+    1.0 / 362880,
+    -1.0 / 39916800,
+    1.0 / 6227020800,
+    -1.0 / 1307674368000,
+)
+C1, C2, C3, C4, C5, C6, C7, C8 = (
+    -0.5,
+    1.0 / 24,
+    -1.0 / 720,
+    1.0 / 40320,
+    -1.0 / 3628800,
+    1.0 / 479001600,
+    -1.0 / 87178291200,
+    1.0 / 20922789888000,
+)
+
+
 @inline
-def cosine_hemisphere(nx, ny, nz, s, t):
-    """Cosine-weighted direction about unit normal n from a point (s, t) of the unit square."""
-    r = math.sqrt(s)
-    phi = 2.0 * math.pi * t
-    lx, ly, lz = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - s))
-    # orthonormal basis (Duff et al. 2017)
+def sincos_turn(t):
+    """(sin, cos) of 2 pi t, t in [0, 1], within 1e-15 of libm's: the quarter turn is taken from t exactly and the
+    rest, within an eighth of a turn, goes to polynomials, with selects for the quadrant. libm's sin and cos took 11
+    ns a call, a third of the cost of making an AO ray."""
+    u = 4.0 * t
+    q = math.floor(u + 0.5)
+    x = (u - q) * (0.5 * math.pi)
+    x2 = x * x
+    sp = x * (1.0 + x2 * (S1 + x2 * (S2 + x2 * (S3 + x2 * (S4 + x2 * (S5 + x2 * (S6 + x2 * S7)))))))
+    cp = 1.0 + x2 * (C1 + x2 * (C2 + x2 * (C3 + x2 * (C4 + x2 * (C5 + x2 * (C6 + x2 * (C7 + x2 * C8)))))))
+    quadrant = int(q) & 3
+    sine = cp if quadrant & 1 else sp
+    cosine = sp if quadrant & 1 else cp
+    return (-sine if quadrant & 2 else sine), (-cosine if (quadrant + 1) & 2 else cosine)
+
+
+@inline
+def tangent_frame(nx, ny, nz):
+    """Two unit vectors that complete unit normal n to an orthonormal basis (Duff et al. 2017): once per hit, not per
+    ray (its sign's branch and division made a third of an AO ray's cost on varied normals)."""
     sign = 1.0 if nz >= 0.0 else -1.0
     a = -1.0 / (sign + nz)
     b = nx * ny * a
-    tx, ty, tz = 1.0 + sign * nx * nx * a, sign * b, -sign * nx
-    bx, by, bz = b, sign + ny * ny * a, -ny
-    return lx * tx + ly * bx + lz * nx, lx * ty + ly * by + lz * ny, lx * tz + ly * bz + lz * nz
+    return (1.0 + sign * nx * nx * a, sign * b, -sign * nx), (b, sign + ny * ny * a, -ny)
+
+
+@inline
+def cosine_hemisphere(n, tangent, bitangent, s, t):
+    """Cosine-weighted direction about unit normal n, given its tangent_frame, from a point (s, t) of the unit
+    square."""
+    r = math.sqrt(s)
+    sine, cosine = sincos_turn(t)
+    lx, ly, lz = r * cosine, r * sine, math.sqrt(max(0.0, 1.0 - s))
+    return (
+        lx * tangent[0] + ly * bitangent[0] + lz * n[0],
+        lx * tangent[1] + ly * bitangent[1] + lz * n[1],
+        lx * tangent[2] + ly * bitangent[2] + lz * n[2],
+    )
 
 
 @kernel
