@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hmdrt.kernels.jit import inline, serial
+from hmdrt.kernels.jit import fused, inline, serial
 from hmdrt.scene.model import Scene
 from hmdrt.scene.pack import Lights
 from hmdrt.trace.sampling import DIM_AO, DIM_AREA, cosine_hemisphere, grid_shape, stratified, tangent_frame
@@ -115,7 +115,7 @@ def light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
         _ao_rays(plan, surf, keys, ao, start, stop)
 
 
-@serial
+@fused
 def _point_rays(lights, surf, point, start, stop):
     l_pos = lights.point_position
     hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
@@ -135,7 +135,7 @@ def _point_rays(lights, surf, point, start, stop):
                 _inactive(p_org, p_dir, p_far, j)
 
 
-@serial
+@fused
 def _area_rays(lights, plan, surf, keys, area, start, stop):
     a_corner, a_u, a_v, a_normal, a_samples = (
         lights.area_corner,
@@ -171,7 +171,7 @@ def _area_rays(lights, plan, surf, keys, area, start, stop):
                     _inactive(a_org, a_dir, a_far, j)
 
 
-@serial
+@fused
 def _ao_rays(plan, surf, keys, ao, start, stop):
     ao_n, ao_nx, ao_ny, ao_dist = plan.ao_samples, plan.ao_nx, plan.ao_ny, plan.ao_distance
     hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
