@@ -108,7 +108,7 @@ def test_a_merged_pixel_counts_no_sample_and_its_next_sample_replaces_it():
         method.render(reqs[1], FrameStats())
     flags = method._buffers.selection.flags
     prev = method._eyes["left"].mesh.image.prev  # the cache info comes from the nearest texel
-    prev = np.nan_to_num(prev, nan=-1.0)  # not covered: NaN, and not COVERED below
+    prev = np.nan_to_num(prev, nan=-1.0, posinf=-1.0, neginf=-1.0)  # not covered: not finite, and not COVERED below
     h, w = flags.shape
     came_from = merged[np.clip(prev[1].astype(int), 0, h - 1), np.clip(prev[0].astype(int), 0, w - 1)]
     again = came_from & ((flags & (TRACED | FRESH | COVERED)) == (TRACED | COVERED))
