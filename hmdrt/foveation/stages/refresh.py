@@ -78,7 +78,9 @@ class RefreshSchedule:
         if self._cycle != (gw, params.order):
             self._cycle = (gw, params.order)
             self._order = visit_order(gw, params.group_h, params.order)
-            self._cells = np.array([self._last[c // gw, c % gw :: gw].min(initial=frame - 1) for c in self._order])
+            # each cell's stalest block: the block columns padded to whole groups (frame - 1 stands for none)
+            padded = np.pad(self._last, ((0, 0), (0, -self._last.shape[1] % gw)), constant_values=frame - 1)
+            self._cells = padded.reshape(params.group_h, -1, gw).min(axis=1).reshape(-1)[self._order]
         stalest = np.flatnonzero(self._cells == self._cells.min())
         phase = int(stalest[np.argmin((stalest - frame) % n)])
         cell = int(self._order[phase])
