@@ -104,6 +104,13 @@ def _inactive(origins, directions, far, j):
 
 
 @inline
+def _inactive_run(origins, directions, far, first, count):
+    """Rays first .. first + count - 1, a miss's: none traced."""
+    for j in range(first, first + count):
+        _inactive(origins, directions, far, j)
+
+
+@inline
 def light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
     """Fill the point-light, area-light and AO rays of hits [start, stop); hit i owns a fixed block of each.
     One pass per kind of source: a loop that holds all three runs twice as slow even where two are empty."""
@@ -122,14 +129,16 @@ def _point_rays(lights, surf, point, start, stop):
     p_org, p_dir, p_far = point.origins, point.directions, point.tfar
     n_point = l_pos.shape[0]
     for i in range(start, stop):
-        hit = hits[i]
+        if not hits[i]:
+            _inactive_run(p_org, p_dir, p_far, i * n_point, n_point)
+            continue
         px, py, pz = position[i, 0], position[i, 1], position[i, 2]
         gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
         ox, oy, oz = _origin(position, ng, offset, i)
         for l in range(n_point):
             j = i * n_point + l
             lx, ly, lz = l_pos[l, 0], l_pos[l, 1], l_pos[l, 2]
-            if hit and (lx - px) * gx + (ly - py) * gy + (lz - pz) * gz > 0.0:
+            if (lx - px) * gx + (ly - py) * gy + (lz - pz) * gz > 0.0:
                 _spawn(p_org, p_dir, p_far, j, ox, oy, oz, lx, ly, lz, 1.0)
             else:
                 _inactive(p_org, p_dir, p_far, j)
@@ -148,16 +157,15 @@ def _area_rays(lights, plan, surf, keys, area, start, stop):
     hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
     a_org, a_dir, a_far = area.origins, area.directions, area.tfar
     for i in range(start, stop):
-        hit = hits[i]
+        if not hits[i]:
+            _inactive_run(a_org, a_dir, a_far, i * a_total, a_total)
+            continue
         px, py, pz = position[i, 0], position[i, 1], position[i, 2]
         gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
         ox, oy, oz = _origin(position, ng, offset, i)
         for a in range(a_base.shape[0]):
             for k in range(a_samples[a]):
                 j = i * a_total + a_base[a] + k
-                if not hit:
-                    _inactive(a_org, a_dir, a_far, j)
-                    continue
                 s, t = stratified(keys[i], k, DIM_AREA + a, a_nx[a], a_ny[a])
                 qx = a_corner[a, 0] + s * a_u[a, 0] + t * a_v[a, 0]
                 qy = a_corner[a, 1] + s * a_u[a, 1] + t * a_v[a, 1]
@@ -177,15 +185,14 @@ def _ao_rays(plan, surf, keys, ao, start, stop):
     hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
     o_org, o_dir, o_far = ao.origins, ao.directions, ao.tfar
     for i in range(start, stop):
+        if not hits[i]:
+            _inactive_run(o_org, o_dir, o_far, i * ao_n, ao_n)
+            continue
         normal = (np.float64(ng[i, 0]), np.float64(ng[i, 1]), np.float64(ng[i, 2]))
         tangent, bitangent = tangent_frame(normal[0], normal[1], normal[2])
         ox, oy, oz = _origin(position, ng, offset, i)
-        hit = hits[i]
         for k in range(ao_n):
             j = i * ao_n + k
-            if not hit:
-                _inactive(o_org, o_dir, o_far, j)
-                continue
             s, t = stratified(keys[i], k, DIM_AO, ao_nx, ao_ny)
             dx, dy, dz = cosine_hemisphere(normal, tangent, bitangent, s, t)
             _put(o_org, o_dir, o_far, j, ox, oy, oz, dx, dy, dz, ao_dist)
