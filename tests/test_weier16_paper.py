@@ -108,9 +108,10 @@ def test_a_merged_pixel_counts_no_sample_and_its_next_sample_replaces_it():
         method.render(reqs[1], FrameStats())
     flags = method._buffers.selection.flags
     prev = method._eyes["left"].mesh.image.prev  # the cache info comes from the nearest texel
-    prev = np.nan_to_num(prev, nan=-1.0, posinf=-1.0, neginf=-1.0)  # not covered: not finite, and not COVERED below
     h, w = flags.shape
-    came_from = merged[np.clip(prev[1].astype(int), 0, h - 1), np.clip(prev[0].astype(int), 0, w - 1)]
+    # where the mesh covers no pixel its coordinates are not finite or far off, and the flags below say so
+    prev = np.clip(np.nan_to_num(prev, nan=0.0), 0, [[[w - 1]], [[h - 1]]]).astype(int)
+    came_from = merged[prev[1], prev[0]]
     again = came_from & ((flags & (TRACED | FRESH | COVERED)) == (TRACED | COVERED))
     info = method._eyes["left"].finals[method._eyes["left"].newest].info
     assert again.sum() > 50
