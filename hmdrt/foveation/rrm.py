@@ -27,7 +27,7 @@ import numpy as np
 from hmdrt.foveation.base import Checks, Configurable, FrameRequest, Knob, Stage
 from hmdrt.foveation.registry import register
 from hmdrt.foveation.stages.gaze import FixationFilter
-from hmdrt.foveation.stages.refresh import Order, RefreshSchedule, visit_order
+from hmdrt.foveation.stages.refresh import Order, RefreshSchedule
 from hmdrt.foveation.stages.sampling import SMALL_R0, pixels_per_degree
 from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.schedule import claim, dynamic
@@ -208,7 +208,6 @@ class Rrm(Configurable):
         self._buffers: dict[str, np.ndarray] = {}
         self._filters: dict[str, FixationFilter] = {}
         self._schedules: dict[str, RefreshSchedule] = {}
-        self._cells: tuple[np.ndarray, np.ndarray] | None = None  # visit order as (cell row, cell column)
         self._cols: dict[tuple[int, int], np.ndarray] = {}  # (width, cell column) -> block_columns
         self._samples: Samples | None = None
         self._configure(params)
@@ -219,8 +218,6 @@ class Rrm(Configurable):
         each eye's RefreshSchedule takes the cells holding the stalest pixels first, so every peripheral pixel
         is refreshed within the new N frames, and the buffer shows the older pixels until then. fovea_deg
         needs nothing: the rectangle is placed every frame."""
-        order = visit_order(params.group_w, params.group_h, params.order)
-        self._cells = (order // params.group_w, order % params.group_w)
         self._cols.clear()
         self._filters = {eye: _refilter(f, params) for eye, f in self._filters.items()}
         self.params = params
@@ -246,15 +243,14 @@ class Rrm(Configurable):
         self, camera: EyeCamera, gaze: np.ndarray, frame: int, eye: str
     ) -> tuple[Refresh, tuple[int, int, int, int]]:
         p = self.params
-        rows, columns = self._cells
-        phase = self._schedules.setdefault(eye, RefreshSchedule()).phase(frame, camera.width, p)
-        key = (camera.width, int(columns[phase]))
+        row, column = self._schedules.setdefault(eye, RefreshSchedule()).cell(frame, camera.width, p)
+        key = (camera.width, column)
         if key not in self._cols:
             self._cols[key] = block_columns(camera.width, p, key[1])
         rect = x0, x1, y0, y1 = foveal_rectangle(camera, gaze, p)
         w, h = camera.width, camera.height
         x0, y0 = min(x0, w), min(y0, h)
-        refresh = Refresh(self._cols[key], int(rows[phase]), p.group_h, x0, min(x1, w), y0, min(y1, h), w, h)
+        refresh = Refresh(self._cols[key], row, p.group_h, x0, min(x1, w), y0, min(y1, h), w, h)
         return refresh, rect
 
     def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:

@@ -66,6 +66,11 @@ class RefreshSchedule:
         self._cells = np.zeros(0, np.int64)  # by phase: when the cell's stalest block was last refreshed
         self._frame, self._phase = -1, 0
 
+    def cell(self, frame: int, width: int, params: RrmParams) -> tuple[int, int]:
+        """The (row, column) in the cycle group of the cell `frame` refreshes (its phase's, phase())."""
+        phase = self.phase(frame, width, params)
+        return divmod(int(self._order[phase]), params.group_w)
+
     def phase(self, frame: int, width: int, params: RrmParams) -> int:
         """The phase (rank in the visit order) that `frame` refreshes; the same again for the same frame."""
         layout = (width, params.block, params.group_h)
