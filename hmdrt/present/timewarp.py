@@ -32,10 +32,10 @@ import numba as nb
 import numpy as np
 from llvmlite import ir
 from numba import types
-from numba.core import cgutils
 from numba.extending import intrinsic
 
 from hmdrt.kernels.jit import kernel, serial
+from hmdrt.kernels.simd import lerp, pick, prefetch, splat, vector_at
 from hmdrt.optics.camera import EyeCamera
 
 
@@ -144,44 +144,6 @@ def _black_behind(m: np.ndarray, y: int, out: np.ndarray, o: int, columns: np.nd
             out[o + 3 * x : o + 3 * x + 3] = 0.0
 
 
-_I32 = ir.IntType(32)
-
-
-def _splat(builder: ir.IRBuilder, x: ir.Value, lanes: int) -> ir.Value:
-    vector = ir.VectorType(x.type, lanes)
-    first = builder.insert_element(ir.Constant(vector, ir.Undefined), x, ir.Constant(_I32, 0))
-    return _lanes(builder, first, [0] * lanes)
-
-
-def _lanes(builder: ir.IRBuilder, v: ir.Value, lanes: list[int]) -> ir.Value:
-    return builder.shuffle_vector(
-        v, ir.Constant(v.type, ir.Undefined), ir.Constant(ir.VectorType(_I32, len(lanes)), lanes)
-    )
-
-
-def _lerp(builder: ir.IRBuilder, a: ir.Value, b: ir.Value, t: ir.Value) -> ir.Value:
-    """a + t * (b - a) lane by lane, the multiply-add fused where the CPU has FMA (llvm.fmuladd)."""
-    name = f"llvm.fmuladd.v{a.type.count}f32"
-    fmuladd = cgutils.get_or_insert_function(builder.module, ir.FunctionType(a.type, [a.type] * 3), name)
-    return builder.call(fmuladd, [t, builder.fsub(b, a), a])
-
-
-def _prefetch(builder: ir.IRBuilder, data: ir.Value, index: ir.Value) -> None:
-    """A hint to bring the cache line of element `index` of data into every cache level (llvm.prefetch: a read,
-    locality 3, data); it never faults, so an index past the image is harmless."""
-    i8p = ir.IntType(8).as_pointer()
-    prefetch = cgutils.get_or_insert_function(
-        builder.module, ir.FunctionType(ir.VoidType(), [i8p, _I32, _I32, _I32]), "llvm.prefetch.p0i8"
-    )
-    address = builder.bitcast(builder.gep(data, [index]), i8p)
-    builder.call(prefetch, [address, ir.Constant(_I32, 0), ir.Constant(_I32, 3), ir.Constant(_I32, 1)])
-
-
-def _vector_at(builder: ir.IRBuilder, data: ir.Value, index: ir.Value, lanes: int) -> ir.Value:
-    """A pointer to `lanes` float32 from element `index` of data, for one unaligned load or store."""
-    return builder.bitcast(builder.gep(data, [index]), ir.VectorType(ir.FloatType(), lanes).as_pointer())
-
-
 def _make_bilerp(pairs: bool) -> object:
     """The intrinsic bilerp(image, out, k, j, step_x, step_y, ax, ay): one pixel's bilinear blend of the four RGB
     texels from flat element k (right: + step_x, lower: + step_y) stored at flat element j of out, each texel one
@@ -203,25 +165,25 @@ def _make_bilerp(pairs: bool) -> object:
             lower = builder.add(k, step_y)
             if pairs:
                 two = ir.Constant(ir.IntType(64), 2)
-                _prefetch(builder, src, builder.add(lower, step_y))
+                prefetch(builder, src, builder.add(lower, step_y))
                 top, top_right = (
-                    builder.load(_vector_at(builder, src, i, 4), align=4) for i in (k, builder.add(k, two))
+                    builder.load(vector_at(builder, src, i, 4), align=4) for i in (k, builder.add(k, two))
                 )
                 low, low_right = (
-                    builder.load(_vector_at(builder, src, i, 4), align=4) for i in (lower, builder.add(lower, two))
+                    builder.load(vector_at(builder, src, i, 4), align=4) for i in (lower, builder.add(lower, two))
                 )
-                ay4 = _splat(builder, ay, 4)
+                ay4 = splat(builder, ay, 4)
                 left, right = (
-                    _lerp(builder, top, low, ay4),
-                    _lanes(builder, _lerp(builder, top_right, low_right, ay4), [1, 2, 3, 3]),
+                    lerp(builder, top, low, ay4),
+                    pick(builder, lerp(builder, top_right, low_right, ay4), [1, 2, 3, 3]),
                 )
-                blend = _lanes(builder, _lerp(builder, left, right, _splat(builder, ax, 4)), [0, 1, 2])
+                blend = pick(builder, lerp(builder, left, right, splat(builder, ax, 4)), [0, 1, 2])
             else:
                 taps = [k, builder.add(k, step_x), lower, builder.add(lower, step_x)]
-                tl, tr, bl, br = (builder.load(_vector_at(builder, src, i, 3), align=4) for i in taps)
-                ay3 = _splat(builder, ay, 3)
-                blend = _lerp(builder, _lerp(builder, tl, bl, ay3), _lerp(builder, tr, br, ay3), _splat(builder, ax, 3))
-            builder.store(blend, _vector_at(builder, dst, j, 3), align=4)
+                tl, tr, bl, br = (builder.load(vector_at(builder, src, i, 3), align=4) for i in taps)
+                ay3 = splat(builder, ay, 3)
+                blend = lerp(builder, lerp(builder, tl, bl, ay3), lerp(builder, tr, br, ay3), splat(builder, ax, 3))
+            builder.store(blend, vector_at(builder, dst, j, 3), align=4)
             return context.get_dummy_value()
 
         i64, f32 = types.int64, types.float32

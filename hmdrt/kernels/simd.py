@@ -1,0 +1,93 @@
+"""SIMD loads and blends written in LLVM IR, for the image kernels that numba would leave scalar.
+
+numba compiles with LLVM's SLP vectoriser off (it can miscompile: numba pull request 8852), so a blend written
+channel by channel stays one load and one multiply per float. These builders let an intrinsic load a texel's
+channels as one vector and blend them lane by lane; `texel_blend` is such an intrinsic for the foveation pyramids.
+"""
+
+from __future__ import annotations
+
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+I32 = ir.IntType(32)
+F32 = ir.FloatType()
+
+
+def splat(builder: ir.IRBuilder, x: ir.Value, lanes: int) -> ir.Value:
+    """x in every one of `lanes` lanes."""
+    vector = ir.VectorType(x.type, lanes)
+    first = builder.insert_element(ir.Constant(vector, ir.Undefined), x, ir.Constant(I32, 0))
+    return pick(builder, first, [0] * lanes)
+
+
+def pick(builder: ir.IRBuilder, v: ir.Value, lanes: list[int]) -> ir.Value:
+    """The vector of v's lanes `lanes`, in that order."""
+    return builder.shuffle_vector(
+        v, ir.Constant(v.type, ir.Undefined), ir.Constant(ir.VectorType(I32, len(lanes)), lanes)
+    )
+
+
+def lerp(builder: ir.IRBuilder, a: ir.Value, b: ir.Value, t: ir.Value) -> ir.Value:
+    """a + t * (b - a) lane by lane, the multiply-add fused where the CPU has FMA (llvm.fmuladd)."""
+    name = f"llvm.fmuladd.v{a.type.count}f32"
+    fmuladd = cgutils.get_or_insert_function(builder.module, ir.FunctionType(a.type, [a.type] * 3), name)
+    return builder.call(fmuladd, [t, builder.fsub(b, a), a])
+
+
+def prefetch(builder: ir.IRBuilder, data: ir.Value, index: ir.Value) -> None:
+    """A hint to bring the cache line of element `index` of data into every cache level (llvm.prefetch: a read,
+    locality 3, data); it never faults, so an index past the image is harmless."""
+    i8p = ir.IntType(8).as_pointer()
+    fn = cgutils.get_or_insert_function(
+        builder.module, ir.FunctionType(ir.VoidType(), [i8p, I32, I32, I32]), "llvm.prefetch.p0i8"
+    )
+    address = builder.bitcast(builder.gep(data, [index]), i8p)
+    builder.call(fn, [address, ir.Constant(I32, 0), ir.Constant(I32, 3), ir.Constant(I32, 1)])
+
+
+def vector_at(builder: ir.IRBuilder, data: ir.Value, index: ir.Value, lanes: int) -> ir.Value:
+    """A pointer to `lanes` float32 from element `index` of data, for one unaligned load or store."""
+    return builder.bitcast(builder.gep(data, [index]), ir.VectorType(F32, lanes).as_pointer())
+
+
+def _texel(builder: ir.IRBuilder, data: ir.Value, channels: ir.Value, k: ir.Value) -> ir.Value:
+    """Texel k's red, green, blue and depth (channels 0, 1, 2 and 4 of a row of `channels` float32): one 16-byte
+    load of its first four channels, its depth put in the fourth lane."""
+    first = builder.mul(k, channels)
+    rgbw = builder.load(vector_at(builder, data, first, 4), align=4)
+    depth = builder.load(builder.gep(data, [builder.add(first, ir.Constant(k.type, 4))]), align=4)
+    return builder.insert_element(rgbw, depth, ir.Constant(I32, 3))
+
+
+@intrinsic
+def texel_blend(typingctx, data, k00, k01, k10, k11, a, b):
+    """(r, g, b, depth) float32 between texels k00 (top left), k01, k10 and k11 of `data`, a C-contiguous
+    (texels, 5 or more) float32 array (r, g, b, weight, depth), with float32 weights a across and b down:
+    q (p t00 + a t01) + b (p t10 + a t11) with p = 1 - a, q = 1 - b, the multiplies and adds apart (no fused
+    multiply-add), so that each lane rounds as the same blend written channel by channel does. Each texel is one
+    16-byte load and one 4-byte one; the blend four lanes at once. The indices are not checked."""
+    if not (isinstance(data, types.Array) and data.ndim == 2 and data.layout == "C" and data.dtype == types.float32):
+        return None
+    if not all(isinstance(k, types.Integer) for k in (k00, k01, k10, k11)) or (a, b) != (types.float32,) * 2:
+        return None
+
+    def codegen(context, builder, sig, args):
+        array = context.make_array(sig.args[0])(context, builder, args[0])
+        channels = cgutils.unpack_tuple(builder, array.shape)[1]
+        taps = [
+            _texel(builder, array.data, channels, context.cast(builder, k, t, types.int64))
+            for k, t in zip(args[1:5], sig.args[1:5], strict=True)
+        ]
+        a4, b4 = splat(builder, args[5], 4), splat(builder, args[6], 4)
+        one = splat(builder, ir.Constant(F32, 1.0), 4)
+        p4, q4 = builder.fsub(one, a4), builder.fsub(one, b4)
+        top = builder.fadd(builder.fmul(p4, taps[0]), builder.fmul(a4, taps[1]))
+        bottom = builder.fadd(builder.fmul(p4, taps[2]), builder.fmul(a4, taps[3]))
+        blend = builder.fadd(builder.fmul(q4, top), builder.fmul(b4, bottom))
+        lanes = [builder.extract_element(blend, ir.Constant(I32, i)) for i in range(4)]
+        return context.make_tuple(builder, sig.return_type, lanes)
+
+    return types.UniTuple(types.float32, 4)(data, k00, k01, k10, k11, a, b), codegen

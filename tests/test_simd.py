@@ -1,0 +1,58 @@
+"""The SIMD intrinsics against the same arithmetic written channel by channel: bit for bit."""
+
+import numba as nb
+import numpy as np
+import pytest
+
+from hmdrt.kernels.simd import texel_blend
+
+
+@nb.njit(cache=True)
+def _by_channel(data, k00, k01, k10, k11, a, b):
+    p, q = np.float32(1.0) - a, np.float32(1.0) - b
+    out = np.empty(4, np.float32)
+    for lane, c in enumerate((0, 1, 2, 4)):
+        out[lane] = q * (p * data[k00, c] + a * data[k01, c]) + b * (p * data[k10, c] + a * data[k11, c])
+    return out
+
+
+@nb.njit(cache=True)
+def _blend_all(data, taps, weights, simd, out):
+    for i in range(taps.shape[0]):
+        k00, k01, k10, k11 = np.uint64(taps[i, 0]), np.uint64(taps[i, 1]), np.uint64(taps[i, 2]), np.uint64(taps[i, 3])
+        a, b = weights[i, 0], weights[i, 1]
+        if simd:
+            out[i, 0], out[i, 1], out[i, 2], out[i, 3] = texel_blend(data, k00, k01, k10, k11, a, b)
+        else:
+            out[i] = _by_channel(data, k00, k01, k10, k11, a, b)
+
+
+def test_texel_blend_is_the_channel_by_channel_blend_bit_for_bit():
+    rng = np.random.default_rng(3)
+    data = (rng.standard_normal((500, 5)) * 1e3).astype(np.float32)
+    data[::7, 4] = np.inf  # misses' depth
+    data[::5, 3] = -7.0  # the weight channel is never read
+    taps = rng.integers(0, len(data), (20000, 4))
+    weights = rng.random((20000, 2)).astype(np.float32)
+    weights[:100] = 0.0
+    weights[100:200] = 1.0
+    simd, scalar = np.empty((20000, 4), np.float32), np.empty((20000, 4), np.float32)
+    _blend_all(data, taps, weights, True, simd)
+    _blend_all(data, taps, weights, False, scalar)
+    assert np.array_equal(simd.view(np.uint32), scalar.view(np.uint32))
+    # the last texel's four floats and its depth are within the array: no read past it
+    last = np.uint64(len(data) - 1)
+    assert texel_blend_at(data, last) == pytest.approx(tuple(data[-1, [0, 1, 2, 4]]))
+
+
+@nb.njit(cache=True)
+def texel_blend_at(data, k):
+    return texel_blend(data, k, k, k, k, np.float32(0.5), np.float32(0.5))
+
+
+def test_texel_blend_refuses_other_layouts():
+    data = np.zeros((4, 5), np.float64)
+    with pytest.raises(nb.core.errors.TypingError):
+        texel_blend_at(data, np.uint64(0))
+    with pytest.raises(nb.core.errors.TypingError):
+        texel_blend_at(np.zeros((5, 4), np.float32).T, np.uint64(0))
