@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hmdrt.api import trace_gbuffer
+from hmdrt.kernels.rng import uniform
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
 from hmdrt.scene import Scene, load_scene
@@ -17,7 +18,7 @@ from hmdrt.scene.pack import pack
 from hmdrt.scene.shapes import quad, sphere
 from hmdrt.spatial import Pose
 from hmdrt.trace.bsdf import fresnel_dielectric, reflect, refract, split
-from hmdrt.trace.sampling import cosine_hemisphere, sincos_turn, tangent_frame
+from hmdrt.trace.sampling import cosine_hemisphere, sincos_turn, stratified, tangent_frame
 from hmdrt.trace.textures import sample_texture
 
 from .helpers import render
@@ -269,6 +270,19 @@ def test_ao_directions_are_cosine_weighted_about_the_normal(normal):
     assert cos.min() >= 0.0
     assert abs(cos.mean() - 2 / 3) < 0.01 and abs((cos**2).mean() - 0.5) < 0.01
     assert np.linalg.norm((d - np.outer(cos, n)).mean(axis=0)) < 0.01
+
+
+@pytest.mark.parametrize("nx, ny", [(1, 1), (2, 4), (3, 3), (7, 9), (64, 64), (1, 4096)])
+def test_stratified_takes_the_kth_stratum_row_by_row(nx, ny):
+    """Sample k lies in stratum (k mod nx, k div nx), found without integer division, and is that stratum's
+    corner plus the key's two uniforms over its size, exactly."""
+    key, dim = 123456789012, 16
+    for k in range(nx * ny):
+        s, t = stratified(key, k, dim, nx, ny)
+        assert (s, t) == ((k % nx + uniform(key, dim, 2 * k)) / nx, (k // nx + uniform(key, dim, 2 * k + 1)) / ny)
+    for k in (2**31 - 1, 2**40 - 3):  # far past any sample count: the row still exact
+        s, t = stratified(key, k, dim, nx, ny)
+        assert t == (k // nx + uniform(key, dim, 2 * k + 1)) / ny
 
 
 def test_noise_gradients_are_perlins_twelve_edges():

@@ -84,6 +84,15 @@ def _put(origins, directions, far, j, ox, oy, oz, dx, dy, dz, tfar):
 
 
 @inline
+def _put_flat(origins, directions, j, ox, oy, oz, dx, dy, dz):
+    """Ray j's origin and direction into flat (3 n,) views of the batch, at unsigned indices (no negative-index
+    wraparound), which LLVM's vectoriser turns into interleaved stores."""
+    e = np.uint64(3) * j
+    origins[e], origins[e + np.uint64(1)], origins[e + np.uint64(2)] = ox, oy, oz
+    directions[e], directions[e + np.uint64(1)], directions[e + np.uint64(2)] = dx, dy, dz
+
+
+@inline
 def _spawn(origins, directions, far, j, ox, oy, oz, tx, ty, tz, shorten):
     """Ray j from (ox, oy, oz) towards (tx, ty, tz), ending `shorten` of the way there."""
     dx, dy, dz = tx - ox, ty - oy, tz - oz
@@ -146,6 +155,9 @@ def _point_rays(lights, surf, point, start, stop):
 
 @fused
 def _area_rays(lights, plan, surf, keys, area, start, stop):
+    """Each hit's rays to its stratified points on each area light, in a loop over the samples that vectorises:
+    flat stores at unsigned indices, and a ray the light cannot reach marked by tfar alone (its origin and
+    direction are stored as they come)."""
     a_corner, a_u, a_v, a_normal, a_samples = (
         lights.area_corner,
         lights.area_u,
@@ -156,6 +168,7 @@ def _area_rays(lights, plan, surf, keys, area, start, stop):
     a_base, a_nx, a_ny, a_total = plan.area_base, plan.area_nx, plan.area_ny, plan.area_total
     hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
     a_org, a_dir, a_far = area.origins, area.directions, area.tfar
+    origins, directions = a_org.reshape(-1), a_dir.reshape(-1)
     for i in range(start, stop):
         if not hits[i]:
             _inactive_run(a_org, a_dir, a_far, i * a_total, a_total)
@@ -164,26 +177,33 @@ def _area_rays(lights, plan, surf, keys, area, start, stop):
         gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
         ox, oy, oz = _origin(position, ng, offset, i)
         for a in range(a_base.shape[0]):
-            for k in range(a_samples[a]):
-                j = i * a_total + a_base[a] + k
+            cx, cy, cz = a_corner[a, 0], a_corner[a, 1], a_corner[a, 2]
+            ux, uy, uz = a_u[a, 0], a_u[a, 1], a_u[a, 2]
+            vx, vy, vz = a_v[a, 0], a_v[a, 1], a_v[a, 2]
+            mx, my, mz = a_normal[a, 0], a_normal[a, 1], a_normal[a, 2]
+            first = np.uint64(i * a_total + a_base[a])
+            for k in range(np.int64(a_samples[a])):  # an int32 count would make k 32 bits wide: scatters
                 s, t = stratified(keys[i], k, DIM_AREA + a, a_nx[a], a_ny[a])
-                qx = a_corner[a, 0] + s * a_u[a, 0] + t * a_v[a, 0]
-                qy = a_corner[a, 1] + s * a_u[a, 1] + t * a_v[a, 1]
-                qz = a_corner[a, 2] + s * a_u[a, 2] + t * a_v[a, 2]
+                qx, qy, qz = cx + s * ux + t * vx, cy + s * uy + t * vy, cz + s * uz + t * vz
                 lx, ly, lz = qx - px, qy - py, qz - pz
                 facing_light = lx * gx + ly * gy + lz * gz > 0.0
-                emits = lx * a_normal[a, 0] + ly * a_normal[a, 1] + lz * a_normal[a, 2] < 0.0
-                if facing_light and emits:
-                    _spawn(a_org, a_dir, a_far, j, ox, oy, oz, qx, qy, qz, AREA_SHORTEN)
-                else:
-                    _inactive(a_org, a_dir, a_far, j)
+                emits = lx * mx + ly * my + lz * mz < 0.0
+                dx, dy, dz = qx - ox, qy - oy, qz - oz
+                dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+                inv = np.divide(1.0, dist)
+                j = first + np.uint64(k)
+                _put_flat(origins, directions, j, ox, oy, oz, dx * inv, dy * inv, dz * inv)
+                a_far[j] = dist * AREA_SHORTEN if facing_light & emits & (dist > 0.0) else -1.0
 
 
 @fused
 def _ao_rays(plan, surf, keys, ao, start, stop):
+    """Each hit's cosine-weighted AO rays about its geometric normal, in a loop over the samples that vectorises
+    (flat stores at unsigned indices)."""
     ao_n, ao_nx, ao_ny, ao_dist = plan.ao_samples, plan.ao_nx, plan.ao_ny, plan.ao_distance
     hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
     o_org, o_dir, o_far = ao.origins, ao.directions, ao.tfar
+    origins, directions = o_org.reshape(-1), o_dir.reshape(-1)
     for i in range(start, stop):
         if not hits[i]:
             _inactive_run(o_org, o_dir, o_far, i * ao_n, ao_n)
@@ -191,11 +211,13 @@ def _ao_rays(plan, surf, keys, ao, start, stop):
         normal = (np.float64(ng[i, 0]), np.float64(ng[i, 1]), np.float64(ng[i, 2]))
         tangent, bitangent = tangent_frame(normal[0], normal[1], normal[2])
         ox, oy, oz = _origin(position, ng, offset, i)
+        first = np.uint64(i * ao_n)
         for k in range(ao_n):
-            j = i * ao_n + k
             s, t = stratified(keys[i], k, DIM_AO, ao_nx, ao_ny)
             dx, dy, dz = cosine_hemisphere(normal, tangent, bitangent, s, t)
-            _put(o_org, o_dir, o_far, j, ox, oy, oz, dx, dy, dz, ao_dist)
+            j = first + np.uint64(k)
+            _put_flat(origins, directions, j, ox, oy, oz, dx, dy, dz)
+            o_far[j] = ao_dist
 
 
 @inline

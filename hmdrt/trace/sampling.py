@@ -32,10 +32,14 @@ def grid_shape(n: int) -> tuple[int, int]:
 
 @inline
 def stratified(key, k, dim, nx, ny):
-    """The k-th of nx * ny jittered strata of the unit square, for a given key and dimension."""
-    ix = k % nx
-    iy = k // nx
-    return (ix + uniform(key, dim, 2 * k)) / nx, (iy + uniform(key, dim, 2 * k + 1)) / ny
+    """The k-th of nx * ny jittered strata of the unit square, for a given key and dimension. Without integer
+    division or numba's zero-division checks, so that a loop over k vectorises: k // nx is the floor of
+    (k + 0.5) / nx, which stays at least 0.5 / nx from an integer, far beyond the product's rounding for any
+    k below 2**40."""
+    iy = int((k + 0.5) * np.divide(1.0, nx))
+    ix = k - iy * nx
+    s = np.divide(ix + uniform(key, dim, 2 * k), np.float64(nx))
+    return s, np.divide(iy + uniform(key, dim, 2 * k + 1), np.float64(ny))
 
 
 # Taylor coefficients of sin x / x and cos x in x^2: on [-pi/4, pi/4] the first terms left out are below 1e-15
@@ -91,7 +95,7 @@ def tangent_frame(nx, ny, nz):
 def cosine_hemisphere(n, tangent, bitangent, s, t):
     """Cosine-weighted direction about unit normal n, given its tangent_frame, from a point (s, t) of the unit
     square."""
-    r = math.sqrt(s)
+    r = math.sqrt(max(s, 0.0))  # s >= 0: the max tells LLVM so, which then takes the sqrt instruction, not libm's
     sine, cosine = sincos_turn(t)
     lx, ly, lz = r * cosine, r * sine, math.sqrt(max(0.0, 1.0 - s))
     return (
