@@ -57,6 +57,40 @@ def fbm(x: float, y: float, z: float, octaves: int, seed: int) -> float:
     return total / norm
 
 
+def _norms(most: int) -> np.ndarray:
+    """fbm's normalisation for 0 .. most octaves, summed as fbm sums it."""
+    norms, norm, amp = np.zeros(most + 1), 0.0, 1.0
+    for o in range(most):
+        norm += amp
+        amp *= 0.5
+        norms[o + 1] = norm
+    return norms
+
+
+_NORMS = _norms(12)  # scene.model.Noise's octaves are 1 .. 12
+
+
+@inline
+def fbm_rows(points, ids, m, most):
+    """fbm of each of the first m points of `points` ((4, n) float64: rows x, y and z, and a row the results
+    go in) with its own octave count and seed (ids[1] and ids[2], (3, n) int64; at most `most` octaves), octave
+    by octave so that the loop over the points vectorises: 29 against 206 ns a 4-octave fbm, the same bits (a
+    point past its octaves adds 0.0 to a sum that is never -0.0)."""
+    x, y, z, total = points[0], points[1], points[2], points[3]
+    octaves, seeds = ids[1], ids[2]
+    for i in range(m):
+        total[i] = 0.0
+    amp, freq = 1.0, 1.0
+    for o in range(most):
+        for i in range(m):
+            g = amp * gradient_noise(x[i] * freq, y[i] * freq, z[i] * freq, seeds[i] + o)
+            total[i] = total[i] + (g if o < octaves[i] else 0.0)
+        amp *= 0.5
+        freq *= 2.0
+    for i in range(m):
+        total[i] = total[i] / _NORMS[octaves[i]]
+
+
 @kernel
 def _fbm_points(points, octaves, seed, out):
     for i in nb.prange(points.shape[0]):

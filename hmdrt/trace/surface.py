@@ -31,6 +31,8 @@ class Surface(NamedTuple):
     material: np.ndarray  # (n,) int32
     object_id: np.ndarray  # (n,) int32, -1 on a miss
     offset: np.ndarray  # (n,) float32, metres
+    lookup: np.ndarray  # (4, n) float64: texture_block's scratch for noise lookups
+    lookup_ids: np.ndarray  # (3, n) int64: and theirs
 
 
 @serial
@@ -46,6 +48,8 @@ def surface_empty(n):
         np.empty(n, np.int32),
         np.empty(n, np.int32),
         np.empty(n, np.float32),
+        np.empty((4, n)),
+        np.empty((3, n), np.int64),
     )
 
 
@@ -61,7 +65,7 @@ def surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
         geo.object_has_uv,
     )
     tex_world = mats.tex_world
-    hit, position, ng, ns, entering, texcoord, albedo, material, object_id, offset = out
+    hit, position, ng, ns, entering, texcoord, albedo, material, object_id, offset, lookup, lookup_ids = out
     for i in range(start, stop):
         p = prim[i]
         if p < 0:
@@ -105,4 +109,4 @@ def surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
             texcoord[i, 1] = w * uvs[i0, 1] + u * uvs[i1, 1] + v * uvs[i2, 1]
             texcoord[i, 2] = 0.0
         offset[i] = max(extent[p], 1e-30) * OFFSET_REL
-    texture_block(mats, material, texcoord, hit, albedo, start, stop)
+    texture_block(mats, material, texcoord, hit, albedo, lookup, lookup_ids, start, stop)
