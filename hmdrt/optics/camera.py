@@ -40,9 +40,9 @@ class EyeRays(NamedTuple):
 def eye_direction(eye, x, y):
     """World-space unit direction (float64 triple) of the view ray through pixel coordinates (x, y)."""
     tan_l, tan_r, tan_u, tan_d, width, height, rot, _ = eye
-    tx = tan_l + x * ((tan_r - tan_l) / width)
-    ty = tan_u - y * ((tan_u - tan_d) / height)
-    inv = 1.0 / math.sqrt(tx * tx + ty * ty + 1.0)
+    tx = tan_l + x * np.divide(tan_r - tan_l, width)  # np.divide: no zero-division branch, so a loop vectorises
+    ty = tan_u - y * np.divide(tan_u - tan_d, height)
+    inv = np.divide(1.0, math.sqrt(tx * tx + ty * ty + 1.0))
     ex, ey, ez = tx * inv, ty * inv, -inv
     return (
         rot[0, 0] * ex + rot[0, 1] * ey + rot[0, 2] * ez,

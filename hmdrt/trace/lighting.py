@@ -77,31 +77,12 @@ def _origin(position, ng, offset, i):
 
 
 @inline
-def _put(origins, directions, far, j, ox, oy, oz, dx, dy, dz, tfar):
-    origins[j, 0], origins[j, 1], origins[j, 2] = ox, oy, oz
-    directions[j, 0], directions[j, 1], directions[j, 2] = dx, dy, dz
-    far[j] = tfar
-
-
-@inline
 def _put_flat(origins, directions, j, ox, oy, oz, dx, dy, dz):
     """Ray j's origin and direction into flat (3 n,) views of the batch, at unsigned indices (no negative-index
     wraparound), which LLVM's vectoriser turns into interleaved stores."""
     e = np.uint64(3) * j
     origins[e], origins[e + np.uint64(1)], origins[e + np.uint64(2)] = ox, oy, oz
     directions[e], directions[e + np.uint64(1)], directions[e + np.uint64(2)] = dx, dy, dz
-
-
-@inline
-def _spawn(origins, directions, far, j, ox, oy, oz, tx, ty, tz, shorten):
-    """Ray j from (ox, oy, oz) towards (tx, ty, tz), ending `shorten` of the way there."""
-    dx, dy, dz = tx - ox, ty - oy, tz - oz
-    dist = math.sqrt(dx * dx + dy * dy + dz * dz)
-    if dist > 0.0:
-        inv = 1.0 / dist
-        _put(origins, directions, far, j, ox, oy, oz, dx * inv, dy * inv, dz * inv, dist * shorten)
-    else:
-        _inactive(origins, directions, far, j)
 
 
 @inline
@@ -133,24 +114,29 @@ def light_rays_block(lights, plan, surf, keys, point, area, ao, start, stop):
 
 @fused
 def _point_rays(lights, surf, point, start, stop):
+    """Each hit's ray to each point light, light by light in a loop over the hits that vectorises (flat views at
+    unsigned indices); a ray that cannot reach its light (a miss, a light behind the surface) is marked by its tfar
+    of -1 alone."""
     l_pos = lights.point_position
-    hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
-    p_org, p_dir, p_far = point.origins, point.directions, point.tfar
+    hits, offset, p_far = surf.hit, surf.offset, point.tfar
+    position, ng = surf.position.reshape(-1), surf.normal_geometric.reshape(-1)
+    origins, directions = point.origins.reshape(-1), point.directions.reshape(-1)
     n_point = l_pos.shape[0]
-    for i in range(start, stop):
-        if not hits[i]:
-            _inactive_run(p_org, p_dir, p_far, i * n_point, n_point)
-            continue
-        px, py, pz = position[i, 0], position[i, 1], position[i, 2]
-        gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
-        ox, oy, oz = _origin(position, ng, offset, i)
-        for l in range(n_point):
-            j = i * n_point + l
-            lx, ly, lz = l_pos[l, 0], l_pos[l, 1], l_pos[l, 2]
-            if (lx - px) * gx + (ly - py) * gy + (lz - pz) * gz > 0.0:
-                _spawn(p_org, p_dir, p_far, j, ox, oy, oz, lx, ly, lz, 1.0)
-            else:
-                _inactive(p_org, p_dir, p_far, j)
+    one, two, three = np.uint64(1), np.uint64(2), np.uint64(3)
+    for l in range(n_point):
+        lx, ly, lz = l_pos[l, 0], l_pos[l, 1], l_pos[l, 2]
+        for i in range(start, stop):
+            e, off = three * np.uint64(i), offset[i]
+            px, py, pz = position[e], position[e + one], position[e + two]
+            gx, gy, gz = ng[e], ng[e + one], ng[e + two]
+            ox, oy, oz = px + gx * off, py + gy * off, pz + gz * off  # _origin
+            facing = (lx - px) * gx + (ly - py) * gy + (lz - pz) * gz > 0.0
+            dx, dy, dz = lx - ox, ly - oy, lz - oz
+            dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+            inv = np.divide(1.0, dist)
+            j = np.uint64(i * n_point + l)
+            _put_flat(origins, directions, j, ox, oy, oz, dx * inv, dy * inv, dz * inv)
+            p_far[j] = dist if hits[i] & facing & (dist > 0.0) else -1.0
 
 
 @fused

@@ -159,20 +159,25 @@ def _occlude(scene, packet, batch, rays, hits, per_hit, depth):
 
 @inline
 def _raygen(frame, rays, radiance, start, count):
-    eye, xy, keys = frame.eye, frame.xy, frame.keys
-    ox, oy, oz = np.float32(eye.position[0]), np.float32(eye.position[1]), np.float32(eye.position[2])
+    """The camera rays of samples [start, start + count): their directions, then the fields every camera ray starts
+    with, each in a loop of its own over flat views at unsigned indices, so that each vectorises."""
+    eye, keys = frame.eye, frame.keys
+    xy, directions = frame.xy.reshape(-1), rays.directions.reshape(-1)
+    two, three = np.uint64(2), np.uint64(3)
     for i in range(count):
-        s = start + i
-        dx, dy, dz = eye_direction(eye, xy[s, 0], xy[s, 1])
-        rays.origins[i, 0], rays.origins[i, 1], rays.origins[i, 2] = ox, oy, oz
-        rays.directions[i, 0], rays.directions[i, 1], rays.directions[i, 2] = dx, dy, dz
-        for c in range(3):
-            rays.throughput[i, c] = 1.0
-            radiance[i, c] = 0.0
-        rays.owner[i] = i
-        rays.key[i] = keys[s]
-        rays.principal[i] = True
-        rays.through[i] = False
+        s, e = two * np.uint64(start + i), three * np.uint64(i)
+        dx, dy, dz = eye_direction(eye, xy[s], xy[s + np.uint64(1)])
+        directions[e], directions[e + np.uint64(1)], directions[e + two] = dx, dy, dz
+    ox, oy, oz = np.float32(eye.position[0]), np.float32(eye.position[1]), np.float32(eye.position[2])
+    origins, throughput, summed = rays.origins.reshape(-1), rays.throughput.reshape(-1), radiance.reshape(-1)
+    for i in range(count):
+        e = three * np.uint64(i)
+        origins[e], origins[e + np.uint64(1)], origins[e + two] = ox, oy, oz
+    for e in range(3 * count):
+        throughput[e], summed[e] = 1.0, 0.0
+    for i in range(count):
+        rays.owner[i], rays.key[i] = i, keys[start + i]
+        rays.principal[i], rays.through[i] = True, False
 
 
 @inline
