@@ -68,11 +68,8 @@ def foveal_config(frc: str, r0: float | None, r1: float | None, p_min: float | N
 @inline
 def foveal_probability(e, r0, r1, p_min):
     """weier2016's p(q) at eccentricity e (degrees): 1 below r0, linear to p_min at r1, p_min beyond."""
-    if e < r0:
-        return 1.0
-    if e >= r1:
-        return p_min
-    return 1.0 - (1.0 - p_min) * (e - r0) / (r1 - r0)
+    ramp = 1.0 - np.divide((1.0 - p_min) * (e - r0), r1 - r0)  # selects and np.divide: a loop of it vectorises
+    return 1.0 if e < r0 else (p_min if e >= r1 else ramp)
 
 
 @kernel

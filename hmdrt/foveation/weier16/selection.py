@@ -4,6 +4,7 @@ resampling info and the support image's pixels, and the tracer's sample list, on
 from __future__ import annotations
 
 import numba as nb
+import numpy as np
 
 from hmdrt.foveation.stages.sampling import foveal_probability
 from hmdrt.foveation.weier16.params import COVERED, FOVEA, FRESH, RESAMPLE, SUPPORT, TRACED
@@ -16,38 +17,45 @@ from hmdrt.kernels.schedule import claim
 def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, grid, selection, draws, counter, threads):
     """Section 3.1's ray generation (pixel q traced when xi_q < p(q), sampling.bernoulli_mask's xi), the pixels
     of cells marked in the resampling info and the support image's pixels (grid, always traced, once), with each
-    pixel's flags and each row's sample count. The row's xi are drawn first, in a loop of their own that
-    vectorises, into the thread's row of `draws`."""
+    pixel's flags and each row's sample count. A row is four passes: its xi, the flags that depend on the pixel
+    alone (both loops of selects that vectorise), then, where there is a history, the mesh's coverage and the
+    resampling info's cells (a gather) OR-ed in."""
     flags, counts, resampled = selection.flags, selection.counts, selection.resampled
     h, w = flags.shape
     sh = resample.shape[0]
     history = zinv.shape[0] == h
+    r0, r1, p_min = foveal
+    fovea_flags, support_flags = np.uint8(FOVEA | TRACED | FRESH), np.uint8(TRACED | SUPPORT)
+    fresh, covered, traced = np.uint8(TRACED | FRESH | RESAMPLE), np.uint8(COVERED), np.uint8(TRACED)
     for _ in nb.prange(threads):
         y = claim(counter)
         while y < h:
             xi, key = draws[nb.get_thread_id()], y * w + (seed << 32)
             for x in range(w):
                 xi[x] = uniform(key + x, 0x5A3, frame)
-            ly, support_row = y * sh // h, grid.row[y] >= 0
-            n = nr = 0
+            e_row, row, columns = ecc[y], flags[y], grid.column
+            support_row = grid.row[y] >= 0
             for x in range(w):
-                e = ecc[y, x]
-                f = COVERED if history and zinv[y, x] > 0.0 else 0
-                if e < foveal.r0:
-                    f |= FOVEA
-                if sh > 0 and resample[ly, low_cols[x]]:
-                    f |= TRACED | FRESH | RESAMPLE
-                    nr += 1
-                elif e < foveal.r0:  # p(q) = 1
-                    f |= TRACED | FRESH
-                else:
-                    p = foveal_probability(e, foveal.r0, foveal.r1, foveal.p_min)
-                    if p >= 1.0 or xi[x] < p:
-                        f |= TRACED
-                if support_row and grid.column[x] >= 0:
-                    f |= TRACED | SUPPORT
-                flags[y, x] = f
-                n += f & TRACED
+                e = e_row[x]
+                f = fovea_flags if e < r0 else np.uint8(0)
+                p = foveal_probability(e, r0, r1, p_min)
+                f |= traced if (p >= 1.0) | (xi[x] < p) else np.uint8(0)
+                f |= support_flags if support_row & (columns[x] >= 0) else np.uint8(0)
+                row[x] = f
+            if history:
+                z_row = zinv[y]
+                for x in range(w):
+                    row[x] |= covered if z_row[x] > 0.0 else np.uint8(0)
+            nr = 0
+            if sh > 0:
+                marked = resample[y * sh // h]
+                for x in range(w):
+                    if marked[low_cols[x]]:
+                        row[x] |= fresh
+                        nr += 1
+            n = 0
+            for x in range(w):
+                n += row[x] & traced
             counts[y] = n
             resampled[y] = nr
             y = claim(counter)
