@@ -17,9 +17,9 @@ from hmdrt.kernels.schedule import claim
 def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, grid, selection, draws, counter, threads):
     """Section 3.1's ray generation (pixel q traced when xi_q < p(q), sampling.bernoulli_mask's xi), the pixels
     of cells marked in the resampling info and the support image's pixels (grid, always traced, once), with each
-    pixel's flags and each row's sample count. A row is four passes: its xi, the flags that depend on the pixel
-    alone (both loops of selects that vectorise), then, where there is a history, the mesh's coverage and the
-    resampling info's cells (a gather) OR-ed in."""
+    pixel's flags and each row's sample count. A row is a pass each: its xi and the flags that depend on the pixel
+    alone (loops of selects that vectorise), then, where there is a history, the mesh's coverage and the
+    resampling info's cells (a gather) OR-ed in, and the count."""
     flags, counts, resampled = selection.flags, selection.counts, selection.resampled
     h, w = flags.shape
     sh = resample.shape[0]
