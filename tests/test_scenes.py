@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -9,7 +10,7 @@ from hmdrt.errors import SceneError
 from hmdrt.optics import get_profile
 from hmdrt.scene import BUILTINS, load_scene
 from hmdrt.scene.builtin import voxel_city
-from hmdrt.scene.model import Image
+from hmdrt.scene.model import Image, Noise
 from hmdrt.scene.pack import pack
 
 from .helpers import DATA, render
@@ -198,3 +199,14 @@ def test_shipped_scene_configs_load_and_pack(path):
 @pytest.mark.parametrize("path", sorted((CONFIGS / "profiles").glob("*.toml")), ids=lambda p: p.name)
 def test_shipped_profile_configs_load(path):
     assert get_profile(str(path)).width > 0
+
+
+@pytest.mark.parametrize("octaves", [0, 13])
+def test_a_noise_texture_made_in_python_past_its_octave_bound_is_refused(octaves):
+    """Scene files are validated as they are read; a Noise made in Python is not, and pack refuses what the texture
+    kernels hold no table for, where the lookup would read past it."""
+    scene = load_scene("interior")
+    floor = scene.materials["floor"]
+    scene.materials["floor"] = msgspec.structs.replace(floor, texture=Noise(octaves=octaves))
+    with pytest.raises(SceneError, match=f"{octaves} octaves; 1 to 12"):
+        pack(scene)

@@ -23,6 +23,9 @@ Vec3 = tuple[Finite, Finite, Finite]
 Mapping = Literal["uv", "world"]
 
 
+MAX_OCTAVES = 12  # a noise texture's octaves at most: the texture kernels hold a table for each count
+
+
 class _Struct(msgspec.Struct, frozen=True, forbid_unknown_fields=True, tag_field="kind"):
     pass
 
@@ -40,7 +43,7 @@ class Noise(_Struct, tag="noise"):
 
     colors: tuple[Colour, Colour] = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     scale: Annotated[float, msgspec.Meta(gt=0, le=1e6)] = 1.0
-    octaves: Annotated[int, msgspec.Meta(ge=1, le=12)] = 4
+    octaves: Annotated[int, msgspec.Meta(ge=1, le=MAX_OCTAVES)] = 4
     seed: Annotated[int, msgspec.Meta(ge=0, lt=2**31)] = 0
     mapping: Mapping = "uv"
 

@@ -7,6 +7,7 @@ import numpy as np
 
 from hmdrt.kernels.jit import inline, kernel
 from hmdrt.kernels.rng import hash32
+from hmdrt.scene.model import MAX_OCTAVES
 
 
 @inline
@@ -67,7 +68,7 @@ def _norms(most: int) -> np.ndarray:
     return norms
 
 
-_NORMS = _norms(12)  # scene.model.Noise's octaves are 1 .. 12
+_NORMS = _norms(MAX_OCTAVES)  # scene.pack refuses a noise texture with more octaves
 
 
 @inline

@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from hmdrt.errors import SceneError
-from hmdrt.scene.model import AreaLight, Checker, Image, Noise, PointLight, Scene
+from hmdrt.scene.model import MAX_OCTAVES, AreaLight, Checker, Image, Noise, PointLight, Scene
 
 TEX_NONE, TEX_CHECKER, TEX_NOISE, TEX_IMAGE = 0, 1, 2, 3
 
@@ -143,6 +143,14 @@ def _texture_images(scene: Scene, mats: list) -> tuple[np.ndarray, np.ndarray, n
     return np.array(offsets, np.int64), np.array(heights, np.int32), np.array(widths, np.int32), texels
 
 
+def _octaves(material) -> int:
+    """A noise texture's octave count, 1 .. MAX_OCTAVES (a Noise made in Python is not validated); 1 for others."""
+    octaves = _texture_field(material, "octaves", 1)
+    if not 1 <= octaves <= MAX_OCTAVES:
+        raise SceneError(f"a noise texture has {octaves} octaves; 1 to {MAX_OCTAVES} are allowed")
+    return octaves
+
+
 def _materials(scene: Scene) -> Materials:
     mats = list(scene.materials.values())
     kinds = {type(None): TEX_NONE, Checker: TEX_CHECKER, Noise: TEX_NOISE, Image: TEX_IMAGE}
@@ -160,7 +168,7 @@ def _materials(scene: Scene) -> Materials:
         _column(mats, lambda m: _texture_field(m, "scale", 1.0)),
         _column(mats, lambda m: _texture_field(m, "colors", no_colors)[0], width=3),
         _column(mats, lambda m: _texture_field(m, "colors", no_colors)[1], width=3),
-        _column(mats, lambda m: _texture_field(m, "octaves", 1), np.int32),
+        _column(mats, _octaves, np.int32),
         _column(mats, lambda m: _texture_field(m, "seed", 0), np.int32),
         *_texture_images(scene, mats),
     )
