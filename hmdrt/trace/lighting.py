@@ -70,10 +70,14 @@ def light_plan(lights: Lights, scene: Scene) -> LightPlan:
 
 
 @inline
-def _origin(position, ng, offset, i):
-    """Where hit i's light rays start: its point moved off the surface along the geometric normal."""
+def _hit_frame(position, ng, offset, i):
+    """Hit i's point and geometric normal, from flat (3 n,) views at unsigned indices, and where its light rays
+    start: the point moved off the surface along the normal."""
+    e = np.uint64(3) * np.uint64(i)
+    px, py, pz = position[e], position[e + np.uint64(1)], position[e + np.uint64(2)]
+    gx, gy, gz = ng[e], ng[e + np.uint64(1)], ng[e + np.uint64(2)]
     off = offset[i]
-    return position[i, 0] + ng[i, 0] * off, position[i, 1] + ng[i, 1] * off, position[i, 2] + ng[i, 2] * off
+    return (px, py, pz), (gx, gy, gz), (px + gx * off, py + gy * off, pz + gz * off)
 
 
 @inline
@@ -86,18 +90,10 @@ def _put_flat(origins, directions, j, ox, oy, oz, dx, dy, dz):
 
 
 @inline
-def _inactive(origins, directions, far, j):
-    origins[j, 0] = origins[j, 1] = origins[j, 2] = 0.0
-    directions[j, 0] = directions[j, 1] = 0.0
-    directions[j, 2] = 1.0
-    far[j] = -1.0
-
-
-@inline
-def _inactive_run(origins, directions, far, first, count):
-    """Rays first .. first + count - 1, a miss's: none traced."""
+def _untraced(far, first, count):
+    """Rays first .. first + count - 1, a miss's: marked by their tfar of -1 alone, as every ray that is not traced."""
     for j in range(first, first + count):
-        _inactive(origins, directions, far, j)
+        far[j] = -1.0
 
 
 @inline
@@ -122,14 +118,10 @@ def _point_rays(lights, surf, point, start, stop):
     position, ng = surf.position.reshape(-1), surf.normal_geometric.reshape(-1)
     origins, directions = point.origins.reshape(-1), point.directions.reshape(-1)
     n_point = l_pos.shape[0]
-    one, two, three = np.uint64(1), np.uint64(2), np.uint64(3)
     for l in range(n_point):
         lx, ly, lz = l_pos[l, 0], l_pos[l, 1], l_pos[l, 2]
         for i in range(start, stop):
-            e, off = three * np.uint64(i), offset[i]
-            px, py, pz = position[e], position[e + one], position[e + two]
-            gx, gy, gz = ng[e], ng[e + one], ng[e + two]
-            ox, oy, oz = px + gx * off, py + gy * off, pz + gz * off  # _origin
+            (px, py, pz), (gx, gy, gz), (ox, oy, oz) = _hit_frame(position, ng, offset, i)
             facing = (lx - px) * gx + (ly - py) * gy + (lz - pz) * gz > 0.0
             dx, dy, dz = lx - ox, ly - oy, lz - oz
             dist = math.sqrt(dx * dx + dy * dy + dz * dz)
@@ -152,16 +144,14 @@ def _area_rays(lights, plan, surf, keys, area, start, stop):
         lights.area_samples,
     )
     a_base, a_nx, a_ny, a_total = plan.area_base, plan.area_nx, plan.area_ny, plan.area_total
-    hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
-    a_org, a_dir, a_far = area.origins, area.directions, area.tfar
-    origins, directions = a_org.reshape(-1), a_dir.reshape(-1)
+    hits, offset, a_far = surf.hit, surf.offset, area.tfar
+    position, ng = surf.position.reshape(-1), surf.normal_geometric.reshape(-1)
+    origins, directions = area.origins.reshape(-1), area.directions.reshape(-1)
     for i in range(start, stop):
         if not hits[i]:
-            _inactive_run(a_org, a_dir, a_far, i * a_total, a_total)
+            _untraced(a_far, i * a_total, a_total)
             continue
-        px, py, pz = position[i, 0], position[i, 1], position[i, 2]
-        gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
-        ox, oy, oz = _origin(position, ng, offset, i)
+        (px, py, pz), (gx, gy, gz), (ox, oy, oz) = _hit_frame(position, ng, offset, i)
         for a in range(a_base.shape[0]):
             cx, cy, cz = a_corner[a, 0], a_corner[a, 1], a_corner[a, 2]
             ux, uy, uz = a_u[a, 0], a_u[a, 1], a_u[a, 2]
@@ -187,16 +177,16 @@ def _ao_rays(plan, surf, keys, ao, start, stop):
     """Each hit's cosine-weighted AO rays about its geometric normal, in a loop over the samples that vectorises
     (flat stores at unsigned indices)."""
     ao_n, ao_nx, ao_ny, ao_dist = plan.ao_samples, plan.ao_nx, plan.ao_ny, plan.ao_distance
-    hits, position, ng, offset = surf.hit, surf.position, surf.normal_geometric, surf.offset
-    o_org, o_dir, o_far = ao.origins, ao.directions, ao.tfar
-    origins, directions = o_org.reshape(-1), o_dir.reshape(-1)
+    hits, offset, o_far = surf.hit, surf.offset, ao.tfar
+    position, ng = surf.position.reshape(-1), surf.normal_geometric.reshape(-1)
+    origins, directions = ao.origins.reshape(-1), ao.directions.reshape(-1)
     for i in range(start, stop):
         if not hits[i]:
-            _inactive_run(o_org, o_dir, o_far, i * ao_n, ao_n)
+            _untraced(o_far, i * ao_n, ao_n)
             continue
-        normal = (np.float64(ng[i, 0]), np.float64(ng[i, 1]), np.float64(ng[i, 2]))
+        _, (gx, gy, gz), (ox, oy, oz) = _hit_frame(position, ng, offset, i)
+        normal = (np.float64(gx), np.float64(gy), np.float64(gz))
         tangent, bitangent = tangent_frame(normal[0], normal[1], normal[2])
-        ox, oy, oz = _origin(position, ng, offset, i)
         first = np.uint64(i * ao_n)
         for k in range(ao_n):
             s, t = stratified(keys[i], k, DIM_AO, ao_nx, ao_ny)
