@@ -26,23 +26,30 @@ class Tests(NamedTuple):
     reuse_px: float
 
 
-@serial
-def _contrast_fails(color, a, b, c, d, tau):
-    """Mitchell's contrast (max - min) / (max + min) of rows a, b, c, d of color (n, 3), per channel,
-    against tau x (1.36, 1.02, 2.04)."""
+@inline
+def _rgb(color, i):
+    """Row i of color (n, 3) as three values."""
+    return color[i, 0], color[i, 1], color[i, 2]
+
+
+@inline
+def _contrast_fails(colours, tau):
+    """Mitchell's contrast (max - min) / (max + min) of four colours (each as _rgb gives it), per channel, against
+    tau x (1.36, 1.02, 2.04)."""
+    a, b, c, d = colours
     for ch in range(3):
-        va, vb, vc, vd = color[a, ch], color[b, ch], color[c, ch], color[d, ch]
+        va, vb, vc, vd = a[ch], b[ch], c[ch], d[ch]
         lo, hi = min(min(va, vb), min(vc, vd)), max(max(va, vb), max(vc, vd))
         if hi + lo > 0.0 and (hi - lo) / (hi + lo) > MITCHELL[ch] * tau:
             return True
     return False
 
 
-@serial
-def _pair_contrast_fails(color_a, i, color_b, j, tau):
-    """Mitchell's contrast between pixel i of color_a and pixel j of color_b."""
+@inline
+def _pair_contrast_fails(a, b, tau):
+    """Mitchell's contrast between two colours (_rgb)."""
     for ch in range(3):
-        va, vb = color_a[i, ch], color_b[j, ch]
+        va, vb = a[ch], b[ch]
         lo, hi = min(va, vb), max(va, vb)
         if hi + lo > 0.0 and (hi - lo) / (hi + lo) > MITCHELL[ch] * tau:
             return True
@@ -51,48 +58,41 @@ def _pair_contrast_fails(color_a, i, color_b, j, tau):
 
 @inline
 def _geometry(hits):
-    """The attributes of Table 1's geometry tests as a plain tuple (object id, normal, shadow count, texture): row
-    functions take them out of the G-buffer once, since every namedtuple a helper receives costs a reference count
-    per array."""
+    """The attributes of Table 1's geometry tests as a plain tuple (object id, normal, shadow count, texture), which
+    row functions unpack once: each array a per-pixel helper takes (alone or in a tuple) costs numba an atomic
+    reference count on the way in and out where the helper branches, shared by the threads (kim21's inspection
+    took twice as long). The helpers below take the attributes' values."""
     return hits.object_id, hits.normal_shading, hits.shadow_count, hits.textured
 
 
 @inline
-def _discordant_threshold(a, i, b, j, thresholds, first, normal_cos):
-    """The smallest of thresholds[first:first + 4] over the attributes (object id, normal, shadow count, texture)
-    on which hit i of geometry a and hit j of geometry b disagree, inf when they agree on all (Table 1). Normals
-    disagree when both are hits and their dot product is below normal_cos."""
-    obj_a, ns_a, shadow_a, tex_a = a
-    obj_b, ns_b, shadow_b, tex_b = b
+def _discordant_threshold(obj_a, obj_b, normal_dot, shadow_a, shadow_b, tex_a, tex_b, taus, normal_cos):
+    """The smallest of taus (object id, normal, shadow count, texture) over the attributes on which two hits
+    disagree, inf when they agree on all (Table 1). Normals (normal_dot, their dot product) disagree when both are
+    hits and it is below normal_cos."""
     tau = math.inf
-    if obj_a[i] != obj_b[j]:
-        tau = thresholds[first]
-    dot = ns_a[i, 0] * ns_b[j, 0] + ns_a[i, 1] * ns_b[j, 1] + ns_a[i, 2] * ns_b[j, 2]
-    if obj_a[i] >= 0 and obj_b[j] >= 0 and dot < normal_cos:
-        tau = min(tau, thresholds[first + 1])
-    if shadow_a[i] != shadow_b[j]:
-        tau = min(tau, thresholds[first + 2])
-    if tex_a[i] != tex_b[j]:
-        tau = min(tau, thresholds[first + 3])
+    if obj_a != obj_b:
+        tau = taus[0]
+    if obj_a >= 0 and obj_b >= 0 and normal_dot < normal_cos:
+        tau = min(tau, taus[1])
+    if shadow_a != shadow_b:
+        tau = min(tau, taus[2])
+    if tex_a != tex_b:
+        tau = min(tau, taus[3])
     return tau
 
 
 @inline
-def _discordance(primary, secondary, i, other_primary, other_secondary, j, thresholds, normal_cos):
-    """The smallest threshold over Table 1's geometry attributes on which pixel i of (primary, secondary) and
-    pixel j of (other_primary, other_secondary) disagree, at the primary or the secondary hit; inf when they agree."""
-    tau = _discordant_threshold(primary, i, other_primary, j, thresholds, 1, normal_cos)
-    return min(tau, _discordant_threshold(secondary, i, other_secondary, j, thresholds, 5, normal_cos))
+def _dot(ns_a, i, ns_b, j):
+    """The dot product of normal i of ns_a and normal j of ns_b."""
+    return ns_a[i, 0] * ns_b[j, 0] + ns_a[i, 1] * ns_b[j, 1] + ns_a[i, 2] * ns_b[j, 2]
 
 
 @inline
-def _tau_sel(i, a, b, c, primary, secondary, thresholds, normal_cos):
-    """Step one of a subpixel's disparity test: the smallest threshold over the geometry attributes on which
-    pixel i disagrees with neighbour a, b or c at the primary or the secondary hit; tau_col when it agrees."""
-    tau = math.inf
-    for j in (a, b, c):
-        tau = min(tau, _discordance(primary, secondary, i, primary, secondary, j, thresholds, normal_cos))
-    return thresholds[0] if tau == math.inf else tau
+def _taus(thresholds):
+    """Table 1's geometry thresholds at the primary and at the secondary hit (thresholds[1:5], thresholds[5:9])."""
+    t = thresholds
+    return (t[1], t[2], t[3], t[4]), (t[5], t[6], t[7], t[8])
 
 
 @serial
@@ -131,8 +131,10 @@ def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask,
     at tau_sel too, so step one runs only where the contrast is high enough to matter, and a pixel whose 3x3
     neighbourhood passes there is done. Returns the row's extra samples and problematic subpixels."""
     height = flags.shape[0] // width
-    p, s2 = _geometry(primary), _geometry(secondary)
+    obj, ns, shadow, tex = _geometry(primary)
+    obj2, ns2, shadow2, tex2 = _geometry(secondary)
     thresholds, normal_cos = tests.thresholds, tests.normal_cos
+    taus, taus2 = _taus(thresholds)
     counts, tau_fov_ = fov.samples, fov.tau_fov
     lowest = thresholds.min()
     _box_contrast_row(y, width, ref, tau_fov_, lowest, box, passes)
@@ -150,10 +152,20 @@ def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask,
             dy = -1 if s < 2 else 1
             nx, ny = min(max(x + dx, 0), width - 1), min(max(y + dy, 0), height - 1)
             a, b, c = y * width + nx, ny * width + x, ny * width + nx
-            if not _contrast_fails(ref, i, a, b, c, lowest * tau_f):
+            colours = _rgb(ref, i), _rgb(ref, a), _rgb(ref, b), _rgb(ref, c)
+            if not _contrast_fails(colours, lowest * tau_f):
                 continue
-            tau = _tau_sel(i, a, b, c, p, s2, thresholds, normal_cos) * tau_f
-            if _contrast_fails(ref, i, a, b, c, tau):
+            tau = math.inf  # step one, tau_sel: the neighbours' geometry at the primary and the secondary hit
+            for j in (a, b, c):
+                at_primary = _discordant_threshold(
+                    obj[i], obj[j], _dot(ns, i, ns, j), shadow[i], shadow[j], tex[i], tex[j], taus, normal_cos
+                )
+                at_secondary = _discordant_threshold(
+                    obj2[i], obj2[j], _dot(ns2, i, ns2, j), shadow2[i], shadow2[j], tex2[i], tex2[j], taus2, normal_cos
+                )
+                tau = min(tau, min(at_primary, at_secondary))
+            tau = (thresholds[0] if tau == math.inf else tau) * tau_f
+            if _contrast_fails(colours, tau):
                 mask |= 1 << s
                 samples += k
                 subpixels += 1

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from hmdrt.foveation.kim21.disparity import _discordance, _geometry, _pair_contrast_fails
+from hmdrt.foveation.kim21.disparity import _discordant_threshold, _dot, _geometry, _pair_contrast_fails, _rgb, _taus
 from hmdrt.foveation.stages.temporal import eye_point, view_project
 from hmdrt.kernels.jit import kernel, serial
 from hmdrt.kernels.schedule import claim
@@ -45,10 +45,13 @@ def _store_row(
     drift then. Returns the row's reused pixels."""
     ref, depth, flags, rendered, level, drift = frame
     prev_ref, prev_depth, prev_flags, prev_rendered, prev_level, prev_drift = prev
-    hit_depth, primary, secondary = hits.depth, _geometry(hits), _geometry(hits2)
-    prev_primary, prev_secondary = _geometry(prev_hits), _geometry(prev_hits2)
-    obj, prev_obj = primary[0], prev_primary[0]
+    hit_depth = hits.depth
+    obj, ns, shadow, tex = _geometry(hits)
+    obj2, ns2, shadow2, tex2 = _geometry(hits2)
+    prev_obj, prev_ns, prev_shadow, prev_tex = _geometry(prev_hits)
+    prev_obj2, prev_ns2, prev_shadow2, prev_tex2 = _geometry(prev_hits2)
     thresholds, normal_cos, tau_reuse, n_max, rel_depth, reuse_px = tests
+    taus, taus2 = _taus(thresholds)
     height = depth.shape[0] // width
     reused = 0
     for x in range(width):
@@ -75,9 +78,17 @@ def _store_row(
         dx, dy = prev_drift[j, 0] - ox, prev_drift[j, 1] - oy
         if dx * dx + dy * dy > reuse_px * reuse_px:
             continue
-        tau = _discordance(primary, secondary, i, prev_primary, prev_secondary, j, thresholds, normal_cos)
+        at_primary = _discordant_threshold(
+            obj[i], prev_obj[j], _dot(ns, i, prev_ns, j), shadow[i], prev_shadow[j], tex[i], prev_tex[j], taus,
+            normal_cos,
+        )  # fmt: skip
+        at_secondary = _discordant_threshold(
+            obj2[i], prev_obj2[j], _dot(ns2, i, prev_ns2, j), shadow2[i], prev_shadow2[j], tex2[i], prev_tex2[j], taus2,
+            normal_cos,
+        )  # fmt: skip
+        tau = min(at_primary, at_secondary)
         tau = thresholds[0] if tau == math.inf else tau
-        if _pair_contrast_fails(color, i, prev_ref, j, tau * tau_reuse):
+        if _pair_contrast_fails(_rgb(color, i), _rgb(prev_ref, j), tau * tau_reuse):
             continue
         flags[i], level[i] = prev_flags[j] + 1, prev_level[j]
         drift[i, 0], drift[i, 1] = dx, dy
