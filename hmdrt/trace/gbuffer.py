@@ -68,18 +68,23 @@ class GBuffer(NamedTuple):
 class GBufferPool:
     """One G-buffer and one colour array kept across frames and grown when a frame needs more samples (to
     `most` at once where the caller knows a frame's bound), so that frames with varying sample counts do
-    not allocate (and first-touch) fresh memory every time. Pages beyond what frames fill stay untouched."""
+    not allocate (and first-touch) fresh memory every time. Pages beyond what frames fill stay untouched.
+    secondary=False: a caller that reads the primary hits alone, whose G-buffers hold no secondary rows (the
+    tracer then stores none, and nothing is cleared)."""
 
-    def __init__(self):
+    def __init__(self, secondary: bool = True):
+        self._secondary = secondary
         self._buffer = GBuffer.empty(0)
         self._color = np.empty((0, 3), np.float32)
 
     def rows(self, n: int, most: int = 0) -> tuple[GBuffer, np.ndarray]:
         """A G-buffer of n samples and their (n, 3) float32 colour, backed by the pooled arrays; the tracer
-        writes every primary row and colour, and the secondary rows start as misses."""
+        writes every primary row and colour, and the secondary rows, if kept, start as misses."""
         if len(self._color) < n:
             size = max(n, most, int(1.25 * len(self._color)))
-            self._buffer, self._color = GBuffer.empty(size), np.empty((size, 3), np.float32)
+            primary = HitAttributes.empty(size)
+            secondary = HitAttributes.empty(size if self._secondary else 0)
+            self._buffer, self._color = GBuffer(primary, secondary), np.empty((size, 3), np.float32)
         view = self._buffer.rows(n)
         view.secondary.clear()
         return view, self._color[:n]
