@@ -19,7 +19,7 @@ from hmdrt.scene.shapes import quad, sphere
 from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.bsdf import fresnel_dielectric, reflect, refract, split
-from hmdrt.trace.gbuffer import GBufferPool
+from hmdrt.trace.gbuffer import GBufferPool, HitAttributes
 from hmdrt.trace.integrator import Whitted
 from hmdrt.trace.sampling import cosine_hemisphere, sincos_turn, stratified, tangent_frame
 from hmdrt.trace.textures import sample_texture
@@ -210,24 +210,31 @@ def test_gbuffer_primary_depth_and_ids_match_the_tracer(whitted_scene):
     np.testing.assert_allclose(hit_points[:, 1], 0.0, atol=1e-4)  # the floor is the plane y = 0
 
 
-def test_a_gbuffer_pool_without_secondary_rows_gets_the_same_primary_hits_and_colours(whitted_scene):
-    """weier16 and weier18 read the primary hits alone: their pool keeps no secondary rows, the tracer stores none
-    there, and the colours and primary attributes are those of a full G-buffer's trace, bit for bit."""
+def test_a_gbuffer_keeps_the_attributes_asked_for_with_the_same_values_and_colours(whitted_scene):
+    """A method keeps the attributes it reads (weier18 the primary hits' depth, kim21 Table 1's): the tracer stores
+    those alone, with the values and colours of a full G-buffer's trace, bit for bit; the others hold no samples."""
     cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(48, 54), whitted_scene.start)
     xy = pixel_centres(48, 54)
     keys = np.arange(len(xy), dtype=np.int64)
+    kept = {"primary": {"depth", "normal_geometric"}, "secondary": {"object_id"}}
     with Whitted(whitted_scene, 2) as tracer:
         traced = []
-        for pool in (GBufferPool(), GBufferPool(secondary=False)):
+        for pool in (GBufferPool(), GBufferPool(("normal_geometric",), ("object_id",))):
             gbuf, rgb = pool.rows(len(xy))
             tracer.trace_samples(cam, xy, keys, FrameStats(), gbuf, out=rgb)
             traced.append((gbuf, rgb.copy()))
-    (full, full_rgb), (primary_only, rgb) = traced
-    assert len(primary_only.secondary.depth) == 0
-    assert (full.secondary.object_id >= 0).any()  # the mirror and glass spheres' reflections were stored there
+    (full, full_rgb), (some, rgb) = traced
     np.testing.assert_array_equal(rgb, full_rgb)
-    for a, b in zip(primary_only.primary, full.primary, strict=True):
-        np.testing.assert_array_equal(a, b)
+    assert (full.secondary.object_id >= 0).any()  # the mirror and glass spheres' reflections were stored there
+    for half in ("primary", "secondary"):
+        for name in HitAttributes._fields:
+            ours, theirs = getattr(getattr(some, half), name), getattr(getattr(full, half), name)
+            if name in kept[half]:
+                np.testing.assert_array_equal(ours, theirs)
+            else:
+                assert len(ours) == 0, (half, name)
+    with pytest.raises(ValueError, match="no G-buffer attribute"):
+        GBufferPool(("normals",))
 
 
 def test_stages_a_scene_cannot_use_are_not_run():

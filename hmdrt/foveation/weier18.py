@@ -281,7 +281,7 @@ class Weier18(Configurable):
     def __init__(self, tracer: Whitted, params: Weier18Params):
         self.tracer = tracer
         self._eyes: dict[str, _EyeState] = {}
-        self._gbuffers = GBufferPool(secondary=False)  # the primary hits are all it reads
+        self._gbuffers = GBufferPool(("depth",), ())  # the primary hits' depth is all it reads
         self._configure(params)
 
     def _configure(self, params: Weier18Params) -> None:

@@ -7,6 +7,7 @@ at the primary and the secondary hit) plus depth and the reflect/refract weights
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import NamedTuple
 
 import numpy as np
@@ -25,16 +26,23 @@ class HitAttributes(NamedTuple):
     refract: np.ndarray  # (n,) float32 weight of the refracted ray
 
     @classmethod
-    def empty(cls, n: int) -> HitAttributes:
+    def empty(cls, n: int, kept: Collection[str] | None = None) -> HitAttributes:
+        """n samples' misses in the attributes named in `kept` (all by default); the others hold no samples, and
+        the tracer stores nothing in them (store_block): a caller keeps what it reads."""
+        kept = cls._fields if kept is None else kept
+        unknown = set(kept) - set(cls._fields)
+        if unknown:
+            raise ValueError(f"no G-buffer attribute {sorted(unknown)}; they are {', '.join(cls._fields)}")
+        size = {name: n if name in kept else 0 for name in cls._fields}
         return cls(
-            np.full(n, np.inf, np.float32),
-            np.zeros((n, 3), np.float32),
-            np.zeros((n, 3), np.float32),
-            np.full(n, -1, np.int32),
-            np.zeros(n, np.int16),
-            np.zeros(n, bool),
-            np.zeros(n, np.float32),
-            np.zeros(n, np.float32),
+            np.full(size["depth"], np.inf, np.float32),
+            np.zeros((size["normal_geometric"], 3), np.float32),
+            np.zeros((size["normal_shading"], 3), np.float32),
+            np.full(size["object_id"], -1, np.int32),
+            np.zeros(size["shadow_count"], np.int16),
+            np.zeros(size["textured"], bool),
+            np.zeros(size["reflect"], np.float32),
+            np.zeros(size["refract"], np.float32),
         )
 
     def clear(self) -> None:
@@ -57,8 +65,9 @@ class GBuffer(NamedTuple):
     secondary: HitAttributes  # the heavier of the reflected / refracted rays; a miss where none was spawned
 
     @classmethod
-    def empty(cls, n: int) -> GBuffer:
-        return cls(HitAttributes.empty(n), HitAttributes.empty(n))
+    def empty(cls, n: int, primary: Collection[str] | None = None, secondary: Collection[str] | None = None) -> GBuffer:
+        """n samples, each half keeping the attributes named (HitAttributes.empty: all by default)."""
+        return cls(HitAttributes.empty(n, primary), HitAttributes.empty(n, secondary))
 
     def rows(self, n: int) -> GBuffer:
         """A view of the first n samples."""
@@ -69,12 +78,11 @@ class GBufferPool:
     """One G-buffer and one colour array kept across frames and grown when a frame needs more samples (to
     `most` at once where the caller knows a frame's bound), so that frames with varying sample counts do
     not allocate (and first-touch) fresh memory every time. Pages beyond what frames fill stay untouched.
-    secondary=False: a caller that reads the primary hits alone, whose G-buffers hold no secondary rows (the
-    tracer then stores none, and nothing is cleared)."""
+    primary, secondary: the attributes each half keeps (GBuffer.empty); the primary hits' depth always."""
 
-    def __init__(self, secondary: bool = True):
-        self._secondary = secondary
-        self._buffer = GBuffer.empty(0)
+    def __init__(self, primary: Collection[str] | None = None, secondary: Collection[str] | None = None):
+        self._kept = (None if primary is None else {"depth", *primary}, secondary)
+        self._buffer = GBuffer.empty(0, *self._kept)
         self._color = np.empty((0, 3), np.float32)
 
     def rows(self, n: int, most: int = 0) -> tuple[GBuffer, np.ndarray]:
@@ -82,9 +90,7 @@ class GBufferPool:
         writes every primary row and colour, and the secondary rows, if kept, start as misses."""
         if len(self._color) < n:
             size = max(n, most, int(1.25 * len(self._color)))
-            primary = HitAttributes.empty(size)
-            secondary = HitAttributes.empty(size if self._secondary else 0)
-            self._buffer, self._color = GBuffer(primary, secondary), np.empty((size, 3), np.float32)
+            self._buffer, self._color = GBuffer.empty(size, *self._kept), np.empty((size, 3), np.float32)
         view = self._buffer.rows(n)
         view.secondary.clear()
         return view, self._color[:n]
@@ -104,21 +110,40 @@ class LightBuffer(NamedTuple):
 
 
 @serial
+def holds_samples(attrs):
+    """Whether a G-buffer half keeps any attribute (HitAttributes.empty's `kept`)."""
+    depth, ng, ns, obj, shadow, tex, kr, kt = attrs
+    sizes = depth.shape[0] + ng.shape[0] + ns.shape[0] + obj.shape[0]
+    return sizes + shadow.shape[0] + tex.shape[0] + kr.shape[0] + kt.shape[0] > 0
+
+
+@serial
 def store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, stop):
-    """attrs[rows[i]] = attributes of hit i, for every i in [start, stop) with rows[i] >= 0."""
+    """attrs[rows[i]] = attributes of hit i, for every i in [start, stop) with rows[i] >= 0, in the attributes
+    that keep samples."""
     depth, a_ng, a_ns, a_obj, a_shadow, a_tex, a_kr, a_kt = attrs
     hits, ng, ns, obj, material = surf.hit, surf.normal_geometric, surf.normal_shading, surf.object_id, surf.material
+    k_depth, k_ng, k_ns, k_obj = depth.shape[0] > 0, a_ng.shape[0] > 0, a_ns.shape[0] > 0, a_obj.shape[0] > 0
+    k_shadow, k_tex, k_kr, k_kt = a_shadow.shape[0] > 0, a_tex.shape[0] > 0, a_kr.shape[0] > 0, a_kt.shape[0] > 0
     for i in range(start, stop):
         r = rows[i]
         if r < 0:
             continue
-        depth[r] = t[i]
-        a_obj[r] = obj[i]
         hit = hits[i]
+        if k_depth:
+            depth[r] = t[i]
+        if k_obj:
+            a_obj[r] = obj[i]
         for c in range(3):
-            a_ng[r, c] = ng[i, c] if hit else 0.0
-            a_ns[r, c] = ns[i, c] if hit else 0.0
-        a_shadow[r] = shadow_count[i] if hit else 0
-        a_tex[r] = textured[material[i]] if hit else False
-        a_kr[r] = kr[i] if hit else 0.0
-        a_kt[r] = kt[i] if hit else 0.0
+            if k_ng:
+                a_ng[r, c] = ng[i, c] if hit else 0.0
+            if k_ns:
+                a_ns[r, c] = ns[i, c] if hit else 0.0
+        if k_shadow:
+            a_shadow[r] = shadow_count[i] if hit else 0
+        if k_tex:
+            a_tex[r] = textured[material[i]] if hit else False
+        if k_kr:
+            a_kr[r] = kr[i] if hit else 0.0
+        if k_kt:
+            a_kt[r] = kt[i] if hit else 0.0

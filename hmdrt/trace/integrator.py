@@ -113,7 +113,7 @@ class Whitted:
         (a C-contiguous (n, 3) float32 array) when given.
 
         keys (n,) int64 seed each sample's random decisions; gbuffer and light, if given, are filled for all n (a
-        gbuffer's secondary half only if it holds samples: a caller that reads the primary hits alone passes none).
+        gbuffer in the attributes it keeps: GBuffer.empty).
         """
         xy = np.ascontiguousarray(xy, dtype=np.float32)
         keys = np.ascontiguousarray(keys, dtype=np.int64)

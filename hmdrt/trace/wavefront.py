@@ -29,7 +29,7 @@ from hmdrt.kernels.jit import inline, serial
 from hmdrt.kernels.schedule import claim
 from hmdrt.optics.camera import eye_direction
 from hmdrt.trace import embree, meter
-from hmdrt.trace.gbuffer import store_block
+from hmdrt.trace.gbuffer import holds_samples, store_block
 from hmdrt.trace.lighting import (
     RayBatch,
     _ao_rays,
@@ -82,8 +82,8 @@ class Lane(NamedTuple):
 
 class Frame(NamedTuple):
     """What one trace_samples call reads and writes: samples (xy, keys) of an eye, the radiance out, and the
-    G-buffer and light buffer, each written only where its flag is set (the G-buffer's secondary half only where it
-    holds samples)."""
+    G-buffer and light buffer, each written only where its flag is set (and the G-buffer in the attributes that keep
+    samples)."""
 
     eye: object  # hmdrt.optics.camera.EyeRays
     xy: np.ndarray  # (n, 2) float32
@@ -301,7 +301,7 @@ def _block(scene, frame, lane, start, stop):
         _accumulate(frame, w, rays, radiance, start, count, depth)
         t = meter.tick(tally, clock, meter.SHADE, t)
         spawn = depth < scene.max_depth and scene.secondary
-        store = frame.has_gbuffer and (depth == 0 or (depth == 1 and frame.gbuffer.secondary.depth.shape[0] > 0))
+        store = frame.has_gbuffer and (depth == 0 or (depth == 1 and holds_samples(frame.gbuffer.secondary)))
         spawners = 0
         if spawn or store:
             spawners = interaction_block(

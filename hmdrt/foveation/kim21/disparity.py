@@ -56,6 +56,9 @@ def _pair_contrast_fails(a, b, tau):
     return False
 
 
+TABLE1 = ("object_id", "normal_shading", "shadow_count", "textured")  # the G-buffer attributes _geometry reads
+
+
 @inline
 def _geometry(hits):
     """The attributes of Table 1's geometry tests as a plain tuple (object id, normal, shadow count, texture), which

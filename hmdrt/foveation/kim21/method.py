@@ -11,7 +11,7 @@ import numpy as np
 
 from hmdrt.foveation.base import HISTORY, Checks, Configurable, FrameRequest, Knob, Stage, pixel_keys, plan
 from hmdrt.foveation.kim21.bands import Foveation, _foveation, alpha_knots, bezier_controls
-from hmdrt.foveation.kim21.disparity import Tests, _inspect
+from hmdrt.foveation.kim21.disparity import TABLE1, Tests, _inspect
 from hmdrt.foveation.kim21.params import Kim21Params
 from hmdrt.foveation.kim21.reuse import Kept, _clear, _store
 from hmdrt.foveation.kim21.supersample import _exclusive_scan, _resolve, _subpixel_samples
@@ -40,7 +40,8 @@ class _Buffers(NamedTuple):
     @classmethod
     def empty(cls, n: int) -> _Buffers:
         ref, flags = np.empty((n, 3), np.float32), np.zeros(n, np.int32)
-        return cls(GBuffer.empty(n), ref, flags, np.zeros(n, np.uint8), np.zeros((n, 2), np.float32))
+        gbuffer = GBuffer.empty(n, ("depth", *TABLE1), TABLE1)  # what the tests and the reuse read, no more
+        return cls(gbuffer, ref, flags, np.zeros(n, np.uint8), np.zeros((n, 2), np.float32))
 
 
 class _EyeState:

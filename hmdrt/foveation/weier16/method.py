@@ -103,7 +103,7 @@ class Weier16(Configurable):
         self.features = scene_features(tracer)
         self._eyes: dict[str, _EyeState] = {}
         self._buffers: _Buffers | None = None
-        self._gbuffers = GBufferPool(secondary=False)  # the primary hits are all it reads
+        self._gbuffers = GBufferPool(("depth", "normal_geometric"), ())  # all it reads of the hits
         self._configure(params)
 
     def _configure(self, params: Weier16Params) -> None:
