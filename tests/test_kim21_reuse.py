@@ -90,17 +90,20 @@ def test_the_reuse_test_selects_tau_sel_from_the_attributes_at_both_hits():
     """Section 4.4 passes the two colour reference attributes through section 3's two-step test, whose first step
     reads Table 1's geometry attributes at the primary and the secondary hit: here the presampled colours differ by
     a contrast of 0.048, which fails tau_col (0.02 x 1.36) and passes tau_soid (0.5 x 1.36), so the pixel whose
-    reflection sees another object than the previous frame's is reused and the others are not."""
+    reflection sees another object than the previous frame's is reused and the others are not: two misses agree
+    whatever else their attributes hold."""
     n = 4
     cam = EyeCamera.for_eye(get_profile("rift_s").with_resolution(n, 1), Pose())
     hits = [HitAttributes.empty(n) for _ in range(4)]  # primary, secondary; the previous frame's primary, secondary
     for primary in hits[0], hits[2]:
-        primary.depth[:], primary.object_id[:], primary.normal_shading[:] = 2.0, 1, (0.0, 0.0, 1.0)
+        primary.object_id[:], primary.normal_shading[:] = 1, (0.0, 0.0, 1.0)
     for secondary in hits[1], hits[3]:
         secondary.object_id[:], secondary.normal_shading[:] = 2, (0.0, 1.0, 0.0)
     hits[3].object_id[1] = 3  # pixel 1's reflection saw another object in the previous frame
     hits[3].object_id[2] = 3
     hits[1].normal_shading[2] = (1.0, 0.0, 0.0)  # pixel 2: and its normal turned, whose threshold is lower
+    hits[1].object_id[3] = hits[3].object_id[3] = -1  # pixel 3's reflection missed in both frames: they agree
+    hits[1].shadow_count[3], hits[1].textured[3] = 2, True  # whatever a miss's other attributes hold (_clear)
     samples = np.full(n, 9, np.uint8)
 
     def kept(ref: float) -> Kept:
@@ -113,12 +116,11 @@ def test_the_reuse_test_selects_tau_sel_from_the_attributes_at_both_hits():
             np.zeros((n, 2), np.float32),
         )
 
-    frame, prev = kept(0.0), kept(0.55)
-    color = np.full((n, 3), 0.5, np.float32)
+    frame, prev = kept(0.5), kept(0.55)  # the frame's presampled colour and depth, as the tracer writes them
     thresholds = np.array([0.02, 0.05, 0.06, 0.06, 0.02, 0.5, 0.02, 0.06, 0.02])
     tests = Thresholds(thresholds, 0.95, 1.0, 5, 0.02, 0.2)
     frustum, view = camera_arrays(cam).frustum, relative_view(cam, cam)
-    reused = dynamic(_store, n, color, *hits[:2], frustum, frame, view, *hits[2:], prev, True, tests, True, samples)
+    reused = dynamic(_store, n, *hits[:2], frustum, frame, view, *hits[2:], prev, True, tests, True, samples)
     assert reused == 1
     np.testing.assert_array_equal(frame.flags, [0, 1, 0, 0])
     np.testing.assert_array_equal(frame.rendered[1], prev.rendered[1])

@@ -72,15 +72,17 @@ def _geometry(hits):
 def _discordant_threshold(obj_a, obj_b, normal_dot, shadow_a, shadow_b, tex_a, tex_b, taus, normal_cos):
     """The smallest of taus (object id, normal, shadow count, texture) over the attributes on which two hits
     disagree, inf when they agree on all (Table 1). Normals (normal_dot, their dot product) disagree when both are
-    hits and it is below normal_cos."""
+    hits and it is below normal_cos. A miss (object id -1) has no shadow and no texture, whatever its other
+    attributes hold: a secondary half is cleared in its object ids alone (reuse._clear)."""
+    hit_a, hit_b = obj_a >= 0, obj_b >= 0
     tau = math.inf
     if obj_a != obj_b:
         tau = taus[0]
-    if obj_a >= 0 and obj_b >= 0 and normal_dot < normal_cos:
+    if hit_a and hit_b and normal_dot < normal_cos:
         tau = min(tau, taus[1])
-    if shadow_a != shadow_b:
+    if (shadow_a if hit_a else 0) != (shadow_b if hit_b else 0):
         tau = min(tau, taus[2])
-    if tex_a != tex_b:
+    if (tex_a and hit_a) != (tex_b and hit_b):
         tau = min(tau, taus[3])
     return tau
 

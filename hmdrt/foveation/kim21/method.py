@@ -40,7 +40,7 @@ class _Buffers(NamedTuple):
     @classmethod
     def empty(cls, n: int) -> _Buffers:
         ref, flags = np.empty((n, 3), np.float32), np.zeros(n, np.int32)
-        gbuffer = GBuffer.empty(n, ("depth", *TABLE1), TABLE1)  # what the tests and the reuse read, no more
+        gbuffer = GBuffer.empty(n, TABLE1, TABLE1)  # what the tests and the reuse read; the depth is the history's
         return cls(gbuffer, ref, flags, np.zeros(n, np.uint8), np.zeros((n, 2), np.float32))
 
 
@@ -58,7 +58,6 @@ class _EyeState:
         self.fov_key: tuple | None = None
         self.central = 0
         self.most = 0  # extra samples when every subpixel of every central pixel is problematic (_foveation)
-        self.color = np.empty((n, 3), np.float32)  # the presampled colour
         self.sub_mask = np.empty(n, np.uint8)
         self.first = np.empty(height + 1, np.int64)  # per row: the index of its first extra sample
         threads = nb.config.NUMBA_NUM_THREADS
@@ -192,8 +191,8 @@ class Kim21(Configurable):
 
     def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         f = self._frame(request, stats)
-        color = self._presample(f, stats)
-        reused = self._reuse(f, color, stats)
+        self._presample(f, stats)
+        reused = self._reuse(f, stats)
         problematic, extra_xy, extra_keys, extra_color = self._inspect_subpixels(f, stats)
         with stats.stage("supersample"):
             extra = self.tracer.trace_samples(f.camera, extra_xy, extra_keys, stats, out=extra_color)
@@ -226,15 +225,18 @@ class Kim21(Configurable):
         kept, prev = _kept(cur, history, slot), _kept(last, history, newest)
         return _Frame(request, state, fov, cur, last, slot, kept, prev, steps)
 
-    def _presample(self, f: _Frame, stats: FrameStats) -> np.ndarray:
-        """Section 4.3: one sample at every pixel centre, with the G-buffer (Table 1) the inspection reads."""
+    def _presample(self, f: _Frame, stats: FrameStats) -> None:
+        """Section 4.3: one sample at every pixel centre, with the G-buffer (Table 1) the inspection reads; the
+        colour and the hit distance go straight into the frame's kept ones (its ref and its history slot)."""
         h, w = f.state.shape
         with stats.stage("presample"):
             _clear(w, f.cur.gbuffer.secondary)
             keys = self._pixel_keys(h * w, f.request.seed)
-            return self.tracer.trace_samples(f.camera, pixel_grid(w, h), keys, stats, f.cur.gbuffer, out=f.state.color)
+            primary, secondary = f.cur.gbuffer
+            gbuffer = GBuffer(primary._replace(depth=f.kept.depth), secondary)
+            self.tracer.trace_samples(f.camera, pixel_grid(w, h), keys, stats, gbuffer, out=f.kept.ref)
 
-    def _reuse(self, f: _Frame, color: np.ndarray, stats: FrameStats) -> int:
+    def _reuse(self, f: _Frame, stats: FrameStats) -> int:
         """Section 4.4: each pixel's presample stored, its supersampled colour reused from the previous frame where
         the back-projection finds the same surface; returns how many pixels reused theirs."""
         cam, state = f.camera, f.state
@@ -243,7 +245,6 @@ class Kim21(Configurable):
             return dynamic(
                 _store,
                 state.shape[1],
-                color,
                 *f.cur.gbuffer,
                 camera_arrays(cam).frustum,
                 f.kept,

@@ -32,20 +32,17 @@ class Kept(NamedTuple):
 
 
 @serial
-def _store_row(
-    y, width, color, hits, hits2, frustum, frame, view, prev_hits, prev_hits2, prev, same, tests, reuse, samples
-):
-    """Row y of `frame`, rendered as presampled (color, hits and hits2: its primary and secondary hits) at its
-    band's class `samples`; with `reuse`, kim2021 section 4.4's test per central pixel with a hit: back-projected into
-    the previous frame (through its relative_view `view`; onto itself when `same`) it must meet a hit within rel_depth
-    of its distance, reused fewer than n_reuse_max times in a row and rendered at no lower class than the pixel needs
-    now, whose presampled colour passes section 3's two-step test against the pixel's (tau_sel from Table 1's
-    geometry attributes at the primary and the secondary hit, then the contrast at tau_sel x tau_reuse), with the
-    drift of where its colour was sampled staying within reuse_px; it takes that pixel's rendered colour, class and
-    drift then. Returns the row's reused pixels."""
+def _store_row(y, width, hits, hits2, frustum, frame, view, prev_hits, prev_hits2, prev, same, tests, reuse, samples):
+    """Row y of `frame`, rendered as presampled (its ref and depth, which the tracer wrote, and hits and hits2:
+    its primary and secondary hits) at its band's class `samples`; with `reuse`, kim2021 section 4.4's test per
+    central pixel with a hit: back-projected into the previous frame (through its relative_view `view`; onto
+    itself when `same`) it must meet a hit within rel_depth of its distance, reused fewer than n_reuse_max times
+    in a row and rendered at no lower class than the pixel needs now, whose presampled colour passes section 3's
+    two-step test against the pixel's (tau_sel from Table 1's geometry attributes at the primary and the secondary
+    hit, then the contrast at tau_sel x tau_reuse), with the drift of where its colour was sampled staying within
+    reuse_px; it takes that pixel's rendered colour, class and drift then. Returns the row's reused pixels."""
     ref, depth, flags, rendered, level, drift = frame
     prev_ref, prev_depth, prev_flags, prev_rendered, prev_level, prev_drift = prev
-    hit_depth = hits.depth
     obj, ns, shadow, tex = _geometry(hits)
     obj2, ns2, shadow2, tex2 = _geometry(hits2)
     prev_obj, prev_ns, prev_shadow, prev_tex = _geometry(prev_hits)
@@ -56,11 +53,9 @@ def _store_row(
     reused = 0
     for x in range(width):
         i = y * width + x
-        d = hit_depth[i]
-        depth[i] = d
+        d = depth[i]
         for c in range(3):
-            ref[i, c] = color[i, c]
-            rendered[i, c] = color[i, c]
+            rendered[i, c] = ref[i, c]
         flags[i], level[i] = 0, samples[i]
         drift[i, 0] = drift[i, 1] = 0.0
         if not reuse or samples[i] == 0 or math.isinf(d) or obj[i] < 0:
@@ -88,7 +83,7 @@ def _store_row(
         )  # fmt: skip
         tau = min(at_primary, at_secondary)
         tau = thresholds[0] if tau == math.inf else tau
-        if _pair_contrast_fails(_rgb(color, i), _rgb(prev_ref, j), tau * tau_reuse):
+        if _pair_contrast_fails(_rgb(ref, i), _rgb(prev_ref, j), tau * tau_reuse):
             continue
         flags[i], level[i] = prev_flags[j] + 1, prev_level[j]
         drift[i, 0], drift[i, 1] = dx, dy
@@ -98,27 +93,19 @@ def _store_row(
     return reused
 
 
-@serial
-def _clear_row(y, width, hits):
-    obj, ns, shadow, tex = _geometry(hits)
-    for i in range(y * width, (y + 1) * width):
-        obj[i] = -1
-        ns[i, 0] = ns[i, 1] = ns[i, 2] = 0.0
-        shadow[i] = 0
-        tex[i] = False
-
-
 @kernel
 def _clear(width, hits):
-    """Every hit a miss in the attributes the tests read (the tracer fills the secondary hits it finds)."""
-    for y in nb.prange(hits.object_id.shape[0] // width):
-        _clear_row(y, width, hits)
+    """Every hit a miss, in its object id alone: the tests read no other attribute of a miss
+    (disparity._discordant_threshold), and the tracer fills the secondary hits it finds."""
+    obj = hits.object_id
+    for y in nb.prange(obj.shape[0] // width):
+        for i in range(y * width, (y + 1) * width):
+            obj[i] = -1
 
 
 @kernel
 def _store(
     width,
-    color,
     hits,
     hits2,
     frustum,
@@ -144,7 +131,6 @@ def _store(
             reused += _store_row(
                 y,
                 width,
-                color,
                 hits,
                 hits2,
                 frustum,
