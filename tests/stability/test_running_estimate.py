@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hmdrt.foveation.stages.reproject import MeshImage, _distances
-from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
+from hmdrt.foveation.stages.temporal import AGES, age_table, k_at, k_of_age, running_estimate
 from hmdrt.foveation.weier16.buffers import CacheRule, Final, RowTaps, Samples, Selection, Support, SupportGrid
 from hmdrt.foveation.weier16.cache import _update
 from hmdrt.foveation.weier16.params import COVERED, TRACED
@@ -69,6 +69,19 @@ def test_k_of_age_at_dt_0_is_k_min_and_far_beyond_t_max_is_k_max():
     assert k_of_age(8.0, k_min, k_max, t_max) == pytest.approx(math.exp(x0 + 7.0 / 14.0 * (x1 - x0)))
 
 
+@pytest.mark.parametrize(("k_min", "k_max", "t_max"), [(0.1, 0.5, 30.0), (0.05, 1.0, 15.0), (0.2, 0.8, 1.0)])
+def test_k_at_reads_the_age_table_with_the_bits_of_k_of_age(k_min, k_max, t_max):
+    """The cache update reads k(dt) from a table at whole ages (an exp a sample cost a sixth of a still view's
+    update): the same bits as the formula at every whole age in it, and the formula itself past it or between."""
+    ages = np.empty(AGES)
+    age_table(k_min, k_max, t_max, ages)
+    for dt in [*range(-3, AGES + 5), 2.5, 1e9, -1e12]:
+        assert k_at(ages, float(dt), k_min, k_max, t_max) == k_of_age(float(dt), k_min, k_max, t_max), dt
+    assert k_at(ages, 7.0, k_min, k_max, t_max) == ages[7]
+    ages[7] = -1.0  # read from the table, not computed
+    assert k_at(ages, 7.0, k_min, k_max, t_max) == -1.0
+
+
 def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0, in_place: bool = False):
     """weier2016's cache update (the real kernel, float32 colour and cache info) over `frames` frames of a still
     view in which every pixel is traced each frame, alternating two sample colours a, b per pixel; k_min = k_max = k.
@@ -92,6 +105,8 @@ def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0, in_pla
     taps = RowTaps.empty(size)
     distance = np.empty((size, size), np.float32)  # what CoarseMesh.distances measures, read in place
     _distances(camera_arrays(cam), mesh.zinv, distance)
+    ages = np.empty(AGES)
+    age_table(k, k, 15.0, ages)
     last = []
     threads = numba.get_num_threads()
     numba.set_num_threads(1)  # 16 pixels: starting the thread pool each frame would cost 100x the work
@@ -99,7 +114,7 @@ def accumulate(frames: int, k: float = 0.1, size: int = 4, seed: int = 0, in_pla
         for t in range(frames):
             previous, final = (finals[0], finals[0]) if in_place else (finals[t % 2], finals[(t + 1) % 2])
             samples = Samples(a if t % 2 == 0 else b, depth, zeros, zeros)
-            rule = CacheRule(float(t), k, k, 15.0, 0.05, 4, 0, False, in_place and t > 0)
+            rule = CacheRule(float(t), k, k, 15.0, 0.05, 4, 0, False, in_place and t > 0, ages)
             dynamic(
                 _update,
                 selection,

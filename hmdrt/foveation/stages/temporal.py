@@ -36,6 +36,26 @@ def k_of_age(dt, k_min, k_max, t_max):
     return min(math.exp(x0 + (dt - 1.0) / (t_max - 1.0) * (x1 - x0)), k_max)
 
 
+AGES = 256  # the whole ages, in frames, that an age_table holds
+
+
+@serial
+def age_table(k_min, k_max, t_max, out):
+    """out[i] = k_of_age(i, ...) for each whole age i below len(out): what k_at reads instead of an exp per sample."""
+    for i in range(out.shape[0]):
+        out[i] = k_of_age(float(i), k_min, k_max, t_max)
+
+
+@inline
+def k_at(table, dt, k_min, k_max, t_max):
+    """k_of_age(dt, ...): table[dt] (age_table) where dt is a whole age the table holds, as ages counted in whole
+    frames are, else computed; the same value either way."""
+    i = int(dt)
+    if 0 <= i < table.shape[0] and i == dt:
+        return table[i]
+    return k_of_age(dt, k_min, k_max, t_max)
+
+
 @inline
 def running_estimate(rho_prev, k):
     """weier2016 equation (1)'s blending weight and the new accumulated count, given the count so far.

@@ -131,6 +131,7 @@ class CacheRule(NamedTuple):
     seed: int  # of the footprint's taps
     stochastic: bool  # the light buffer is accumulated too
     in_place: bool  # the mesh reprojects each covered pixel onto itself: the final buffers are the previous ones
+    ages: np.ndarray  # (AGES,) float64 k_of_age at each whole age (temporal.age_table), kept while the params stay
 
 
 class RowTaps(NamedTuple):

@@ -11,7 +11,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.stages.reproject import ROWS, gaussian_taps, nearest_texel, row_footprints
-from hmdrt.foveation.stages.temporal import k_of_age, running_estimate
+from hmdrt.foveation.stages.temporal import k_at, running_estimate
 from hmdrt.foveation.weier16.params import COVERED, FRESH, INFO, TRACED
 from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.schedule import claim
@@ -121,7 +121,7 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid,
             if traced:
                 alpha, rho = 1.0, 1.0
                 if not new:
-                    k = k_of_age(rule.frame - prev_info[jy, jx, 2], rule.k_min, rule.k_max, rule.t_max)
+                    k = k_at(rule.ages, rule.frame - prev_info[jy, jx, 2], rule.k_min, rule.k_max, rule.t_max)
                     # rho 0: merged from the support image, no sample of this pixel; the new one replaces it
                     alpha, rho = running_estimate(prev_info[jy, jx, 1], k)
                 color[y, x, 0] = alpha * rgb[s, 0] + (1.0 - alpha) * r
@@ -166,7 +166,7 @@ def _update_rows_in_place(y0, y1, selection, distance, samples, support, grid, r
                 new = (f & FRESH) != 0 or not covered or _moved(samples.depth[s], distance[y, x], rule.eps_cache)
                 alpha, rho = 1.0, 1.0
                 if not new:
-                    k = k_of_age(rule.frame - info[y, x, 2], rule.k_min, rule.k_max, rule.t_max)
+                    k = k_at(rule.ages, rule.frame - info[y, x, 2], rule.k_min, rule.k_max, rule.t_max)
                     alpha, rho = running_estimate(info[y, x, 1], k)
                 for c in range(3):
                     kept = np.float32(0.0) if new else color[y, x, c]

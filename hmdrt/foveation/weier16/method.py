@@ -13,6 +13,7 @@ from hmdrt.foveation.base import HISTORY, STOCHASTIC, Checks, Configurable, Fram
 from hmdrt.foveation.registry import register
 from hmdrt.foveation.stages.reproject import CoarseMesh, MeshImage
 from hmdrt.foveation.stages.sampling import FOVEAL_REGION_KNOBS
+from hmdrt.foveation.stages.temporal import AGES, age_table
 from hmdrt.foveation.weier16.buffers import (
     CacheRule,
     Final,
@@ -111,10 +112,12 @@ class Weier16(Configurable):
         r1, p_min) or new thresholds act on the next frame's samples and cache update, which reprojects
         the cache as usual. A new support size (support_w, support_h) cannot use the previous support
         G-buffer as its coarse mesh, so the next frame starts without history. Draws the resampling info's
-        footprint taps (InfoRule.taps)."""
+        footprint taps (InfoRule.taps) and tabulates k(dt) at whole ages (CacheRule.ages)."""
         foveal = params.foveal()
         self.params, self.foveal = params, foveal
         self._taps = np.random.default_rng(0).standard_normal((params.footprint_samples, 2))
+        self._ages = np.empty(AGES)
+        age_table(params.k_min, params.k_max, params.t_max, self._ages)
 
     def render(self, request: FrameRequest, stats: FrameStats, out: np.ndarray | None = None) -> np.ndarray:
         f = self._frame(request, out)
@@ -226,7 +229,7 @@ class Weier16(Configurable):
             _gather_support(buf.grid, buf.sample_index, samples, normals, support)
             rule = CacheRule(
                 float(t), p.k_min, p.k_max, p.t_max, p.eps_cache, p.footprint_samples, f.request.seed + t, stochastic,
-                in_place,
+                in_place, self._ages,
             )  # fmt: skip
             dynamic(
                 _update, buf.selection, mesh, camera_arrays(f.camera), distance, previous, samples, support, buf.grid,
