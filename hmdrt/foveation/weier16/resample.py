@@ -30,9 +30,11 @@ def _footprint_mean(color, qx, qy, spread, taps):
     return r / n, g / n, b / n
 
 
-@serial
+@inline
 def _set_near(cells, y, x):
-    """Whether cell (y, x) or one of its 4-neighbours is set: the cells a test at (y, x) reads (_discontinuous)."""
+    """Whether cell (y, x) or one of its 4-neighbours is set: the cells a test at (y, x) reads (_discontinuous).
+    Inlined, as _discontinuous is: a helper that takes an array and branches costs numba a reference count per call,
+    shared by the threads (CONTRIBUTING.md, numba notes)."""
     h, w = cells.shape
     return (
         cells[y, x] != 0
@@ -78,7 +80,7 @@ def _contrast(a, b, eps):
     return a + b > 0.0 and abs(a - b) > eps * (a + b)
 
 
-@serial
+@inline
 def _discontinuous(zinv, covered, lum, y, x, rule):
     """Section 3.3: a depth or luminance difference between cell (y, x) and its direct neighbourhood in the
     reprojected image."""
@@ -108,11 +110,11 @@ def _discontinuous(zinv, covered, lum, y, x, rule):
 
 
 @serial
-def _previous_cell(prev, y, x, ph, pw, full_w, full_h):
+def _previous_cell(qx, qy, ph, pw, full_w, full_h):
     """The support cell (row, column) of a ph x pw support image over full_w x full_h pixels that held the surface
-    seen at cell (y, x) in the previous frame."""
-    sx = min(max(int(prev[0, y, x] * pw / full_w), 0), pw - 1)
-    sy = min(max(int(prev[1, y, x] * ph / full_h), 0), ph - 1)
+    seen in the previous frame at its pixel coordinates (qx, qy)."""
+    sx = min(max(int(qx * pw / full_w), 0), pw - 1)
+    sy = min(max(int(qy * ph / full_h), 0), ph - 1)
     return sy, sx
 
 
@@ -120,7 +122,7 @@ def _previous_cell(prev, y, x, ph, pw, full_w, full_h):
 def _grazing(mesh, cur, normal, prev_position, x, y, full_w, full_h, eps):
     """Section 3.3's edge test: edge_t = max(n.d, 0) < eps with the previous frame's geometric normal n and the
     direction d to its eye, at cell (y, x); never where the support G-buffer holds no normal (a miss)."""
-    sy, sx = _previous_cell(mesh.prev, y, x, normal.shape[0], normal.shape[1], full_w, full_h)
+    sy, sx = _previous_cell(mesh.prev[0, y, x], mesh.prev[1, y, x], normal.shape[0], normal.shape[1], full_w, full_h)
     nx, ny, nz = normal[sy, sx, 0], normal[sy, sx, 1], normal[sy, sx, 2]
     if nx == 0.0 and ny == 0.0 and nz == 0.0:
         return False
@@ -153,7 +155,7 @@ def _resampling_info(mesh, cur, color, normal, unsampled, prev_position, full_w,
         for x in range(w):
             tested = False
             if covered[y, x] != 0:
-                sy, sx = _previous_cell(prev, y, x, ph, pw, full_w, full_h)
+                sy, sx = _previous_cell(prev[0, y, x], prev[1, y, x], ph, pw, full_w, full_h)
                 tested = _set_near(moved, y, x) or unsampled[sy, sx] != 0  # it or a neighbour moved
             out[y, x] = tested  # the cells tested, then (below) those the tests mark
     for b in nb.prange((h + ROWS - 1) // ROWS):
