@@ -126,9 +126,11 @@ def store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, sto
     k_depth, k_ng, k_ns, k_obj = depth.shape[0] > 0, a_ng.shape[0] > 0, a_ns.shape[0] > 0, a_obj.shape[0] > 0
     k_shadow, k_tex, k_kr, k_kt = a_shadow.shape[0] > 0, a_tex.shape[0] > 0, a_kr.shape[0] > 0, a_kt.shape[0] > 0
     for i in range(start, stop):
+        i = np.uint64(i)  # unsigned indices: no negative-index wraparound on the loads and stores
         r = rows[i]
         if r < 0:
             continue
+        r = np.uint64(r)
         hit = hits[i]
         if k_depth:
             depth[r] = t[i]
@@ -142,7 +144,7 @@ def store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, sto
         if k_shadow:
             a_shadow[r] = shadow_count[i] if hit else 0
         if k_tex:
-            a_tex[r] = textured[material[i]] if hit else False
+            a_tex[r] = textured[np.uint64(material[i])] if hit else False
         if k_kr:
             a_kr[r] = kr[i] if hit else 0.0
         if k_kt:

@@ -230,7 +230,7 @@ def shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, acc, local, 
 
 @inline
 def _material_terms(mats, surf, dirs_in, i):
-    k = surf.material[i]
+    k = np.uint64(surf.material[i])
     wlocal = 1.0 - mats.reflectance[k] - mats.transmittance[k]
     return wlocal, mats.specular[k], mats.shininess[k], (dirs_in[i, 0], dirs_in[i, 1], dirs_in[i, 2])
 
@@ -242,12 +242,13 @@ def _shade_points(lights, mats, surf, dirs_in, point, acc, shadow_count, start, 
     p_dir, p_far, point_occ = point.directions, point.tfar, point.occluded
     n_point = l_int.shape[0]
     for i in range(start, stop):
+        i = np.uint64(i)  # unsigned indices: no negative-index wraparound on the loads
         ar = ag = ab = 0.0
         shadowed = 0
         if hits[i]:
             wlocal, ks, sh, view = _material_terms(mats, surf, dirs_in, i)
             for l in range(n_point):
-                j = i * n_point + l
+                j = i * np.uint64(n_point) + np.uint64(l)
                 if p_far[j] <= 0.0:
                     continue
                 if point_occ[j]:
@@ -302,18 +303,19 @@ def _shade_finish(plan, mats, surf, ao, acc, local, stochastic, start, stop):
     refl, trans, emission = mats.reflectance, mats.transmittance, mats.emission
     hits, albedo, material = surf.hit, surf.albedo, surf.material
     for i in range(start, stop):
+        i = np.uint64(i)  # unsigned indices: no negative-index wraparound on the loads
         if not hits[i]:
             for c in range(3):
                 local[i, c] = background[c]
                 stochastic[i, c] = 0.0
             continue
-        k = material[i]
+        k = np.uint64(material[i])
         wlocal = 1.0 - refl[k] - trans[k]
         open_sky = 1.0
         if ao_n > 0:
             blocked = 0
             for s in range(ao_n):
-                if ao_occ[i * ao_n + s]:
+                if ao_occ[i * np.uint64(ao_n) + np.uint64(s)]:
                     blocked += 1
             open_sky = 1.0 - blocked / ao_n
         for c in range(3):

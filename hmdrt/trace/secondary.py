@@ -52,11 +52,12 @@ def interaction_block(mats, surf, rays, spawn, kr_out, kt_out, counts, spawners,
     dirs, thr = rays.directions, rays.throughput
     n = 0
     for i in range(start, stop):
+        i = np.uint64(i)  # unsigned indices: no negative-index wraparound on the loads
         kr_out[i] = kt_out[i] = 0.0
         counts[i] = 0
         if not hits[i]:
             continue
-        k = material[i]
+        k = np.uint64(material[i])
         if refl[k] <= 0.0 and trans[k] <= 0.0:
             continue
         cos_i = -(dirs[i, 0] * ns[i, 0] + dirs[i, 1] * ns[i, 1] + dirs[i, 2] * ns[i, 2])
@@ -92,7 +93,7 @@ def spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, spawners, n):
     ior, ng, ns, entering, material = mats.ior, surf.normal_geometric, surf.normal_shading, surf.entering, surf.material
     dirs, thr, keys = rays.directions, rays.throughput, rays.key
     for m in range(n):
-        i = spawners[m]
+        i = np.uint64(spawners[m])
         kr, kt = kr_in[i], kt_in[i]
         peak = max(thr[i, 0], thr[i, 1], thr[i, 2])
         want_r, want_t = kr * peak > MIN_THROUGHPUT, kt * peak > MIN_THROUGHPUT  # one at least: it spawns
@@ -108,7 +109,8 @@ def spawn_block(mats, surf, rays, kr_in, kt_in, first, depth, out, spawners, n):
             _child(out, j, surf, rays, i, (rx, ry, rz), 1.0, kr, hash32(keys[i], depth, 1), principal_is_reflection)
             j += 1
         if want_t:
-            eta = 1.0 / ior[material[i]] if entering[i] else ior[material[i]]
+            k = np.uint64(material[i])
+            eta = 1.0 / ior[k] if entering[i] else ior[k]
             ok, tx, ty, tz = refract(dx, dy, dz, nx, ny, nz, eta)
             if not ok or tx * gx + ty * gy + tz * gz >= 0.0:
                 ok, tx, ty, tz = refract(dx, dy, dz, gx, gy, gz, eta)

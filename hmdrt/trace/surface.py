@@ -67,13 +67,15 @@ def surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
     tex_world = mats.tex_world
     hit, position, ng, ns, entering, texcoord, albedo, material, object_id, offset, lookup, lookup_ids = out
     for i in range(start, stop):
+        i = np.uint64(i)  # unsigned indices: numba adds no negative-index wraparound to their loads
         p = prim[i]
         if p < 0:
             hit[i] = False
             object_id[i] = -1
             continue
         hit[i] = True
-        i0, i1, i2 = faces[p, 0], faces[p, 1], faces[p, 2]
+        p = np.uint64(p)
+        i0, i1, i2 = np.uint64(faces[p, 0]), np.uint64(faces[p, 1]), np.uint64(faces[p, 2])
         u, v = float(bu[i]), float(bv[i])
         w = 1.0 - u - v
         for c in range(3):
@@ -87,7 +89,7 @@ def surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
         flip = 1.0 if dn < 0.0 else -1.0
         nx, ny, nz = nx * flip, ny * flip, nz * flip
         ng[i, 0], ng[i, 1], ng[i, 2] = nx, ny, nz
-        obj = tri_object[p]
+        obj = np.uint64(tri_object[p])
         sx, sy, sz = nx, ny, nz
         if obj_smooth[obj]:
             ax = w * vnorm[i0, 0] + u * vnorm[i1, 0] + v * vnorm[i2, 0]
@@ -98,10 +100,8 @@ def surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
                 s = 1.0 / length if ax * nx + ay * ny + az * nz >= 0.0 else -1.0 / length
                 sx, sy, sz = ax * s, ay * s, az * s
         ns[i, 0], ns[i, 1], ns[i, 2] = sx, sy, sz
-        k = obj_mat[obj]
-        material[i] = k
-        object_id[i] = obj
-        if tex_world[k] or not obj_uv[obj]:
+        material[i], object_id[i] = obj_mat[obj], tri_object[p]
+        if tex_world[np.uint64(obj_mat[obj])] or not obj_uv[obj]:
             for c in range(3):
                 texcoord[i, c] = position[i, c]
         else:

@@ -43,9 +43,10 @@ def texture_block(mats, material, coords, active, albedo, lookup, lookup_ids, st
     texels, offsets, heights, widths = mats.texels, mats.tex_offset, mats.tex_height, mats.tex_width
     m = most = 0
     for i in range(start, stop):
+        i = np.uint64(i)  # unsigned indices: no negative-index wraparound on the loads
         if not active[i]:
             continue
-        k = material[i]
+        k = np.uint64(material[i])
         kind = kinds[k]
         s = scales[k]
         a, b, c = coords[i, 0] * s, coords[i, 1] * s, coords[i, 2] * s

@@ -199,7 +199,7 @@ def _accumulate(frame, w, rays, radiance, start, count, depth):
         return
     owner, thr = rays.owner, rays.throughput
     for i in range(count):
-        o = owner[i]
+        o = np.uint64(owner[i])  # unsigned: no negative-index wraparound on the gather
         for c in range(3):
             radiance[o, c] += thr[i, c] * local[i, c]
 
