@@ -145,7 +145,7 @@ def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask,
     _box_contrast_row(y, width, ref, tau_fov_, lowest, box, passes)
     samples = subpixels = 0
     for x in range(width):
-        i = y * width + x
+        i = np.uint64(y * width + x)  # unsigned indices: no negative-index wraparound on the loads
         sub_mask[i] = 0
         k = np.int64(counts[i])
         if k == 0 or flags[i] != 0 or passes[x]:
@@ -156,7 +156,7 @@ def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask,
             dx = -1 if s & 1 == 0 else 1
             dy = -1 if s < 2 else 1
             nx, ny = min(max(x + dx, 0), width - 1), min(max(y + dy, 0), height - 1)
-            a, b, c = y * width + nx, ny * width + x, ny * width + nx
+            a, b, c = np.uint64(y * width + nx), np.uint64(ny * width + x), np.uint64(ny * width + nx)
             colours = _rgb(ref, i), _rgb(ref, a), _rgb(ref, b), _rgb(ref, c)
             if not _contrast_fails(colours, lowest * tau_f):
                 continue

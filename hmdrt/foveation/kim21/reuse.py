@@ -52,7 +52,7 @@ def _store_row(y, width, hits, hits2, frustum, frame, view, prev_hits, prev_hits
     height = depth.shape[0] // width
     reused = 0
     for x in range(width):
-        i = y * width + x
+        i = np.uint64(y * width + x)  # unsigned indices: no negative-index wraparound on the loads and stores
         d = depth[i]
         for c in range(3):
             rendered[i, c] = ref[i, c]
@@ -60,13 +60,16 @@ def _store_row(y, width, hits, hits2, frustum, frame, view, prev_hits, prev_hits
         drift[i, 0] = drift[i, 1] = 0.0
         if not reuse or samples[i] == 0 or math.isinf(d) or obj[i] < 0:
             continue
-        j, dist, ox, oy = i, min(np.float64(d), FAR), 0.0, 0.0
+        j, dist, ox, oy = y * width + x, min(np.float64(d), FAR), 0.0, 0.0
         if not same:
             px, py, pz = eye_point(frustum, x + 0.5, y + 0.5, d)
             qx, qy, dist = view_project(view, px, py, pz)
             j = nearest_index(qx, qy, width, height)
             ox, oy = qx - (j % width + 0.5), qy - (j // width + 0.5)
-        if j < 0 or prev_flags[j] >= n_max or prev_level[j] < samples[i]:
+        if j < 0:
+            continue
+        j = np.uint64(j)
+        if prev_flags[j] >= n_max or prev_level[j] < samples[i]:
             continue
         if math.isinf(prev_depth[j]) or prev_obj[j] < 0 or abs(prev_depth[j] - dist) > rel_depth * dist:
             continue

@@ -285,14 +285,16 @@ def _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out):
     The weights (1 - a)^(k + 1) as a running product, as _smooth_row takes them (a power per frame costs more
     than the rest of the pixel's work)."""
     slots, _, _, ring_depth, ring_color, _, _ = earlier
+    y = np.uint64(y)  # unsigned indices: no negative-index wraparound on the loads
     for x in range(depth.shape[1]):
+        x = np.uint64(x)
         d = depth[y, x]
         dist = min(np.float64(d), FAR)
         r, g, b = np.float64(color[y, x, 0]), np.float64(color[y, x, 1]), np.float64(color[y, x, 2])
         wsum = fade = 1.0  # as in _smooth_row
         keep = 1.0 - alpha[y, x]
         for k in range(slots.shape[0]):
-            slot = slots[k]
+            slot = np.uint64(slots[k])
             fade *= keep  # (1 - a)^(k + 1)
             d_prev = ring_depth[slot, y, x]
             if math.isinf(d_prev) if math.isinf(d) else abs(d_prev - dist) <= rel_depth * dist:
