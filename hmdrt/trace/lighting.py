@@ -221,11 +221,14 @@ def shade_block(lights, plan, mats, surf, dirs_in, point, area, ao, acc, local, 
     samples, and the irradiance its area lights and ambient occlusion contribute (stochastic (n, 3)):
     the diffuse part of local from those sources is albedo x stochastic. acc (n, 6) float64: scratch for the
     sums that one pass per kind of source hands on (radiance rgb, stochastic irradiance rgb), added in the
-    same order as one pass over all sources would."""
-    _shade_points(lights, mats, surf, dirs_in, point, acc, shadow_count, start, stop)
-    if plan.area_total:
+    same order as one pass over all sources would; without area lights the point lights' pass finishes each hit
+    itself, its sums never leaving the registers."""
+    finish = plan.area_total == 0
+    out = (acc, local, stochastic, shadow_count)
+    _shade_points(lights, plan, mats, surf, dirs_in, point, ao, out, finish, start, stop)
+    if not finish:
         _shade_areas(lights, plan, mats, surf, dirs_in, area, acc, shadow_count, start, stop)
-    _shade_finish(plan, mats, surf, ao, acc, local, stochastic, start, stop)
+        _shade_finish(plan, mats, surf, ao, acc, local, stochastic, start, stop)
 
 
 @inline
@@ -235,8 +238,41 @@ def _material_terms(mats, surf, dirs_in, i):
     return wlocal, mats.specular[k], mats.shininess[k], (dirs_in[i, 0], dirs_in[i, 1], dirs_in[i, 2])
 
 
+@inline
+def _open_sky(ao_occluded, ao_n, i):
+    """The share of hit i's AO rays that found no occluder (1 without AO)."""
+    if ao_n == 0:
+        return 1.0
+    blocked = 0
+    for s in range(ao_n):
+        blocked += 1 if ao_occluded[i * np.uint64(ao_n) + np.uint64(s)] else 0
+    return 1.0 - blocked / ao_n
+
+
+@inline
+def _finished(emission, ambient, albedo, wlocal, open_sky, sums):
+    """A hit's local radiance and stochastic irradiance (rgb each) from its light sums (radiance rgb, stochastic
+    irradiance rgb), its emission, albedo and local weight (rgb tuples and a value) and the ambient light (rgb),
+    which its AO rays dim by the sky they find (open_sky)."""
+    ar, ag, ab, er, eg, eb = sums
+    return (
+        emission[0] + ar + wlocal * ambient[0] * albedo[0] * open_sky,
+        emission[1] + ag + wlocal * ambient[1] * albedo[1] * open_sky,
+        emission[2] + ab + wlocal * ambient[2] * albedo[2] * open_sky,
+        er + wlocal * ambient[0] * open_sky,
+        eg + wlocal * ambient[1] * open_sky,
+        eb + wlocal * ambient[2] * open_sky,
+    )
+
+
 @serial
-def _shade_points(lights, mats, surf, dirs_in, point, acc, shadow_count, start, stop):
+def _shade_points(lights, plan, mats, surf, dirs_in, point, ao, out, finish, start, stop):
+    """The point lights' sums at hits [start, stop) into acc, or, with `finish`, each hit finished from them
+    (_finished) where no other pass adds to them; out: (acc, local, stochastic, shadow_count)."""
+    acc, local, stochastic, shadow_count = out
+    emission, material, ambient, background, ao_occluded, ao_n = (
+        mats.emission, surf.material, plan.ambient, plan.background, ao.occluded, plan.ao_samples,
+    )  # fmt: skip
     l_int = lights.point_intensity
     hits, ns, albedo = surf.hit, surf.normal_shading, surf.albedo
     p_dir, p_far, point_occ = point.directions, point.tfar, point.occluded
@@ -245,6 +281,7 @@ def _shade_points(lights, mats, surf, dirs_in, point, acc, shadow_count, start, 
         i = np.uint64(i)  # unsigned indices: no negative-index wraparound on the loads
         ar = ag = ab = 0.0
         shadowed = 0
+        wlocal = 0.0
         if hits[i]:
             wlocal, ks, sh, view = _material_terms(mats, surf, dirs_in, i)
             for l in range(n_point):
@@ -258,9 +295,21 @@ def _shade_points(lights, mats, surf, dirs_in, point, acc, shadow_count, start, 
                 e = (l_int[l, 0] * inv_r2, l_int[l, 1] * inv_r2, l_int[l, 2] * inv_r2)
                 cr, cg, cb = _lit(ns, albedo, i, wlocal, ks, sh, view, (p_dir[j, 0], p_dir[j, 1], p_dir[j, 2]), e)
                 ar, ag, ab = ar + cr, ag + cg, ab + cb
-        acc[i, 0], acc[i, 1], acc[i, 2] = ar, ag, ab
-        acc[i, 3] = acc[i, 4] = acc[i, 5] = 0.0
         shadow_count[i] = shadowed
+        if not finish:
+            acc[i, 0], acc[i, 1], acc[i, 2] = ar, ag, ab
+            acc[i, 3] = acc[i, 4] = acc[i, 5] = 0.0
+        elif hits[i]:
+            k = np.uint64(material[i])
+            values = _finished(
+                (emission[k, 0], emission[k, 1], emission[k, 2]), (ambient[0], ambient[1], ambient[2]),
+                (albedo[i, 0], albedo[i, 1], albedo[i, 2]), wlocal, _open_sky(ao_occluded, ao_n, i),
+                (ar, ag, ab, 0.0, 0.0, 0.0),
+            )  # fmt: skip
+            local[i, 0], local[i, 1], local[i, 2], stochastic[i, 0], stochastic[i, 1], stochastic[i, 2] = values
+        else:
+            for c in range(3):
+                local[i, c], stochastic[i, c] = background[c], 0.0
 
 
 @serial
@@ -299,25 +348,25 @@ def _shade_areas(lights, plan, mats, surf, dirs_in, area, acc, shadow_count, sta
 
 @serial
 def _shade_finish(plan, mats, surf, ao, acc, local, stochastic, start, stop):
-    ao_n, ao_occ, ambient, background = plan.ao_samples, ao.occluded, plan.ambient, plan.background
-    refl, trans, emission = mats.reflectance, mats.transmittance, mats.emission
-    hits, albedo, material = surf.hit, surf.albedo, surf.material
+    """Each hit in [start, stop) finished from the sums the passes before left in acc (_finished)."""
+    hits, material, albedo, refl, trans = surf.hit, surf.material, surf.albedo, mats.reflectance, mats.transmittance
+    emission, ambient, background, ao_occluded, ao_n = (
+        mats.emission,
+        plan.ambient,
+        plan.background,
+        ao.occluded,
+        plan.ao_samples,
+    )
     for i in range(start, stop):
         i = np.uint64(i)  # unsigned indices: no negative-index wraparound on the loads
         if not hits[i]:
             for c in range(3):
-                local[i, c] = background[c]
-                stochastic[i, c] = 0.0
+                local[i, c], stochastic[i, c] = background[c], 0.0
             continue
         k = np.uint64(material[i])
-        wlocal = 1.0 - refl[k] - trans[k]
-        open_sky = 1.0
-        if ao_n > 0:
-            blocked = 0
-            for s in range(ao_n):
-                if ao_occ[i * np.uint64(ao_n) + np.uint64(s)]:
-                    blocked += 1
-            open_sky = 1.0 - blocked / ao_n
-        for c in range(3):
-            local[i, c] = emission[k, c] + acc[i, c] + wlocal * ambient[c] * albedo[i, c] * open_sky
-            stochastic[i, c] = acc[i, 3 + c] + wlocal * ambient[c] * open_sky
+        values = _finished(
+            (emission[k, 0], emission[k, 1], emission[k, 2]), (ambient[0], ambient[1], ambient[2]),
+            (albedo[i, 0], albedo[i, 1], albedo[i, 2]), 1.0 - refl[k] - trans[k], _open_sky(ao_occluded, ao_n, i),
+            (acc[i, 0], acc[i, 1], acc[i, 2], acc[i, 3], acc[i, 4], acc[i, 5]),
+        )  # fmt: skip
+        local[i, 0], local[i, 1], local[i, 2], stochastic[i, 0], stochastic[i, 1], stochastic[i, 2] = values
