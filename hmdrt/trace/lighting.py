@@ -270,9 +270,8 @@ def _shade_points(lights, plan, mats, surf, dirs_in, point, ao, out, finish, sta
     """The point lights' sums at hits [start, stop) into acc, or, with `finish`, each hit finished from them
     (_finished) where no other pass adds to them; out: (acc, local, stochastic, shadow_count)."""
     acc, local, stochastic, shadow_count = out
-    emission, material, ambient, background, ao_occluded, ao_n = (
-        mats.emission, surf.material, plan.ambient, plan.background, ao.occluded, plan.ao_samples,
-    )  # fmt: skip
+    emission, material, ambient, background = mats.emission, surf.material, plan.ambient, plan.background
+    ao_occluded, ao_n = ao.occluded, plan.ao_samples
     l_int = lights.point_intensity
     hits, ns, albedo = surf.hit, surf.normal_shading, surf.albedo
     p_dir, p_far, point_occ = point.directions, point.tfar, point.occluded
@@ -350,13 +349,8 @@ def _shade_areas(lights, plan, mats, surf, dirs_in, area, acc, shadow_count, sta
 def _shade_finish(plan, mats, surf, ao, acc, local, stochastic, start, stop):
     """Each hit in [start, stop) finished from the sums the passes before left in acc (_finished)."""
     hits, material, albedo, refl, trans = surf.hit, surf.material, surf.albedo, mats.reflectance, mats.transmittance
-    emission, ambient, background, ao_occluded, ao_n = (
-        mats.emission,
-        plan.ambient,
-        plan.background,
-        ao.occluded,
-        plan.ao_samples,
-    )
+    emission, ambient, background = mats.emission, plan.ambient, plan.background
+    ao_occluded, ao_n = ao.occluded, plan.ao_samples
     for i in range(start, stop):
         i = np.uint64(i)  # unsigned indices: no negative-index wraparound on the loads
         if not hits[i]:
