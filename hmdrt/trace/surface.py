@@ -89,7 +89,8 @@ def surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
         flip = 1.0 if dn < 0.0 else -1.0
         nx, ny, nz = nx * flip, ny * flip, nz * flip
         ng[i, 0], ng[i, 1], ng[i, 2] = nx, ny, nz
-        obj = np.uint64(tri_object[p])
+        o = tri_object[p]
+        obj = np.uint64(o)
         sx, sy, sz = nx, ny, nz
         if obj_smooth[obj]:
             ax = w * vnorm[i0, 0] + u * vnorm[i1, 0] + v * vnorm[i2, 0]
@@ -100,8 +101,9 @@ def surface_block(geo, mats, directions, prim, bu, bv, out, start, stop):
                 s = 1.0 / length if ax * nx + ay * ny + az * nz >= 0.0 else -1.0 / length
                 sx, sy, sz = ax * s, ay * s, az * s
         ns[i, 0], ns[i, 1], ns[i, 2] = sx, sy, sz
-        material[i], object_id[i] = obj_mat[obj], tri_object[p]
-        if tex_world[np.uint64(obj_mat[obj])] or not obj_uv[obj]:
+        k = obj_mat[obj]
+        material[i], object_id[i] = k, o
+        if tex_world[np.uint64(k)] or not obj_uv[obj]:
             for c in range(3):
                 texcoord[i, c] = position[i, c]
         else:
