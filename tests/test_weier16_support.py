@@ -16,7 +16,7 @@ from hmdrt.foveation.stages.sampling import foveal_probability
 from hmdrt.foveation.weier16 import Weier16, Weier16Params, support_size
 from hmdrt.foveation.weier16.buffers import support_pixels
 from hmdrt.foveation.weier16.cache import _unsampled_cells
-from hmdrt.foveation.weier16.params import COVERED, RESAMPLE, SUPPORT, TRACED
+from hmdrt.foveation.weier16.params import COVERED, RESAMPLE, SHOWN, SUPPORT, TRACED
 from hmdrt.optics import get_profile
 from hmdrt.optics.camera import eccentricity_map
 from hmdrt.optics.projection import bilinear3
@@ -201,18 +201,46 @@ def test_on_a_still_view_the_mesh_covers_everything_inside_the_support_grid(smal
     assert inside.all()
 
 
-def test_the_cells_showing_the_support_image_are_those_of_covered_pixels_without_a_sample():
-    """What the next frame's resampling info tests on a still view (section 3.3's coarse reconstruction): cells
-    (pixel (y, x) in cell (y sh // h, x sw // w)) with a covered, untraced pixel whose cache holds no sample."""
+def test_the_cells_showing_the_support_image_are_those_holding_a_shown_pixel():
+    """_unsampled_cells marks a cell (pixel (y, x) in cell (y sh // h, x sw // w)) where one of its pixels carries
+    SHOWN, whatever other flags it or the others carry, and no other cell."""
     h, w, sh, sw = 10, 12, 3, 4
-    flags = np.full((h, w), COVERED | TRACED, np.uint8)
-    info = np.ones((h, w, 3), np.float32)
-    flags[5, 7], info[5, 7, 1] = COVERED, 0.0  # reprojected support colour: cell (1, 2)
-    flags[0, 0], info[0, 0, 1] = 0, 0.0  # merged this frame, uncovered: the merge, not the reprojection
-    flags[9, 11], info[9, 11, 1] = COVERED, 2.0  # reprojected samples
-    flags[3, 3], info[3, 3, 1] = COVERED | TRACED, 0.0  # traced now (the cache update wrote rho >= 1 in fact)
+    flags = np.full((h, w), COVERED | TRACED | SUPPORT, np.uint8)
+    flags[5, 7] = COVERED | SHOWN  # cell (1, 2)
+    flags[9, 11] = COVERED
     unsampled = np.full((sh, sw), 7, np.uint8)
-    _unsampled_cells(flags, info, unsampled)
+    _unsampled_cells(flags, unsampled)
     expected = np.zeros((sh, sw), np.uint8)
     expected[1, 2] = 1
     np.testing.assert_array_equal(unsampled, expected)
+
+
+def unsampled_by_definition(flags: np.ndarray, info: np.ndarray, sh: int, sw: int) -> np.ndarray:
+    """Section 3.3's cells showing the support image, from the frame's flags and final cache info: those holding
+    a covered pixel that was not traced and whose cache holds no sample (rho 0)."""
+    h, w = flags.shape
+    shown = ((flags & (COVERED | TRACED)) == COVERED) & (info[..., 1] <= 0.0)
+    cells = np.zeros((sh, sw), np.uint8)
+    ys, xs = np.nonzero(shown)
+    cells[ys * sh // h, xs * sw // w] = 1
+    return cells
+
+
+def test_the_cache_update_flags_the_pixels_showing_the_support_image():
+    """What the next frame's resampling info tests: after each frame of a still view and of a turning head, the
+    cells the cache update reported (its SHOWN flags) are those the definition gives from its flags and cache
+    info, and some are."""
+    scene = load_scene("whitted")
+    with Whitted(scene) as tracer:
+        method = Weier16(tracer, Weier16Params())
+        marked = 0
+        for f in range(8):
+            turn = Pose.looking((0, 0, 0), 1.5 * max(f - 4, 0)).orientation
+            pose = Pose(scene.start.position, quat_multiply(scene.start.orientation, turn))
+            method.render(request(192, 216, f, pose), FrameStats())
+            eye = method._eyes["left"]
+            unsampled = eye.support.unsampled
+            flags, info = method._buffers.selection.flags, eye.finals[eye.newest].info
+            np.testing.assert_array_equal(unsampled, unsampled_by_definition(flags, info, *unsampled.shape))
+            marked += int(unsampled.sum())
+    assert marked > 0

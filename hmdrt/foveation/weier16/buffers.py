@@ -74,7 +74,7 @@ class Final(NamedTuple):
 class Selection(NamedTuple):
     """Where the frame traces: per pixel its flags, per row its samples (they are in scanline order)."""
 
-    flags: np.ndarray  # (h, w) uint8: TRACED, FRESH, RESAMPLE, COVERED, FOVEA, SUPPORT
+    flags: np.ndarray  # (h, w) uint8: TRACED, FRESH, RESAMPLE, COVERED, FOVEA, SUPPORT, SHOWN
     counts: np.ndarray  # (h,) int64 traced pixels per row
     row_start: np.ndarray  # (h + 1,) int64: the first sample of each row
     resampled: np.ndarray  # (h,) int64 pixels per row marked in the resampling info

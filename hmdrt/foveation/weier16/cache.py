@@ -12,7 +12,7 @@ import numpy as np
 
 from hmdrt.foveation.stages.reproject import ROWS, gaussian_taps, nearest_texel, row_footprints
 from hmdrt.foveation.stages.temporal import k_at, running_estimate
-from hmdrt.foveation.weier16.params import COVERED, FRESH, INFO, TRACED
+from hmdrt.foveation.weier16.params import COVERED, FRESH, INFO, SHOWN, TRACED
 from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.schedule import claim
 from hmdrt.optics.projection import FAR, bilinear3, bilinear_footprint, blend_footprint, view_distance
@@ -43,23 +43,29 @@ def _gather_support(grid, index, samples, normals, support):
 
 
 @kernel
-def _unsampled_cells(flags, info, unsampled):
+def _unsampled_cells(flags, unsampled):
     """The support cells (those of the resampling info: pixel (y, x) in cell (y sh // h, x sw // w)) holding a
-    pixel that the reprojection covers but that shows the support image's reconstruction, no sample of its own
-    (rho 0: merged when it was uncovered, untraced since). Section 3.3 reconstructs such pixels from the coarse
-    support image; the next frame's resampling info tests these cells for the discontinuities it misses. A cell
-    row per task, its pixels tested without branches."""
+    pixel flagged SHOWN by the cache update: covered by the reprojection but showing the support image's
+    reconstruction, no sample of its own (rho 0: merged when it was uncovered, untraced since). Section 3.3
+    reconstructs such pixels from the coarse support image; the next frame's resampling info tests these cells
+    for the discontinuities it misses. A cell row per task, its pixels tested without branches."""
     h, w = flags.shape
     sh, sw = unsampled.shape
     for j in nb.prange(sh):
         y0, y1 = (j * h + sh - 1) // sh, ((j + 1) * h + sh - 1) // sh
         for i in range(sw):
             x0, x1 = (i * w + sw - 1) // sw, ((i + 1) * w + sw - 1) // sw
-            shown = False
+            shown = np.uint8(0)
             for y in range(y0, y1):
                 for x in range(x0, x1):
-                    shown |= (flags[y, x] & (COVERED | TRACED) == COVERED) & (info[y, x, 1] <= 0.0)
-            unsampled[j, i] = shown
+                    shown |= flags[y, x]
+            unsampled[j, i] = (shown & SHOWN) != 0
+
+
+@serial
+def _shown(f, rho):
+    """Flags f of a covered pixel left untraced, with SHOWN set where its cache info (rho) holds no sample."""
+    return f | (np.uint8(SHOWN) if rho <= 0.0 else np.uint8(0))
 
 
 @inline
@@ -137,6 +143,7 @@ def _update_rows(y0, y1, selection, mesh, cur, previous, samples, support, grid,
                 color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
                 for c in range(INFO):
                     info[y, x, c] = prev_info[jy, jx, c]
+                flags[y, x] = _shown(f, prev_info[jy, jx, 1])
                 if rule.stochastic:
                     for c in range(3):
                         light[y, x, c] = prev_light[jy, jx, c]
@@ -177,7 +184,9 @@ def _update_rows_in_place(y0, y1, selection, distance, samples, support, grid, r
                         kept = np.float32(0.0) if new else light[y, x, c]
                         light[y, x, c] = alpha * samples.light[s, c] + (1.0 - alpha) * kept
                 s += 1
-            elif not covered:
+            elif covered:
+                flags[y, x] = _shown(f, info[y, x, 1])
+            else:
                 _merge_support(y, x, support, grid, rule, final)
                 merged += 1
         selection.merged[y] = merged

@@ -235,7 +235,7 @@ class Weier16(Configurable):
                 _update, buf.selection, mesh, camera_arrays(f.camera), distance, previous, samples, support, buf.grid,
                 rule, buf.taps, final, f.image,
             )  # fmt: skip
-            _unsampled_cells(buf.selection.flags, final.info, support.unsampled)
+            _unsampled_cells(buf.selection.flags, support.unsampled)
         return written
 
     def _post(self, f: _Frame, samples: Samples, normals: np.ndarray, final: Final, stats: FrameStats) -> None:

@@ -12,9 +12,10 @@ from hmdrt.ranges import Deg, Fraction
 
 DK2_SUPPORT = (256, 318, 1182, 1464)  # section 4.1: a 256 x 318 support image at 1182 x 1464
 INFO = 3  # cache info per pixel: alpha, rho and the frame it was last touched
-TRACED, FRESH, RESAMPLE, COVERED, FOVEA, SUPPORT = 1, 2, 4, 8, 16, 32  # a pixel's flags: traced this frame;
-# its sample replaces the cache (fovea or resampled); marked in the resampling info; covered by the reprojected
-# mesh; inside r0; a pixel of the support image
+TRACED, FRESH, RESAMPLE, COVERED, FOVEA, SUPPORT, SHOWN = 1, 2, 4, 8, 16, 32, 64  # a pixel's flags: traced this
+# frame; its sample replaces the cache (fovea or resampled); marked in the resampling info; covered by the
+# reprojected mesh; inside r0; a pixel of the support image; covered, untraced and showing the support image's
+# reconstruction (set by the cache update)
 
 
 class Weier16Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
