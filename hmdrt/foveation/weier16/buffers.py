@@ -182,6 +182,7 @@ class _Buffers:
         )
         self.sample_index = np.empty((h, w), np.int32)
         self.draws = np.empty((nb.config.NUMBA_NUM_THREADS, w))  # a row's random numbers per thread (_select)
+        self.listed = np.empty((nb.config.NUMBA_NUM_THREADS, w), np.uint32)  # a row's traced columns (_fill_samples)
         self.grid = SupportGrid.of(w, h, sw, sh)
         self.low_cols = np.arange(w) * sw // w  # the support column each pixel's resampling info comes from
         # the sample list for the most a frame can trace, every pixel: pages a frame never reaches are never

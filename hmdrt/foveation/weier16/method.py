@@ -194,7 +194,7 @@ class Weier16(Configurable):
             n = int(sel.row_start[-1])
             xy, keys, light = buf.sample_list(n)
             key = (request.seed << 32) + request.frame * (1 << 22)
-            _fill_samples(sel.flags, sel.row_start, key, xy, keys, buf.sample_index)
+            _fill_samples(sel.flags, sel.row_start, key, xy, keys, buf.sample_index, buf.listed)
             return n, xy, keys, light
 
     def _trace(
