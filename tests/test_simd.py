@@ -4,6 +4,7 @@ import numba as nb
 import numpy as np
 import pytest
 
+from hmdrt.foveation.stages.pyramid import DEPTH, WEIGHT
 from hmdrt.kernels.simd import texel_blend
 
 
@@ -11,7 +12,7 @@ from hmdrt.kernels.simd import texel_blend
 def _by_channel(data, k00, k01, k10, k11, a, b):
     p, q = np.float32(1.0) - a, np.float32(1.0) - b
     out = np.empty(4, np.float32)
-    for lane, c in enumerate((0, 1, 2, 4)):
+    for lane, c in enumerate((0, 1, 2, DEPTH)):
         out[lane] = q * (p * data[k00, c] + a * data[k01, c]) + b * (p * data[k10, c] + a * data[k11, c])
     return out
 
@@ -30,8 +31,8 @@ def _blend_all(data, taps, weights, simd, out):
 def test_texel_blend_is_the_channel_by_channel_blend_bit_for_bit():
     rng = np.random.default_rng(3)
     data = (rng.standard_normal((500, 5)) * 1e3).astype(np.float32)
-    data[::7, 4] = np.inf  # misses' depth
-    data[::5, 3] = -7.0  # the weight channel is never read
+    data[::7, DEPTH] = np.inf  # misses' depth
+    data[::5, WEIGHT] = -7.0  # the weight channel is never read
     taps = rng.integers(0, len(data), (20000, 4))
     weights = rng.random((20000, 2)).astype(np.float32)
     weights[:100] = 0.0
@@ -40,9 +41,9 @@ def test_texel_blend_is_the_channel_by_channel_blend_bit_for_bit():
     _blend_all(data, taps, weights, True, simd)
     _blend_all(data, taps, weights, False, scalar)
     assert np.array_equal(simd.view(np.uint32), scalar.view(np.uint32))
-    # the last texel's four floats and its depth are within the array: no read past it
+    # the last texel's first four floats are within the array: no read past it
     last = np.uint64(len(data) - 1)
-    assert texel_blend_at(data, last) == pytest.approx(tuple(data[-1, [0, 1, 2, 4]]))
+    assert texel_blend_at(data, last) == pytest.approx(tuple(data[-1, :4]))
 
 
 @nb.njit(cache=True)

@@ -11,6 +11,8 @@ from hmdrt.foveation.stages.dof import (
 )
 from hmdrt.foveation.stages.filters import FINE_LEVELS, Contrast, contrast_levels, enhance_windows, prefilter
 from hmdrt.foveation.stages.pyramid import (
+    DEPTH,
+    WEIGHT,
     Pyramid,
     RowSamples,
     _axis,
@@ -87,14 +89,14 @@ def test_pull_push_keeps_samples_and_fills_holes():
     level0 = pyr.data[: w * h]
     chosen = np.flatnonzero(rng.random(w * h) < 0.15)
     level0[chosen, :3] = truth.reshape(-1)[chosen, None]
-    level0[chosen, 3] = 1.0
-    level0[chosen, 4] = 2.0
+    level0[chosen, WEIGHT] = 1.0
+    level0[chosen, DEPTH] = 2.0
     pull_push(pyr)
     dense = pyr.level(0)
     np.testing.assert_allclose(dense[..., 0].reshape(-1)[chosen], truth.reshape(-1)[chosen], atol=1e-6)
-    assert np.all(dense[..., 3] == 1.0)
+    assert np.all(dense[..., WEIGHT] == 1.0)
     assert np.abs(dense[..., 0] - truth).max() < 0.15  # a smooth ramp is reconstructed closely
-    np.testing.assert_allclose(dense[..., 4], 2.0, atol=1e-6)
+    np.testing.assert_allclose(dense[..., DEPTH], 2.0, atol=1e-6)
 
 
 @pytest.mark.parametrize("masked", [False, True])
@@ -111,10 +113,10 @@ def test_pull_averages_the_valid_children_and_ignores_what_zero_weights_hold(mas
     mask = weights > 0
     if masked:
         weights = mask.astype(np.float32)
-        fine[..., 3] = np.nan  # the weight channel is not read
+        fine[..., WEIGHT] = np.nan  # the weight channel is not read
     else:
-        fine[..., 3] = weights
-    fine[~mask, :3], fine[~mask, 4] = np.nan, np.nan
+        fine[..., WEIGHT] = weights
+    fine[~mask, :3], fine[~mask, DEPTH] = np.nan, np.nan
     _pull_level(pyr, 1, mask.reshape(-1) if masked else None)
     coarse = pyr.level(1)
     for y in range(coarse.shape[0]):
@@ -123,10 +125,10 @@ def test_pull_averages_the_valid_children_and_ignores_what_zero_weights_hold(mas
             wts = weights[2 * y : 2 * y + 2, 2 * x : 2 * x + 2].reshape(-1)
             valid = wts > 0
             total = float(wts[valid].sum())
-            assert coarse[y, x, 3] == pytest.approx(min(1.0, total))
+            assert coarse[y, x, WEIGHT] == pytest.approx(min(1.0, total))
             if total > 0:
-                expected = (wts[valid, None] * block[valid][:, [0, 1, 2, 4]]).sum(0) / total
-                np.testing.assert_allclose(coarse[y, x, [0, 1, 2, 4]], expected, rtol=1e-5)
+                expected = (wts[valid, None] * block[valid][:, :4]).sum(0) / total
+                np.testing.assert_allclose(coarse[y, x, :4], expected, rtol=1e-5)
 
 
 def test_pull_push_with_kept_columns_matches_and_refuses_short_ones():
@@ -135,7 +137,7 @@ def test_pull_push_with_kept_columns_matches_and_refuses_short_ones():
     chosen = np.flatnonzero(rng.random(50 * 37) < 0.2)
     colours = rng.random((len(chosen), 3), dtype=np.float32)
     for pyr in (a, b):
-        pyr.data[chosen, :3], pyr.data[chosen, 3] = colours, 1.0
+        pyr.data[chosen, :3], pyr.data[chosen, WEIGHT] = colours, 1.0
     pull_push(a)
     pull_push(b, columns=push_columns(64))  # wider scratch than level 0: only its first 50 entries are used
     np.testing.assert_array_equal(a.data, b.data)
@@ -271,7 +273,7 @@ def test_weier18_taa_blends_each_sample_only_with_taps_that_see_its_surface(prev
     cam = camera("sim-cpu", width=w, height=h)
     previous, current = Pyramid.empty(w, h), Pyramid.empty(w, h)
     previous.data[:, :3] = (1.0, 0.0, 0.0)
-    previous.data[:, 3], previous.data[:, 4] = 1.0, previous_depth
+    previous.data[:, WEIGHT], previous.data[:, DEPTH] = 1.0, previous_depth
     surface, miss = 5 * w + 5, 6 * w + 9
     traced = Traced(
         np.array([surface, miss]),
@@ -290,4 +292,4 @@ def test_weier18_taa_blends_each_sample_only_with_taps_that_see_its_surface(prev
     seen = {surface: previous_depth == 2.0, miss: previous_depth == FAR}
     for pixel, hit in seen.items():
         np.testing.assert_allclose(current.data[pixel, :3], blended if hit else (0.0, 0.0, 1.0), rtol=1e-6)
-        assert current.data[pixel, 3] == 1.0
+        assert current.data[pixel, WEIGHT] == 1.0

@@ -39,6 +39,8 @@ from hmdrt.foveation.stages.dof import (
 )
 from hmdrt.foveation.stages.filters import FINE_LEVELS, Contrast, contrast_levels, enhance_windows, prefilter
 from hmdrt.foveation.stages.pyramid import (
+    DEPTH,
+    WEIGHT,
     Columns,
     PixelAxes,
     Pyramid,
@@ -158,12 +160,12 @@ def _taa_block(traced, frustum, view, blend, previous, history, data, start, sto
     pw, ph = p_widths[0], p_heights[0]
     for s in range(start, stop):
         i = pixels[s]
-        data[i, 0], data[i, 1], data[i, 2], data[i, 3], data[i, 4] = (
+        data[i, 0], data[i, 1], data[i, 2], data[i, DEPTH], data[i, WEIGHT] = (
             rgb[s, 0],
             rgb[s, 1],
             rgb[s, 2],
-            1.0,
             min(depth[s], FAR),
+            1.0,
         )
     if not history:
         return
@@ -423,7 +425,7 @@ class Weier18(Configurable):
         base = current.level(0)
         ppd = sum(pixels_per_degree(cam)) / 2
         with stats.stage("gaze_depth"):
-            focus = gaze_depth(base[..., 4], por, ppd, request.gaze_depth_m, miss=0.5 * FAR)
+            focus = gaze_depth(base[..., DEPTH], por, ppd, request.gaze_depth_m, miss=0.5 * FAR)
         if state.layers is None or state.layers.coc.shape != (cam.height, cam.width):
             state.layers = Layers.empty(cam.width, cam.height)
         layers = state.layers

@@ -54,21 +54,17 @@ def vector_at(builder: ir.IRBuilder, data: ir.Value, index: ir.Value, lanes: int
 
 
 def _texel(builder: ir.IRBuilder, data: ir.Value, channels: ir.Value, k: ir.Value) -> ir.Value:
-    """Texel k's red, green, blue and depth (channels 0, 1, 2 and 4 of a row of `channels` float32): one 16-byte
-    load of its first four channels, its depth put in the fourth lane."""
-    first = builder.mul(k, channels)
-    rgbw = builder.load(vector_at(builder, data, first, 4), align=4)
-    depth = builder.load(builder.gep(data, [builder.add(first, ir.Constant(k.type, 4))]), align=4)
-    return builder.insert_element(rgbw, depth, ir.Constant(I32, 3))
+    """Texel k's first four channels (of a row of `channels` float32): one 16-byte load."""
+    return builder.load(vector_at(builder, data, builder.mul(k, channels), 4), align=4)
 
 
 @intrinsic
 def texel_blend(typingctx, data, k00, k01, k10, k11, a, b):
-    """(r, g, b, depth) float32 between texels k00 (top left), k01, k10 and k11 of `data`, a C-contiguous
-    (texels, 5 or more) float32 array (r, g, b, weight, depth), with float32 weights a across and b down:
+    """The first four channels (a pyramid's r, g, b and depth) in float32 between texels k00 (top left), k01, k10 and
+    k11 of `data`, a C-contiguous (texels, 4 or more) float32 array, with float32 weights a across and b down:
     q (p t00 + a t01) + b (p t10 + a t11) with p = 1 - a, q = 1 - b, the multiplies and adds apart (no fused
     multiply-add), so that each lane rounds as the same blend written channel by channel does. Each texel is one
-    16-byte load and one 4-byte one; the blend four lanes at once. The indices are not checked."""
+    16-byte load; the blend four lanes at once. The indices are not checked."""
     if not (isinstance(data, types.Array) and data.ndim == 2 and data.layout == "C" and data.dtype == types.float32):
         return None
     if not all(isinstance(k, types.Integer) for k in (k00, k01, k10, k11)) or (a, b) != (types.float32,) * 2:

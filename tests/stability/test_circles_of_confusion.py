@@ -15,7 +15,7 @@ from hmdrt.foveation.stages.dof import (
     focal_lengths,
     layered_blur,
 )
-from hmdrt.foveation.stages.pyramid import Pyramid, pull_push
+from hmdrt.foveation.stages.pyramid import DEPTH, WEIGHT, Pyramid, pull_push
 from hmdrt.scene import Scene, load_scene
 from hmdrt.scene.model import Material
 from hmdrt.scene.shapes import quad
@@ -136,7 +136,7 @@ def test_layered_blur_with_huge_cocs_caps_the_blur_and_stays_a_convex_mix(far):
     pyramid = Pyramid.empty(16, 48)
     pyramid.data.fill(0.0)
     level0 = pyramid.data[: 48 * 16]
-    level0[:, :3], level0[:, 3], level0[:, 4] = color.reshape(-1, 3), 1.0, 1.0
+    level0[:, :3], level0[:, WEIGHT], level0[:, DEPTH] = color.reshape(-1, 3), 1.0, 1.0
     pull_push(pyramid)
     out = layered_blur(color, coc_px, ecc, 10.0, 20.0, pyramid)
     assert np.all(np.isfinite(out))

@@ -23,7 +23,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.stages.filters import Contrast, enhance_row
-from hmdrt.foveation.stages.pyramid import CHANNELS, PixelAxes, Pyramid, RowSamples, pixel_axes, sample_row
+from hmdrt.foveation.stages.pyramid import CHANNELS, DEPTH, PixelAxes, Pyramid, RowSamples, pixel_axes, sample_row
 from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.schedule import claim, dynamic
 
@@ -32,7 +32,6 @@ DEPTH_INACCURACY_M = 0.2  # t, the mean gaze-depth estimation error over 6 m (We
 REFERENCE_PPD = 11.44  # rift_s pixels per degree at the centre (mean of x and y), where the presets hold
 MAX_BLUR_PX = 24  # radius cap of the central Gaussian and of the near-field spread
 RAMP_PX = 2.0  # the |CoC| over which the sharp image fades into the far field
-DEPTH = CHANNELS - 1  # the hit distance's channel in a pyramid level (r, g, b, weight, depth)
 
 
 class DofPreset(NamedTuple):

@@ -18,7 +18,8 @@ import numpy as np
 from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.simd import texel_blend
 
-CHANNELS = 5  # r, g, b, weight, depth
+CHANNELS = 5  # r, g, b, depth, weight
+DEPTH, WEIGHT = 3, 4  # a texel's hit distance and weight: its colour and depth are its first 16 bytes (texel_blend)
 
 
 class PixelAxes(NamedTuple):
@@ -44,7 +45,7 @@ def _axis_table(n_pixels: int, scales: np.ndarray, sizes: np.ndarray) -> tuple[n
 
 
 class Pyramid(NamedTuple):
-    data: np.ndarray  # (texels, 5) float32: r, g, b, weight, depth
+    data: np.ndarray  # (texels, 5) float32: r, g, b, depth, weight
     offsets: np.ndarray  # (levels,) int64 first texel of each level
     widths: np.ndarray  # (levels,) int64
     heights: np.ndarray  # (levels,) int64
@@ -89,7 +90,7 @@ def pixel_axes(pyramid: Pyramid) -> PixelAxes:
 def _weight(data, i, mask):
     """A texel's weight: its weight channel, or 1 / 0 from mask (level 0 only) when one is given."""
     if mask is None:
-        return data[i, 3]
+        return data[i, WEIGHT]
     return 1.0 if mask[i] else 0.0
 
 
@@ -128,15 +129,15 @@ def _child(data, bits, i, mask, present):
     Without a branch: the channels are read as bits (`bits`, data's uint32 view) and masked, where a select per
     term compiles to a branch that mispredicts on sparse samples (the pull took 1.6-2.8x as long)."""
     if mask is None:  # keep: all ones for a child that counts, else 0
-        keep = np.uint32(0) - np.uint32(present & (data[i, 3] > 0.0))
-        w = np.uint32(bits[i, 3] & keep).view(np.float32)
+        keep = np.uint32(0) - np.uint32(present & (data[i, WEIGHT] > 0.0))
+        w = np.uint32(bits[i, WEIGHT] & keep).view(np.float32)
     else:
         keep = np.uint32(0) - np.uint32(present & mask[i])
         w = float(keep & np.uint32(1))
     r = np.uint32(bits[i, 0] & keep).view(np.float32)
     g = np.uint32(bits[i, 1] & keep).view(np.float32)
     b = np.uint32(bits[i, 2] & keep).view(np.float32)
-    d = np.uint32(bits[i, 4] & keep).view(np.float32)
+    d = np.uint32(bits[i, DEPTH] & keep).view(np.float32)
     if mask is None:
         return w, w * r, w * g, w * b, w * d
     return w, r, g, b, d  # a sample's weight is 1, and the channels of any other are 0 already
@@ -168,8 +169,8 @@ def _pull_level(pyramid, k, mask):
                 data[j, 0] = (0.0 + r0 + r1 + r2 + r3) / wsum
                 data[j, 1] = (0.0 + g0 + g1 + g2 + g3) / wsum
                 data[j, 2] = (0.0 + b0 + b1 + b2 + b3) / wsum
-                data[j, 4] = (0.0 + d0 + d1 + d2 + d3) / wsum
-            data[j, 3] = min(1.0, wsum)
+                data[j, DEPTH] = (0.0 + d0 + d1 + d2 + d3) / wsum
+            data[j, WEIGHT] = min(1.0, wsum)
 
 
 class Columns(NamedTuple):
@@ -207,8 +208,8 @@ def _push_row(data, row, wf, mask, col0, col1, col_weight, o_coarse, wc, ay, hol
         if w > 0.0:
             v = 1.0 - w
             r, g = w * data[i, 0] + v * r, w * data[i, 1] + v * g
-            b, d = w * data[i, 2] + v * b, w * data[i, 4] + v * d
-        data[i, 0], data[i, 1], data[i, 2], data[i, 3], data[i, 4] = r, g, b, 1.0, d
+            b, d = w * data[i, 2] + v * b, w * data[i, DEPTH] + v * d
+        data[i, 0], data[i, 1], data[i, 2], data[i, DEPTH], data[i, WEIGHT] = r, g, b, d, 1.0
 
 
 @kernel
