@@ -19,7 +19,7 @@ from hmdrt.scene.shapes import quad, sphere
 from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.bsdf import fresnel_dielectric, reflect, refract, split
-from hmdrt.trace.gbuffer import GBufferPool, HitAttributes
+from hmdrt.trace.gbuffer import GBuffer, GBufferPool, HitAttributes
 from hmdrt.trace.integrator import Whitted
 from hmdrt.trace.sampling import cosine_hemisphere, sincos_turn, stratified, tangent_frame
 from hmdrt.trace.textures import sample_texture
@@ -235,6 +235,32 @@ def test_a_gbuffer_keeps_the_attributes_asked_for_with_the_same_values_and_colou
                 assert len(ours) == 0, (half, name)
     with pytest.raises(ValueError, match="no G-buffer attribute"):
         GBufferPool(("normals",))
+
+
+def test_a_gbuffer_stores_the_kept_samples_attributes_and_every_depth(whitted_scene):
+    """GBuffer.kept (kim21 reads Table 1 in its central region only): the tracer stores the attributes of the kept
+    samples, as a full trace does, and every sample's primary depth; the other samples' attributes stay as they
+    were (the secondary half's misses, as a caller clears them); a mask shorter than the samples is refused."""
+    cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(48, 54), whitted_scene.start)
+    xy = pixel_centres(48, 54)
+    keys = np.arange(len(xy), dtype=np.int64)
+    kept = (np.arange(len(xy)) % 3 == 0) | (np.arange(len(xy)) > 2000)
+    with Whitted(whitted_scene, 2) as tracer:
+        full = GBuffer.empty(len(xy))
+        tracer.trace_samples(cam, xy, keys, FrameStats(), full)
+        masked = GBuffer.empty(len(xy))._replace(kept=kept)
+        masked.primary.object_id.fill(-7)
+        masked.primary.normal_shading.fill(5.0)
+        tracer.trace_samples(cam, xy, keys, FrameStats(), masked)
+        with pytest.raises(ValueError, match="kept holds 10 samples"):
+            tracer.trace_samples(cam, xy, keys, FrameStats(), masked._replace(kept=kept[:10]))
+    np.testing.assert_array_equal(masked.primary.depth, full.primary.depth)
+    for half in ("primary", "secondary"):
+        ours, theirs = getattr(masked, half), getattr(full, half)
+        for name in ("object_id", "normal_shading", "shadow_count", "textured"):
+            np.testing.assert_array_equal(getattr(ours, name)[kept], getattr(theirs, name)[kept], err_msg=name)
+    assert np.all(masked.primary.object_id[~kept] == -7) and np.all(masked.primary.normal_shading[~kept] == 5.0)
+    assert (full.secondary.object_id[~kept] >= 0).any() and np.all(masked.secondary.object_id[~kept] == -1)
 
 
 def test_stages_a_scene_cannot_use_are_not_run():

@@ -60,9 +60,16 @@ class HitAttributes(NamedTuple):
             a.fill(0)
 
 
+EVERY = np.zeros(0, bool)  # GBuffer.kept for every sample (writable like a caller's mask: one type for numba)
+
+
 class GBuffer(NamedTuple):
     primary: HitAttributes
     secondary: HitAttributes  # the heavier of the reflected / refracted rays; a miss where none was spawned
+    # (n,) bool: the samples whose attributes the tracer stores, besides the primary hit's depth, which it stores
+    # for every sample; empty (EVERY): all of them. A method that reads the attributes of some pixels only
+    # (kim21: its central region) skips the others' stores.
+    kept: np.ndarray = EVERY
 
     @classmethod
     def empty(cls, n: int, primary: Collection[str] | None = None, secondary: Collection[str] | None = None) -> GBuffer:
@@ -71,7 +78,9 @@ class GBuffer(NamedTuple):
 
     def rows(self, n: int) -> GBuffer:
         """A view of the first n samples."""
-        return GBuffer(HitAttributes(*(a[:n] for a in self.primary)), HitAttributes(*(a[:n] for a in self.secondary)))
+        primary = HitAttributes(*(a[:n] for a in self.primary))
+        secondary = HitAttributes(*(a[:n] for a in self.secondary))
+        return GBuffer(primary, secondary, self.kept[:n] if len(self.kept) else self.kept)
 
 
 class GBufferPool:
@@ -118,10 +127,11 @@ def holds_samples(attrs):
 
 
 @serial
-def store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, stop):
+def store_block(attrs, rows, kept, t, surf, textured, shadow_count, kr, kt, start, stop):
     """attrs[rows[i]] = attributes of hit i, for every i in [start, stop) with rows[i] >= 0, in the attributes
-    that keep samples."""
+    that keep samples; besides the depth, only in the rows `kept` holds (GBuffer.kept; every row when empty)."""
     depth, a_ng, a_ns, a_obj, a_shadow, a_tex, a_kr, a_kt = attrs
+    every = kept.shape[0] == 0
     hits, ng, ns, obj, material = surf.hit, surf.normal_geometric, surf.normal_shading, surf.object_id, surf.material
     k_depth, k_ng, k_ns, k_obj = depth.shape[0] > 0, a_ng.shape[0] > 0, a_ns.shape[0] > 0, a_obj.shape[0] > 0
     k_shadow, k_tex, k_kr, k_kt = a_shadow.shape[0] > 0, a_tex.shape[0] > 0, a_kr.shape[0] > 0, a_kt.shape[0] > 0
@@ -134,6 +144,8 @@ def store_block(attrs, rows, t, surf, textured, shadow_count, kr, kt, start, sto
         hit = hits[i]
         if k_depth:
             depth[r] = t[i]
+        if not (every or kept[r]):
+            continue
         if k_obj:
             a_obj[r] = obj[i]
         for c in range(3):

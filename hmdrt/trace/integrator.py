@@ -127,6 +127,8 @@ class Whitted:
         for name, buffer in (("gbuffer", gbuffer and gbuffer.primary.depth), ("light", light and light.albedo)):
             if buffer is not None and len(buffer) < n:
                 raise ValueError(f"{name} holds {len(buffer)} samples, fewer than the {n} traced")
+        if gbuffer is not None and 0 < len(gbuffer.kept) < n:
+            raise ValueError(f"gbuffer.kept holds {len(gbuffer.kept)} samples, fewer than the {n} traced")
         if n == 0:
             return out
         frame = Frame(

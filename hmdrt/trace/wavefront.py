@@ -210,7 +210,7 @@ def _store_gbuffer(frame, scene, w, rays, start, count, depth):
     for i in range(count):
         rows[i] = start + rays.owner[i] if depth == 0 or rays.principal[i] else -1
     attrs = frame.gbuffer.primary if depth == 0 else frame.gbuffer.secondary
-    store_block(attrs, rows, w.hits.t, w.surf, scene.textured, w.shadow_count, w.kr, w.kt, 0, count)
+    store_block(attrs, rows, frame.gbuffer.kept, w.hits.t, w.surf, scene.textured, w.shadow_count, w.kr, w.kt, 0, count)
 
 
 @inline
@@ -363,8 +363,8 @@ def compile_part(scene: SceneArgs, lane: Lane, gbuffer: object, part: int) -> No
         _compile(_point_rays, lights, surf, w.point, zero, count)
         _compile(_area_rays, lights, plan, surf, rays.key, w.area, zero, count)
         _compile(_ao_rays, plan, surf, rays.key, w.ao, zero, count)
-        attrs = (gbuffer.primary, w.rows, hits.t, surf, scene.textured, w.shadow_count, w.kr, w.kt, zero, count)
-        _compile(store_block, *attrs)
+        attrs = (gbuffer.primary, w.rows, gbuffer.kept, hits.t, surf, scene.textured, w.shadow_count, w.kr, w.kt)
+        _compile(store_block, *attrs, zero, count)
     elif part == 1:
         o, d, far, occluded = w.point
         omitted = (types.Omitted(None), types.Omitted(False))  # select and want, as the first level leaves them

@@ -47,10 +47,12 @@ class Foveation(NamedTuple):
     samples: np.ndarray  # (n,) uint8 samples per problematic subpixel in e's band (section 4.6.2); 0 beyond e_np
     tau_fov: np.ndarray  # (n,) float64 tau_fov(e) (section 4.6.1)
     alpha: np.ndarray  # (n,) float32 smoothing factor alpha(e) (section 4.7)
+    table1: np.ndarray  # (n,) bool: the central pixels (e < e_np) and their 8 neighbours, whose Table 1 attributes
+    # the tests read (the inspection compares a pixel with its neighbours): the presample's GBuffer.kept
 
     @classmethod
     def empty(cls, n: int) -> Foveation:
-        return cls(np.empty(n, np.uint8), np.empty(n), np.empty(n, np.float32))
+        return cls(np.empty(n, np.uint8), np.empty(n), np.empty(n, np.float32), np.empty(n, bool))
 
 
 @serial
@@ -102,7 +104,7 @@ def alpha_of_eccentricity(ecc: np.ndarray, p: Kim21Params) -> np.ndarray:
 
 @serial
 def _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
-    samples, tau, alpha = fov
+    samples, tau, alpha, _ = fov
     width = ecc.shape[1]
     central = most = 0
     for x in range(width):
@@ -129,4 +131,20 @@ def _foveation(ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
         row_central, row_most = _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov)
         central += row_central
         most += row_most
+    for y in nb.prange(ecc.shape[0]):
+        _near_central_row(y, ecc.shape[1], fov.samples, fov.table1)
     return central, 4 * most
+
+
+@serial
+def _near_central_row(y, width, samples, out):
+    """Row y of Foveation.table1: whether a pixel or one of its 8 neighbours is central (samples > 0), without
+    branches."""
+    height = samples.shape[0] // width
+    rows = (max(y - 1, 0) * width, y * width, min(y + 1, height - 1) * width)
+    for x in range(width):
+        left, right = max(x - 1, 0), min(x + 1, width - 1)
+        near = False
+        for r in rows:
+            near |= (samples[r + left] > 0) | (samples[r + x] > 0) | (samples[r + right] > 0)
+        out[y * width + x] = near

@@ -232,8 +232,8 @@ class Kim21(Configurable):
         with stats.stage("presample"):
             _clear(w, f.cur.gbuffer.secondary)
             keys = self._pixel_keys(h * w, f.request.seed)
-            primary, secondary = f.cur.gbuffer
-            gbuffer = GBuffer(primary._replace(depth=f.kept.depth), secondary)
+            primary, secondary = f.cur.gbuffer.primary, f.cur.gbuffer.secondary
+            gbuffer = GBuffer(primary._replace(depth=f.kept.depth), secondary, f.fov.table1)
             self.tracer.trace_samples(f.camera, pixel_grid(w, h), keys, stats, gbuffer, out=f.kept.ref)
 
     def _reuse(self, f: _Frame, stats: FrameStats) -> int:
@@ -245,11 +245,13 @@ class Kim21(Configurable):
             return dynamic(
                 _store,
                 state.shape[1],
-                *f.cur.gbuffer,
+                f.cur.gbuffer.primary,
+                f.cur.gbuffer.secondary,
                 camera_arrays(cam).frustum,
                 f.kept,
                 relative_view(state.previous or cam, cam),
-                *f.last.gbuffer,
+                f.last.gbuffer.primary,
+                f.last.gbuffer.secondary,
                 f.prev,
                 same_camera(state.previous, cam),
                 self.tests,
@@ -263,7 +265,7 @@ class Kim21(Configurable):
         afresh each frame (pixel_keys' frame), so that smoothing (section 4.7) averages them on a still view."""
         state, (h, w) = f.state, f.state.shape
         with stats.stage("inspect"):
-            g1, g2 = f.cur.gbuffer
+            g1, g2 = f.cur.gbuffer.primary, f.cur.gbuffer.secondary
             scratch = (state.sub_mask, state.first, state.box, state.passes)
             problematic = _inspect(w, f.cur.ref, g1, g2, f.fov, f.cur.flags, self.tests, *scratch)
             state.first[h] = 0
