@@ -152,8 +152,8 @@ def test_selective_supersamples_like_jin_et_al():
 
 def test_the_presample_keeps_table_1_for_the_central_pixels_and_their_neighbours():
     """What the tests read of Table 1 (the inspection compares a central pixel with its neighbours): Foveation.table1
-    is the central region (e < e_np) grown by one pixel, the presample's GBuffer.kept; an off-centre gaze at a
-    small size, so that the region meets the image's edges."""
+    is the central region (e < e_np) grown by one pixel, the presample's GBuffer.kept, and Foveation.spans each row's
+    central columns; an off-centre gaze at a small size, so that the region meets the image's edges."""
     from hmdrt.foveation.kim21.bands import Foveation, _foveation, alpha_knots, bezier_controls
     from hmdrt.foveation.kim21.params import Kim21Params
     from hmdrt.optics.camera import EyeCamera, eccentricity_map
@@ -161,7 +161,7 @@ def test_the_presample_keeps_table_1_for_the_central_pixels_and_their_neighbours
     p = Kim21Params()
     cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(40, 30), load_scene("whitted").start)
     ecc = eccentricity_map(cam, np.array(gaze_direction(35.0, 10.0)))
-    fov = Foveation.empty(ecc.size)
+    fov = Foveation.empty(*ecc.shape)
     bounds = np.array([p.e_f, p.e_p, p.e_m])
     counts = np.array([p.n_f, p.n_p, p.n_m, p.n_np], np.uint8)
     _foveation(ecc, bezier_controls(p), bounds, counts, p.e_np, alpha_knots(p), np.array(p.alpha), fov)
@@ -174,3 +174,8 @@ def test_the_presample_keeps_table_1_for_the_central_pixels_and_their_neighbours
             near |= grown[dy : dy + ecc.shape[0], dx : dx + ecc.shape[1]]
     np.testing.assert_array_equal(fov.table1, near.reshape(-1))
     assert central.any() and not near.all() and near.sum() > central.sum()
+    rows = central.reshape(ecc.shape)
+    for y, row in enumerate(rows):  # the columns the inspection's contrast boxes are computed for
+        xs = np.flatnonzero(row)
+        assert tuple(fov.spans[y]) == ((xs[0], xs[-1] + 1) if len(xs) else (0, 0))
+    assert not rows.all(axis=1).all() and not rows.any(axis=1).all()

@@ -49,10 +49,13 @@ class Foveation(NamedTuple):
     alpha: np.ndarray  # (n,) float32 smoothing factor alpha(e) (section 4.7)
     table1: np.ndarray  # (n,) bool: the central pixels (e < e_np) and their 8 neighbours, whose Table 1 attributes
     # the tests read (the inspection compares a pixel with its neighbours): the presample's GBuffer.kept
+    spans: np.ndarray  # (height, 2) int64: the columns [first, last + 1) of each row's central pixels; (0, 0): none
 
     @classmethod
-    def empty(cls, n: int) -> Foveation:
-        return cls(np.empty(n, np.uint8), np.empty(n), np.empty(n, np.float32), np.empty(n, bool))
+    def empty(cls, height: int, width: int) -> Foveation:
+        n = height * width
+        spans = np.empty((height, 2), np.int64)
+        return cls(np.empty(n, np.uint8), np.empty(n), np.empty(n, np.float32), np.empty(n, bool), spans)
 
 
 @serial
@@ -104,9 +107,10 @@ def alpha_of_eccentricity(ecc: np.ndarray, p: Kim21Params) -> np.ndarray:
 
 @serial
 def _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
-    samples, tau, alpha, _ = fov
+    samples, tau, alpha, _, spans = fov
     width = ecc.shape[1]
     central = most = 0
+    first, last = width, -1
     for x in range(width):
         i = y * width + x
         e = ecc[y, x]
@@ -119,6 +123,9 @@ def _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
         most += samples[i]
         tau[i] = tau_fov(e, ctrl)
         alpha[i] = np.interp(e, alpha_x, alpha_y)
+        if inside:
+            first, last = min(first, x), x
+    spans[y, 0], spans[y, 1] = (first, last + 1) if last >= 0 else (0, 0)
     return central, most
 
 

@@ -101,27 +101,29 @@ def _taus(thresholds):
 
 
 @serial
-def _box_contrast_row(y, width, ref, tau_fov, bound, box, passes):
-    """passes[x] = whether Mitchell's contrast of the 3x3 box around pixel (x, y) of ref (n, 3), clamped to the
-    image, stays within bound x tau_fov x (1.36, 1.02, 2.04) in every channel, with a margin over float32 rounding.
-    A 2x2 subpixel block inside the box has no more contrast (it grows with max, falls with min, for non-negative
-    colours), so it passes too. Separably, in loops that vectorise (unsigned indices: no negative-index wraparound;
-    selects, no branches): each column's three rows into box (lowest and highest per channel, 6 rows of the row's
-    width + 2, the edge columns repeated either side), then three columns of those."""
+def _box_contrast_row(y, width, ref, tau_fov, bound, box, passes, x0, x1):
+    """passes[x] for the pixels x in [x0, x1) of row y (those the inspection may read: its central ones) = whether
+    Mitchell's contrast of the 3x3 box around pixel (x, y) of ref (n, 3), clamped to the image, stays within bound x
+    tau_fov x (1.36, 1.02, 2.04) in every channel, with a margin over float32 rounding. A 2x2 subpixel block inside
+    the box has no more contrast (it grows with max, falls with min, for non-negative colours), so it passes too.
+    Separably, in loops that vectorise (unsigned indices: no negative-index wraparound; selects, no branches): each
+    column's three rows into box (lowest and highest per channel, 6 rows of the row's width + 2, the edge columns
+    repeated either side), for the columns the boxes read, then three columns of those."""
     height, u, one, two = ref.shape[0] // width, np.uint64, np.uint64(1), np.uint64(2)
     flat = ref.reshape(-1)
     top, mid, bottom = max(y - 1, 0) * width, y * width, min(y + 1, height - 1) * width
-    for x in range(width):
+    c0, c1 = max(x0 - 1, 0), min(x1 + 1, width)  # the columns the boxes of [x0, x1) read
+    for x in range(x0, x1):
         passes[x] = True
     for ch in range(3):
         lo, hi, scale = box[ch], box[3 + ch], MITCHELL[ch]
         t, m, b = u(3 * top + ch), u(3 * mid + ch), u(3 * bottom + ch)
-        for x in range(width):
+        for x in range(c0, c1):
             k = u(3 * x)
             va, vb, vc = np.float64(flat[t + k]), np.float64(flat[m + k]), np.float64(flat[b + k])
             lo[u(x) + one], hi[u(x) + one] = min(min(va, vb), vc), max(max(va, vb), vc)
         lo[0], hi[0], lo[width + 1], hi[width + 1] = lo[1], hi[1], lo[width], hi[width]
-        for x in range(width):
+        for x in range(x0, x1):
             i = u(x)
             low, high = min(min(lo[i], lo[i + one]), lo[i + two]), max(max(hi[i], hi[i + one]), hi[i + two])
             spread = np.divide(high - low, high + low) * (1.0 + 1e-6)
@@ -142,7 +144,7 @@ def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask,
     taus, taus2 = _taus(thresholds)
     counts, tau_fov_ = fov.samples, fov.tau_fov
     lowest = thresholds.min()
-    _box_contrast_row(y, width, ref, tau_fov_, lowest, box, passes)
+    _box_contrast_row(y, width, ref, tau_fov_, lowest, box, passes, fov.spans[y, 0], fov.spans[y, 1])
     samples = subpixels = 0
     for x in range(width):
         i = np.uint64(y * width + x)  # unsigned indices: no negative-index wraparound on the loads

@@ -54,7 +54,7 @@ class _EyeState:
         self.smooth_size = smooth_size  # frames the smoothing history holds since it (re)started
         self.buffers = [_Buffers.empty(n), _Buffers.empty(n)]  # [this frame's, the previous frame's]
         self.previous: EyeCamera | None = None
-        self.fov = Foveation.empty(n)
+        self.fov = Foveation.empty(height, width)
         self.fov_key: tuple | None = None
         self.central = 0
         self.most = 0  # extra samples when every subpixel of every central pixel is problematic (_foveation)
