@@ -120,7 +120,8 @@ def test_resolve_interpolates_the_subpixels_that_are_not_problematic(interpolate
     extra = np.array([[1.0, 2.0, 3.0], [3.0, 4.0, 5.0]], np.float32)
     held = rng.random((h * w, 3), dtype=np.float32)
     out = held.copy()
-    dynamic(_resolve, image, sub_mask, samples, flags, first, extra, interpolate, out)
+    spans = np.array([[0, w], [0, w], [0, w], [0, w]], np.int64)  # each row's central columns, the peripheral one too
+    dynamic(_resolve, image, sub_mask, samples, spans, flags, first, extra, interpolate, out)
     for i in range(h * w):
         y, x = divmod(i, w)
         if i in (3, 7):

@@ -134,7 +134,8 @@ def _box_contrast_row(y, width, ref, tau_fov, bound, box, passes, x0, x1):
 @serial
 def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask, box, passes):
     """Row y of the two-step disparity test of every subpixel of every central pixel not reused: the 4-bit mask of
-    the problematic subpixels (NW, NE, SW, SE). A subpixel whose contrast passes at the smallest threshold passes
+    the problematic subpixels (NW, NE, SW, SE), written for the row's central columns (fov.spans) alone, which is
+    all that _subpixel_samples and _resolve read. A subpixel whose contrast passes at the smallest threshold passes
     at tau_sel too, so step one runs only where the contrast is high enough to matter, and a pixel whose 3x3
     neighbourhood passes there is done. Returns the row's extra samples and problematic subpixels."""
     height = flags.shape[0] // width
@@ -144,9 +145,10 @@ def _inspect_row(y, width, ref, primary, secondary, fov, flags, tests, sub_mask,
     taus, taus2 = _taus(thresholds)
     counts, tau_fov_ = fov.samples, fov.tau_fov
     lowest = thresholds.min()
-    _box_contrast_row(y, width, ref, tau_fov_, lowest, box, passes, fov.spans[y, 0], fov.spans[y, 1])
+    x0, x1 = fov.spans[y, 0], fov.spans[y, 1]
+    _box_contrast_row(y, width, ref, tau_fov_, lowest, box, passes, x0, x1)
     samples = subpixels = 0
-    for x in range(width):
+    for x in range(x0, x1):
         i = np.uint64(y * width + x)  # unsigned indices: no negative-index wraparound on the loads
         sub_mask[i] = 0
         k = np.int64(counts[i])

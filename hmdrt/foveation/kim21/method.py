@@ -272,7 +272,8 @@ class Kim21(Configurable):
             total = _exclusive_scan(state.first)
             extra_xy, extra_keys, extra_color = state.extra(total)
             seed_key = int(pixel_keys(np.zeros(1), f.request.seed, f.request.frame, stream=1)[0])
-            _subpixel_samples(w, state.sub_mask, f.fov.samples, state.first, seed_key, extra_xy, extra_keys)
+            fov = f.fov
+            _subpixel_samples(w, state.sub_mask, fov.samples, fov.spans, state.first, seed_key, extra_xy, extra_keys)
         return problematic, extra_xy, extra_keys, extra_color
 
     def _resolve_pixels(self, f: _Frame, extra: np.ndarray, stats: FrameStats) -> None:
@@ -280,9 +281,8 @@ class Kim21(Configurable):
         state, (h, w) = f.state, f.state.shape
         with stats.stage("resolve"):
             image, flags, interpolate = f.cur.ref.reshape(h, w, 3), f.cur.flags, self.params.interpolate
-            dynamic(
-                _resolve, image, state.sub_mask, f.fov.samples, flags, state.first, extra, interpolate, f.kept.rendered
-            )
+            subpixels = (state.sub_mask, f.fov.samples, f.fov.spans, flags, state.first, extra, interpolate)
+            dynamic(_resolve, image, *subpixels, f.kept.rendered)
 
     def _smooth(self, f: _Frame, out: np.ndarray | None, stats: FrameStats) -> np.ndarray:
         """Section 4.7: exponential smoothing over the history by eccentricity, an earlier frame that sees another

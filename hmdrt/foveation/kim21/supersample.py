@@ -27,9 +27,9 @@ def _exclusive_scan(counts):
 
 
 @serial
-def _subpixel_samples_row(y, width, sub_mask, samples, first, seed_key, xy, keys):
+def _subpixel_samples_row(y, width, sub_mask, samples, spans, first, seed_key, xy, keys):
     j = first[y]
-    for x in range(width):
+    for x in range(spans[y, 0], spans[y, 1]):
         i = y * width + x
         m = sub_mask[i]
         if m == 0:
@@ -50,11 +50,12 @@ def _subpixel_samples_row(y, width, sub_mask, samples, first, seed_key, xy, keys
 
 
 @kernel
-def _subpixel_samples(width, sub_mask, samples, first, seed_key, xy, keys):
+def _subpixel_samples(width, sub_mask, samples, spans, first, seed_key, xy, keys):
     """Stratified jittered positions of the extra samples, subpixel by subpixel in scanline order (section 4.6.2);
-    row y's start at first[y]. seed_key is the frame's (kim21.method), so the jitter changes from frame to frame."""
+    row y's start at first[y]. seed_key is the frame's (kim21.method), so the jitter changes from frame to frame.
+    sub_mask is read in each row's central columns (spans: Foveation.spans), where the inspection wrote it."""
     for y in nb.prange(first.shape[0] - 1):
-        _subpixel_samples_row(y, width, sub_mask, samples, first, seed_key, xy, keys)
+        _subpixel_samples_row(y, width, sub_mask, samples, spans, first, seed_key, xy, keys)
 
 
 @serial
@@ -89,11 +90,11 @@ def _subpixel_color(image, x, y, s, interpolate):
 
 
 @serial
-def _resolve_row(y, image, sub_mask, samples, flags, first, extra, interpolate, out):
+def _resolve_row(y, image, sub_mask, samples, spans, flags, first, extra, interpolate, out):
     height, width, y = image.shape[0], image.shape[1], np.int64(y)
     up, mid, down = image[max(y - 1, 0)], image[y], image[min(y + 1, height - 1)]
     j = first[y]
-    for x in range(width):
+    for x in range(spans[y, 0], spans[y, 1]):
         i = y * width + x
         if samples[i] == 0 or flags[i] != 0:
             continue
@@ -114,12 +115,13 @@ def _resolve_row(y, image, sub_mask, samples, flags, first, extra, interpolate, 
 
 
 @kernel
-def _resolve(image, sub_mask, samples, flags, first, extra, interpolate, out, counter, threads):
+def _resolve(image, sub_mask, samples, spans, flags, first, extra, interpolate, out, counter, threads):
     """Section 4.6.2 and Figure 2: each central pixel that was rendered (flags 0) is the mean of its four subpixels,
     a problematic one the mean of its extra samples, the others their _subpixel_color from the presampled colours
-    (image, (h, w, 3)); out already holds the presampled colour, which stays where nothing is interpolated."""
+    (image, (h, w, 3)); out already holds the presampled colour, which stays where nothing is interpolated. Each
+    row's central columns (spans: Foveation.spans) alone."""
     for _ in nb.prange(threads):
         y = claim(counter)
         while y < image.shape[0]:
-            _resolve_row(y, image, sub_mask, samples, flags, first, extra, interpolate, out)
+            _resolve_row(y, image, sub_mask, samples, spans, flags, first, extra, interpolate, out)
             y = claim(counter)
