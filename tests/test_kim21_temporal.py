@@ -79,3 +79,16 @@ def test_a_rejected_earlier_frame_is_left_out_of_the_closed_form():
         history.push(cam, newer, c2)
         out = exponential_smoothing(cam, depth, c0, alpha, history, 4, 0.02)
         np.testing.assert_allclose(out, expected, rtol=1e-6)
+
+
+def test_the_colour_ring_keeps_a_spare_float_after_its_last_texel():
+    """The still view's smoothing reads an earlier frame's texel as four floats (simd.rgb_accumulate): after the
+    ring's last texel lies a float of its own buffer, so that read stays inside it."""
+    history = History(4)
+    history.begin((5, 7))
+    owner = history.color
+    while owner.base is not None:
+        owner = owner.base
+    start = history.color.__array_interface__["data"][0]
+    assert start == owner.__array_interface__["data"][0]
+    assert owner.nbytes >= history.color.nbytes + 4

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from hmdrt.foveation.stages.pyramid import DEPTH, WEIGHT
-from hmdrt.kernels.simd import texel_blend
+from hmdrt.kernels.simd import rgb_accumulate, texel_blend
 
 
 @nb.njit(cache=True)
@@ -57,3 +57,29 @@ def test_texel_blend_refuses_other_layouts():
         texel_blend_at(data, np.uint64(0))
     with pytest.raises(nb.core.errors.TypingError):
         texel_blend_at(np.zeros((5, 4), np.float32).T, np.uint64(0))
+
+
+@nb.njit(cache=True)
+def _accumulate_all(data, weights, simd, out):
+    for t in range(data.shape[0] // 3):
+        i = np.uint64(3 * t)
+        r, g, b, w = np.float64(t), -0.5 * t, 1e-3, weights[t]
+        if simd:
+            out[t, 0], out[t, 1], out[t, 2] = rgb_accumulate(r, g, b, w, data, i)
+        else:
+            out[t, 0], out[t, 1], out[t, 2] = r + w * data[i], g + w * data[i + 1], b + w * data[i + 2]
+
+
+def test_rgb_accumulate_is_the_channel_by_channel_sum_bit_for_bit_to_the_last_texel():
+    """Every texel of an RGB image read flat, the last one too (its fourth lane reads the spare float after the
+    array), against the same multiply and add written channel by channel."""
+    rng = np.random.default_rng(5)
+    data = np.empty(3 * 999 + 1, np.float32)[:-1]  # with a spare float after the last texel, as rgb_accumulate needs
+    data[:] = rng.standard_normal(3 * 999) * 1e3
+    data[::11] = np.inf
+    weights = rng.random(999)
+    weights[::7] = 0.0
+    simd, scalar = np.empty((999, 3)), np.empty((999, 3))
+    _accumulate_all(data, weights, True, simd)
+    _accumulate_all(data, weights, False, scalar)
+    assert np.array_equal(simd.view(np.uint64), scalar.view(np.uint64))

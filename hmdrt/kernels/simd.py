@@ -2,7 +2,8 @@
 
 numba compiles with LLVM's SLP vectoriser off (it can miscompile: numba pull request 8852), so a blend written
 channel by channel stays one load and one multiply per float. These builders let an intrinsic load a texel's
-channels as one vector and blend them lane by lane; `texel_blend` is such an intrinsic for the foveation pyramids.
+channels as one vector and blend them lane by lane; `texel_blend` is such an intrinsic for the foveation pyramids,
+`rgb_accumulate` one for sums of weighted RGB texels in float64.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from numba.extending import intrinsic
 
 I32 = ir.IntType(32)
 F32 = ir.FloatType()
+F64 = ir.DoubleType()
 
 
 def splat(builder: ir.IRBuilder, x: ir.Value, lanes: int) -> ir.Value:
@@ -87,3 +89,28 @@ def texel_blend(typingctx, data, k00, k01, k10, k11, a, b):
         return context.make_tuple(builder, sig.return_type, lanes)
 
     return types.UniTuple(types.float32, 4)(data, k00, k01, k10, k11, a, b), codegen
+
+
+@intrinsic
+def rgb_accumulate(typingctx, r, g, b, weight, data, i):
+    """(r + weight t0, g + weight t1, b + weight t2) in float64, for the three float32 t0, t1, t2 from element i of
+    `data`, a C-contiguous 1-d float32 array (an RGB image flattened: i a texel's red): each a multiply and then an
+    add, so the same sums as channel by channel, three lanes at once. The texel is one 16-byte load, so the float
+    after its blue must be readable memory: the next texel's red, or past the last texel a spare float the array's
+    buffer keeps (temporal.History's colour ring does). i is not checked."""
+    if (r, g, b, weight) != (types.float64,) * 4 or not isinstance(i, types.Integer):
+        return None
+    if not (isinstance(data, types.Array) and data.ndim == 1 and data.layout == "C" and data.dtype == types.float32):
+        return None
+
+    def codegen(context, builder, sig, args):
+        array = context.make_array(sig.args[4])(context, builder, args[4])
+        texel = builder.load(vector_at(builder, array.data, args[5], 4), align=4)
+        acc = ir.Constant(ir.VectorType(F64, 4), [0.0] * 4)
+        for lane, x in enumerate(args[:3]):
+            acc = builder.insert_element(acc, x, ir.Constant(I32, lane))
+        total = builder.fadd(acc, builder.fmul(splat(builder, args[3], 4), builder.fpext(texel, acc.type)))
+        lanes = [builder.extract_element(total, ir.Constant(I32, lane)) for lane in range(3)]
+        return context.make_tuple(builder, sig.return_type, lanes)
+
+    return types.UniTuple(types.float64, 3)(r, g, b, weight, data, i), codegen

@@ -17,6 +17,7 @@ import numpy as np
 from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.memory import touched
 from hmdrt.kernels.schedule import claim, dynamic
+from hmdrt.kernels.simd import rgb_accumulate
 from hmdrt.optics.camera import EyeCamera
 from hmdrt.optics.projection import FAR, bilinear_footprint, blend_footprint, camera_arrays
 
@@ -83,7 +84,7 @@ class History:
         self.size = size
         self.cameras: list[EyeCamera | None] = [None] * (size + 1)
         self.depth: np.ndarray | None = None  # (size + 1, h, w) float32
-        self.color: np.ndarray | None = None  # (size + 1, h, w, 3) float32
+        self.color: np.ndarray | None = None  # (size + 1, h, w, 3) float32, a spare float after it (begin)
         self.scratch: np.ndarray | None = None  # (threads, ROW, w) float64: what smoothing keeps of a row
         self.taps: np.ndarray | None = None  # (threads, TAPS, w) uint64: and its footprints
         self._newest = -1
@@ -93,7 +94,9 @@ class History:
         """The ring slot the next frame goes in; its depth and colour are the caller's to fill before commit."""
         if self.depth is None or self.depth.shape[1:] != shape:
             self.depth = touched((self.size + 1, *shape))  # each slot is first written a frame later
-            self.color = touched((self.size + 1, *shape, 3))
+            # with a spare float after the ring: simd.rgb_accumulate's 16-byte load of the last texel reads it
+            texels = (self.size + 1) * shape[0] * shape[1]
+            self.color = touched(3 * texels + 1)[:-1].reshape((self.size + 1, *shape, 3))
             self.scratch = np.empty((nb.config.NUMBA_NUM_THREADS, ROW, shape[1]))
             self.taps = np.empty((nb.config.NUMBA_NUM_THREADS, TAPS, shape[1]), np.uint64)
             self._newest, self._count = -1, 0
@@ -283,8 +286,10 @@ def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row, t
 def _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out):
     """Row y of the closed form when every earlier frame was seen by the current camera: each pixel reads itself.
     The weights (1 - a)^(k + 1) as a running product, as _smooth_row takes them (a power per frame costs more
-    than the rest of the pixel's work)."""
+    than the rest of the pixel's work); an earlier frame's colour added three channels at once (rgb_accumulate)."""
     slots, _, _, ring_depth, ring_color, _, _ = earlier
+    ring = ring_color.reshape(-1)
+    height, width = np.uint64(depth.shape[0]), np.uint64(depth.shape[1])
     y = np.uint64(y)  # unsigned indices: no negative-index wraparound on the loads
     for x in range(depth.shape[1]):
         x = np.uint64(x)
@@ -299,9 +304,7 @@ def _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out):
             d_prev = ring_depth[slot, y, x]
             if math.isinf(d_prev) if math.isinf(d) else abs(d_prev - dist) <= rel_depth * dist:
                 wsum += fade
-                r += fade * ring_color[slot, y, x, 0]
-                g += fade * ring_color[slot, y, x, 1]
-                b += fade * ring_color[slot, y, x, 2]
+                r, g, b = rgb_accumulate(r, g, b, fade, ring, np.uint64(3) * ((slot * height + y) * width + x))
         out[y, x, 0], out[y, x, 1], out[y, x, 2] = r / wsum, g / wsum, b / wsum
 
 
