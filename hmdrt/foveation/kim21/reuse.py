@@ -25,10 +25,12 @@ class Kept(NamedTuple):
 
     ref: np.ndarray  # (n, 3) float32 the presampled colour at the pixel centres
     depth: np.ndarray  # (n,) float32 the history's depth slot: distance of the first hit, inf on a miss
-    flags: np.ndarray  # (n,) int32 times in a row the pixel was reused; 0 where rendered
+    flags: np.ndarray  # (n,) int32 times in a row the pixel was reused; 0 where rendered; central pixels only
     rendered: np.ndarray  # (n, 3) float32 the history's colour slot, before smoothing
     level: np.ndarray  # (n,) uint8 samples per problematic subpixel the colour was rendered with; 0 outside e_np
-    drift: np.ndarray  # (n, 2) float32 where the colour was rendered, in pixels from the pixel centre
+    drift: np.ndarray  # (n, 2) float32 where the colour was rendered, in pixels from the pixel centre; central only
+    # (flags and drift of a pixel outside e_np hold what an earlier frame left: every reader tests level or the
+    # band's samples first)
 
 
 @serial
@@ -53,12 +55,15 @@ def _store_row(y, width, hits, hits2, frustum, frame, view, prev_hits, prev_hits
     reused = 0
     for x in range(width):
         i = np.uint64(y * width + x)  # unsigned indices: no negative-index wraparound on the loads and stores
-        d = depth[i]
         for c in range(3):
             rendered[i, c] = ref[i, c]
-        flags[i], level[i] = 0, samples[i]
+        level[i] = samples[i]
+        if samples[i] == 0:  # peripheral: nothing reads its flags and drift (Kept), nor its depth and id here
+            continue
+        flags[i] = 0
         drift[i, 0] = drift[i, 1] = 0.0
-        if not reuse or samples[i] == 0 or math.isinf(d) or obj[i] < 0:
+        d = depth[i]
+        if not reuse or math.isinf(d) or obj[i] < 0:
             continue
         j, dist, ox, oy = y * width + x, min(np.float64(d), FAR), 0.0, 0.0
         if not same:
@@ -69,7 +74,7 @@ def _store_row(y, width, hits, hits2, frustum, frame, view, prev_hits, prev_hits
         if j < 0:
             continue
         j = np.uint64(j)
-        if prev_flags[j] >= n_max or prev_level[j] < samples[i]:
+        if prev_level[j] < samples[i] or prev_flags[j] >= n_max:  # a level of 0: not central, its flags stale
             continue
         if math.isinf(prev_depth[j]) or prev_obj[j] < 0 or abs(prev_depth[j] - dist) > rel_depth * dist:
             continue
