@@ -12,6 +12,7 @@ import pytest
 
 from hmdrt.evaluate.quality import band_psnr, srgb_encode
 from hmdrt.foveation import make_method
+from hmdrt.foveation.kim21.bands import Foveation
 from hmdrt.foveation.kim21.disparity import Tests as Thresholds  # not "Test...": pytest would collect it
 from hmdrt.foveation.kim21.reuse import Kept, _store
 from hmdrt.foveation.stages.temporal import relative_view
@@ -120,7 +121,8 @@ def test_the_reuse_test_selects_tau_sel_from_the_attributes_at_both_hits():
     thresholds = np.array([0.02, 0.05, 0.06, 0.06, 0.02, 0.5, 0.02, 0.06, 0.02])
     tests = Thresholds(thresholds, 0.95, 1.0, 5, 0.02, 0.2)
     frustum, view = camera_arrays(cam).frustum, relative_view(cam, cam)
-    reused = dynamic(_store, n, *hits[:2], frustum, frame, view, *hits[2:], prev, True, tests, True, samples)
+    fov = Foveation.empty(1, n)._replace(samples=samples, table1=np.ones(n, bool))
+    reused = dynamic(_store, n, *hits[:2], frustum, frame, view, *hits[2:], prev, True, tests, True, fov)
     assert reused == 1
     np.testing.assert_array_equal(frame.flags, [0, 1, 0, 0])
     np.testing.assert_array_equal(frame.rendered[1], prev.rendered[1])

@@ -227,14 +227,14 @@ class Kim21(Configurable):
 
     def _presample(self, f: _Frame, stats: FrameStats) -> None:
         """Section 4.3: one sample at every pixel centre, with the G-buffer (Table 1) the inspection reads; the
-        colour and the hit distance go straight into the frame's kept ones (its ref and its history slot)."""
+        colour and the hit distance go straight into the frame's history slot (its kept rendered colour and depth)."""
         h, w = f.state.shape
         with stats.stage("presample"):
             _clear(w, f.cur.gbuffer.secondary)
             keys = self._pixel_keys(h * w, f.request.seed)
             primary, secondary = f.cur.gbuffer.primary, f.cur.gbuffer.secondary
             gbuffer = GBuffer(primary._replace(depth=f.kept.depth), secondary, f.fov.table1)
-            self.tracer.trace_samples(f.camera, pixel_grid(w, h), keys, stats, gbuffer, out=f.kept.ref)
+            self.tracer.trace_samples(f.camera, pixel_grid(w, h), keys, stats, gbuffer, out=f.kept.rendered)
 
     def _reuse(self, f: _Frame, stats: FrameStats) -> int:
         """Section 4.4: each pixel's presample stored, its supersampled colour reused from the previous frame where
@@ -256,7 +256,7 @@ class Kim21(Configurable):
                 same_camera(state.previous, cam),
                 self.tests,
                 reuse,
-                f.fov.samples,
+                f.fov,
             )
 
     def _inspect_subpixels(self, f: _Frame, stats: FrameStats) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:

@@ -23,10 +23,12 @@ class Kept(NamedTuple):
     """A frame's buffers that the next frame reads: presampled colour, hit distance, reuse count, rendered colour,
     and what the rendered colour is worth to a later reuse: its class and where it was sampled."""
 
-    ref: np.ndarray  # (n, 3) float32 the presampled colour at the pixel centres
+    ref: np.ndarray  # (n, 3) float32 the presampled colour at the pixel centres, where the tests read it: the
+    # central pixels and their neighbours (Foveation.table1)
     depth: np.ndarray  # (n,) float32 the history's depth slot: distance of the first hit, inf on a miss
     flags: np.ndarray  # (n,) int32 times in a row the pixel was reused; 0 where rendered; central pixels only
-    rendered: np.ndarray  # (n, 3) float32 the history's colour slot, before smoothing
+    rendered: np.ndarray  # (n, 3) float32 the history's colour slot, before smoothing: the presampled colour, which
+    # the tracer writes, then the reused or the resolved one
     level: np.ndarray  # (n,) uint8 samples per problematic subpixel the colour was rendered with; 0 outside e_np
     drift: np.ndarray  # (n, 2) float32 where the colour was rendered, in pixels from the pixel centre; central only
     # (flags and drift of a pixel outside e_np hold what an earlier frame left: every reader tests level or the
@@ -34,9 +36,10 @@ class Kept(NamedTuple):
 
 
 @serial
-def _store_row(y, width, hits, hits2, frustum, frame, view, prev_hits, prev_hits2, prev, same, tests, reuse, samples):
-    """Row y of `frame`, rendered as presampled (its ref and depth, which the tracer wrote, and hits and hits2:
-    its primary and secondary hits) at its band's class `samples`; with `reuse`, kim2021 section 4.4's test per
+def _store_row(y, width, hits, hits2, frustum, frame, view, prev_hits, prev_hits2, prev, same, tests, reuse, fov):
+    """Row y of `frame`, rendered as presampled (its colour and depth, which the tracer wrote into its history
+    slot, and hits and hits2: its primary and secondary hits) at its band's class (fov.samples), the presampled
+    colour kept as ref where the tests read it (fov.table1); with `reuse`, kim2021 section 4.4's test per
     central pixel with a hit: back-projected into the previous frame (through its relative_view `view`; onto
     itself when `same`) it must meet a hit within rel_depth of its distance, reused fewer than n_reuse_max times
     in a row and rendered at no lower class than the pixel needs now, whose presampled colour passes section 3's
@@ -51,13 +54,15 @@ def _store_row(y, width, hits, hits2, frustum, frame, view, prev_hits, prev_hits
     prev_obj2, prev_ns2, prev_shadow2, prev_tex2 = _geometry(prev_hits2)
     thresholds, normal_cos, tau_reuse, n_max, rel_depth, reuse_px = tests
     taus, taus2 = _taus(thresholds)
+    samples, table1 = fov.samples, fov.table1
     height = depth.shape[0] // width
     reused = 0
     for x in range(width):
         i = np.uint64(y * width + x)  # unsigned indices: no negative-index wraparound on the loads and stores
-        for c in range(3):
-            rendered[i, c] = ref[i, c]
         level[i] = samples[i]
+        if table1[i]:
+            for c in range(3):
+                ref[i, c] = rendered[i, c]
         if samples[i] == 0:  # peripheral: nothing reads its flags and drift (Kept), nor its depth and id here
             continue
         flags[i] = 0
@@ -125,7 +130,7 @@ def _store(
     same,
     tests,
     reuse,
-    samples,
+    fov,
     counter,
     threads,
 ):
@@ -150,7 +155,7 @@ def _store(
                 same,
                 tests,
                 reuse,
-                samples,
+                fov,
             )
             y = claim(counter)
     return reused
