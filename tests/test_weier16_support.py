@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numba as nb
 import numpy as np
 import pytest
 
@@ -209,7 +210,7 @@ def test_the_cells_showing_the_support_image_are_those_holding_a_shown_pixel():
     flags[5, 7] = COVERED | SHOWN  # cell (1, 2)
     flags[9, 11] = COVERED
     unsampled = np.full((sh, sw), 7, np.uint8)
-    _unsampled_cells(flags, unsampled)
+    _unsampled_cells(flags, unsampled, np.empty((nb.config.NUMBA_NUM_THREADS, w), np.uint8))
     expected = np.zeros((sh, sw), np.uint8)
     expected[1, 2] = 1
     np.testing.assert_array_equal(unsampled, expected)

@@ -10,6 +10,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.weier16.params import INFO
+from hmdrt.kernels.jit import serial
 from hmdrt.trace.gbuffer import LightBuffer
 
 
@@ -35,6 +36,13 @@ def support_pixels(n: int, size: int) -> np.ndarray:
     """The full-resolution columns (or rows) of a support image `size` wide over `n` pixels: floor((i + 0.5) n /
     size), the pixel under the centre of each support pixel; distinct, as size <= n."""
     return (2 * np.arange(size) + 1) * n // (2 * size)
+
+
+@serial
+def cell_span(i, n, cells):
+    """The pixels [start, stop) along an axis of n pixels that lie in cell i of `cells` (pixel p in cell
+    p cells // n): the resampling info's cells (section 3.3)."""
+    return (i * n + cells - 1) // cells, ((i + 1) * n + cells - 1) // cells
 
 
 class SupportGrid(NamedTuple):
@@ -183,8 +191,8 @@ class _Buffers:
         self.sample_index = np.empty((h, w), np.int32)
         self.draws = np.empty((nb.config.NUMBA_NUM_THREADS, w))  # a row's random numbers per thread (_select)
         self.listed = np.empty((nb.config.NUMBA_NUM_THREADS, w), np.uint32)  # a row's traced columns (_fill_samples)
+        self.cell_rows = np.empty((nb.config.NUMBA_NUM_THREADS, w), np.uint8)  # a cell row's flags (_unsampled_cells)
         self.grid = SupportGrid.of(w, h, sw, sh)
-        self.low_cols = np.arange(w) * sw // w  # the support column each pixel's resampling info comes from
         # the sample list for the most a frame can trace, every pixel: pages a frame never reaches are never
         # touched, so this costs memory only as far as frames fill it
         most = w * h

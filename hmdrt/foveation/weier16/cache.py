@@ -12,6 +12,7 @@ import numpy as np
 
 from hmdrt.foveation.stages.reproject import ROWS, gaussian_taps, nearest_texel, row_footprints
 from hmdrt.foveation.stages.temporal import k_at, running_estimate
+from hmdrt.foveation.weier16.buffers import cell_span
 from hmdrt.foveation.weier16.params import COVERED, FRESH, INFO, SHOWN, TRACED
 from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.schedule import claim
@@ -43,22 +44,28 @@ def _gather_support(grid, index, samples, normals, support):
 
 
 @kernel
-def _unsampled_cells(flags, unsampled):
+def _unsampled_cells(flags, unsampled, rows):
     """The support cells (those of the resampling info: pixel (y, x) in cell (y sh // h, x sw // w)) holding a
     pixel flagged SHOWN by the cache update: covered by the reprojection but showing the support image's
     reconstruction, no sample of its own (rho 0: merged when it was uncovered, untraced since). Section 3.3
     reconstructs such pixels from the coarse support image; the next frame's resampling info tests these cells
-    for the discontinuities it misses. A cell row per task, its pixels tested without branches."""
+    for the discontinuities it misses. A cell row per task: its pixel rows OR-ed into one (a loop that
+    vectorises, in `rows`, a row of scratch per numba thread), then each cell's span of that row."""
     h, w = flags.shape
     sh, sw = unsampled.shape
     for j in nb.prange(sh):
-        y0, y1 = (j * h + sh - 1) // sh, ((j + 1) * h + sh - 1) // sh
+        y0, y1 = cell_span(j, h, sh)
+        row = rows[nb.get_thread_id()]
+        for x in range(w):
+            row[x] = flags[y0, x]
+        for y in range(y0 + 1, y1):
+            for x in range(w):
+                row[x] |= flags[y, x]
         for i in range(sw):
-            x0, x1 = (i * w + sw - 1) // sw, ((i + 1) * w + sw - 1) // sw
+            x0, x1 = cell_span(i, w, sw)
             shown = np.uint8(0)
-            for y in range(y0, y1):
-                for x in range(x0, x1):
-                    shown |= flags[y, x]
+            for x in range(x0, x1):
+                shown |= row[x]
             unsampled[j, i] = (shown & SHOWN) != 0
 
 

@@ -187,7 +187,7 @@ class Weier16(Configurable):
             ecc = eccentricity_map(f.camera, request.gaze)
             zinv = mesh.zinv if f.history else buf.no_zinv
             dynamic(
-                _select, ecc, self.foveal, request.seed, request.frame, zinv, resample, buf.low_cols, buf.grid, sel,
+                _select, ecc, self.foveal, request.seed, request.frame, zinv, resample, buf.grid, sel,
                 buf.draws,
             )  # fmt: skip
             np.cumsum(sel.counts, out=sel.row_start[1:])
@@ -235,7 +235,7 @@ class Weier16(Configurable):
                 _update, buf.selection, mesh, camera_arrays(f.camera), distance, previous, samples, support, buf.grid,
                 rule, buf.taps, final, f.image,
             )  # fmt: skip
-            _unsampled_cells(buf.selection.flags, support.unsampled)
+            _unsampled_cells(buf.selection.flags, support.unsampled, buf.cell_rows)
         return written
 
     def _post(self, f: _Frame, samples: Samples, normals: np.ndarray, final: Final, stats: FrameStats) -> None:

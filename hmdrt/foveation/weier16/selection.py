@@ -7,6 +7,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.stages.sampling import foveal_probability
+from hmdrt.foveation.weier16.buffers import cell_span
 from hmdrt.foveation.weier16.params import COVERED, FOVEA, FRESH, RESAMPLE, SUPPORT, TRACED
 from hmdrt.kernels.jit import kernel
 from hmdrt.kernels.rng import uniform
@@ -14,15 +15,15 @@ from hmdrt.kernels.schedule import claim
 
 
 @kernel
-def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, grid, selection, draws, counter, threads):
+def _select(ecc, foveal, seed, frame, zinv, resample, grid, selection, draws, counter, threads):
     """Section 3.1's ray generation (pixel q traced when xi_q < p(q), sampling.bernoulli_mask's xi), the pixels
     of cells marked in the resampling info and the support image's pixels (grid, always traced, once), with each
     pixel's flags and each row's sample count. A row is a pass each: its xi and the flags that depend on the pixel
-    alone (loops of selects that vectorise), then, where there is a history, the mesh's coverage and the
-    resampling info's cells (a gather) OR-ed in, and the count."""
+    alone (loops of selects that vectorise), then, where there is a history, the mesh's coverage and the pixels
+    of the resampling info's marked cells OR-ed in, and the count."""
     flags, counts, resampled = selection.flags, selection.counts, selection.resampled
     h, w = flags.shape
-    sh = resample.shape[0]
+    sh, sw = resample.shape
     history = zinv.shape[0] == h
     r0, r1, p_min = foveal
     fovea_flags, support_flags = np.uint8(FOVEA | TRACED | FRESH), np.uint8(TRACED | SUPPORT)
@@ -49,10 +50,12 @@ def _select(ecc, foveal, seed, frame, zinv, resample, low_cols, grid, selection,
             nr = 0
             if sh > 0:
                 marked = resample[y * sh // h]
-                for x in range(w):
-                    if marked[low_cols[x]]:
-                        row[x] |= fresh
-                        nr += 1
+                for i in range(sw):
+                    if marked[i]:
+                        x0, x1 = cell_span(i, w, sw)
+                        for x in range(x0, x1):
+                            row[x] |= fresh
+                        nr += x1 - x0
             n = 0
             for x in range(w):
                 n += row[x] & traced
