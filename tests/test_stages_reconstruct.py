@@ -13,10 +13,12 @@ from hmdrt.foveation.stages.filters import FINE_LEVELS, Contrast, contrast_level
 from hmdrt.foveation.stages.pyramid import (
     DEPTH,
     WEIGHT,
+    LevelSamples,
     Pyramid,
     RowSamples,
     _axis,
     _pull_level,
+    _pull_samples,
     pixel_axes,
     pull_push,
     push_columns,
@@ -99,10 +101,19 @@ def test_pull_push_keeps_samples_and_fills_holes():
     np.testing.assert_allclose(dense[..., DEPTH], 2.0, atol=1e-6)
 
 
+def listed(pyr: Pyramid, mask: np.ndarray) -> LevelSamples:
+    """Level 0's texels under mask (height, width) as a sample list, their colour and depth copied out."""
+    fine = pyr.level(0)
+    texels = np.flatnonzero(mask)
+    starts = np.concatenate([[0], np.cumsum(mask.sum(1))]).astype(np.int64)
+    rgb, depth = fine.reshape(-1, 5)[texels, :3].copy(), fine.reshape(-1, 5)[texels, DEPTH].copy()
+    return LevelSamples(mask.reshape(-1), texels, starts, rgb, depth)
+
+
 @pytest.mark.parametrize("masked", [False, True])
 def test_pull_averages_the_valid_children_and_ignores_what_zero_weights_hold(masked):
-    """Each texel of level 1 is the weighted mean of its valid children (fractional weights, or a mask's 1 and 0;
-    odd sizes, so the last row and column have fewer children), its weight their sum capped at 1; a child of
+    """Each texel of level 1 is the weighted mean of its valid children (fractional weights, or a sample list's 1
+    and 0; odd sizes, so the last row and column have fewer children), its weight their sum capped at 1; a child of
     weight 0 counts for nothing, not even the NaN it may hold."""
     rng = np.random.default_rng(3)
     w, h = 37, 23
@@ -117,7 +128,10 @@ def test_pull_averages_the_valid_children_and_ignores_what_zero_weights_hold(mas
     else:
         fine[..., WEIGHT] = weights
     fine[~mask, :3], fine[~mask, DEPTH] = np.nan, np.nan
-    _pull_level(pyr, 1, mask.reshape(-1) if masked else None)
+    if masked:
+        _pull_samples(pyr, listed(pyr, mask), push_columns(w).sums)
+    else:
+        _pull_level(pyr, 1)
     coarse = pyr.level(1)
     for y in range(coarse.shape[0]):
         for x in range(coarse.shape[1]):
@@ -129,6 +143,23 @@ def test_pull_averages_the_valid_children_and_ignores_what_zero_weights_hold(mas
             if total > 0:
                 expected = (wts[valid, None] * block[valid][:, :4]).sum(0) / total
                 np.testing.assert_allclose(coarse[y, x, :4], expected, rtol=1e-5)
+
+
+def test_pull_push_from_a_sample_list_gives_the_bits_of_level_0_with_those_weights():
+    """A pull-push that reads level 0's samples from a list (the weier18 frame's) fills the pyramid as one that
+    reads level 0 with weight 1 at the samples and 0 elsewhere, bit for bit, whatever the other texels hold."""
+    rng = np.random.default_rng(4)
+    w, h = 51, 37
+    listed_pyr, weighted = Pyramid.empty(w, h), Pyramid.empty(w, h)
+    listed_pyr.data[...] = rng.random(listed_pyr.data.shape, np.float32)
+    mask = rng.random((h, w)) < 0.2
+    mask[10:20, 15:30] = True  # a dense patch, as the fovea is
+    weighted.data[...] = listed_pyr.data
+    weighted.data[: w * h, WEIGHT] = mask.reshape(-1)
+    listed_pyr.data[: w * h, WEIGHT] = np.where(mask.reshape(-1), 1.0, np.nan)  # a sample's 1 kept, the rest not read
+    pull_push(listed_pyr, listed(listed_pyr, mask))
+    pull_push(weighted)
+    np.testing.assert_array_equal(listed_pyr.data, weighted.data)
 
 
 def test_pull_push_with_kept_columns_matches_and_refuses_short_ones():

@@ -42,6 +42,7 @@ from hmdrt.foveation.stages.pyramid import (
     DEPTH,
     WEIGHT,
     Columns,
+    LevelSamples,
     PixelAxes,
     Pyramid,
     RowSamples,
@@ -102,7 +103,8 @@ class Weier18Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 class Traced(NamedTuple):
     """A frame's traced samples: row-major pixel and its centre, footprint level and its quincunx offset, hit
-    distance (inf: miss), radiance."""
+    distance (inf: miss), radiance; after TAA (_taa) the distance capped at FAR and the radiance blended, as level 0
+    of the frame's pyramid holds them."""
 
     pixels: np.ndarray  # (n,) int64
     xy: np.ndarray  # (n, 2) float32
@@ -151,7 +153,8 @@ def _taa_block(traced, frustum, view, blend, previous, history, data, start, sto
     current eye frame (frustum) seen from the previous frame (its relative_view `view`) into `where`, in a loop
     of selects that vectorises, then the previous pyramid's quincunx taps there blended in, in one pass per
     level the block reads (as pyramid.sample_row: a pass's level constants stay put, where a loop that picks
-    each sample's level reloads them); a sample on a whole level reads that level alone."""
+    each sample's level reloads them); a sample on a whole level reads that level alone. Last, the samples' rgb
+    and depth hold what level 0 does (blended, capped), for the pull (pyramid.LevelSamples)."""
     pixels, xy, levels, offsets, depth, rgb = traced
     alpha_min, tol = blend
     p_data, p_offsets, p_widths, p_heights, p_sx, p_sy = previous
@@ -167,45 +170,48 @@ def _taa_block(traced, frustum, view, blend, previous, history, data, start, sto
             min(depth[s], FAR),
             1.0,
         )
-    if not history:
-        return
-    ftop = float(top)
-    for s in range(start, stop):
-        j = s - start
-        px, py, pz = eye_point(frustum, np.float64(xy[s, 0]), np.float64(xy[s, 1]), depth[s])
-        qx, qy, dist = view_project(view, px, py, pz)
-        at_x[j], at_y[j] = qx, qy
-        expected[j] = dist if depth[s] < FAR else math.inf
-        inside = (qx >= 0.0) & (qy >= 0.0) & (qx < pw) & (qy < ph)
-        at_level[j] = min(max(levels[s], 0.0), ftop) if inside else -1.0
-    lo, hi = top, -1
-    for j in range(stop - start):
-        if at_level[j] >= 0.0:
-            lo, hi = min(lo, int(at_level[j])), max(hi, int(at_level[j]))
-    for k in range(lo, hi + 1):
-        up = min(k + 1, top)
-        o, w, h, sx, sy = p_offsets[k], p_widths[k], p_heights[k], p_sx[k], p_sy[k]
-        o_up, w_up, h_up, sx_up, sy_up = p_offsets[up], p_widths[up], p_heights[up], p_sx[up], p_sy[up]
+    if history:
+        ftop = float(top)
         for s in range(start, stop):
             j = s - start
-            level = at_level[j]
-            if level < 0.0 or int(level) != k:
-                continue
-            qx, qy, off, e = at_x[j], at_y[j], offsets[s], expected[j]
-            u = quincunx_level(p_data, o, w, h, sx, sy, off, qx, qy)
-            t = level - k  # 0 on the top level and on whole levels, where v adds nothing to finite u
-            v = u if t == 0.0 else quincunx_level(p_data, o_up, w_up, h_up, sx_up, sy_up, off, qx, qy)
-            valid, tr, tg, tb = _tap(u[0], v[0], t, e, tol, 0, 0.0, 0.0, 0.0)
-            valid, tr, tg, tb = _tap(u[1], v[1], t, e, tol, valid, tr, tg, tb)
-            valid, tr, tg, tb = _tap(u[2], v[2], t, e, tol, valid, tr, tg, tb)
-            valid, tr, tg, tb = _tap(u[3], v[3], t, e, tol, valid, tr, tg, tb)
-            valid, tr, tg, tb = _tap(u[4], v[4], t, e, tol, valid, tr, tg, tb)
-            if valid > 0:
-                i = pixels[s]
-                alpha = max(alpha_min, 1.0 - valid / 5.0)
-                data[i, 0] = alpha * rgb[s, 0] + (1.0 - alpha) * tr / valid
-                data[i, 1] = alpha * rgb[s, 1] + (1.0 - alpha) * tg / valid
-                data[i, 2] = alpha * rgb[s, 2] + (1.0 - alpha) * tb / valid
+            px, py, pz = eye_point(frustum, np.float64(xy[s, 0]), np.float64(xy[s, 1]), depth[s])
+            qx, qy, dist = view_project(view, px, py, pz)
+            at_x[j], at_y[j] = qx, qy
+            expected[j] = dist if depth[s] < FAR else math.inf
+            inside = (qx >= 0.0) & (qy >= 0.0) & (qx < pw) & (qy < ph)
+            at_level[j] = min(max(levels[s], 0.0), ftop) if inside else -1.0
+        lo, hi = top, -1
+        for j in range(stop - start):
+            if at_level[j] >= 0.0:
+                lo, hi = min(lo, int(at_level[j])), max(hi, int(at_level[j]))
+        for k in range(lo, hi + 1):
+            up = min(k + 1, top)
+            o, w, h, sx, sy = p_offsets[k], p_widths[k], p_heights[k], p_sx[k], p_sy[k]
+            o_up, w_up, h_up, sx_up, sy_up = p_offsets[up], p_widths[up], p_heights[up], p_sx[up], p_sy[up]
+            for s in range(start, stop):
+                j = s - start
+                level = at_level[j]
+                if level < 0.0 or int(level) != k:
+                    continue
+                qx, qy, off, e = at_x[j], at_y[j], offsets[s], expected[j]
+                u = quincunx_level(p_data, o, w, h, sx, sy, off, qx, qy)
+                t = level - k  # 0 on the top level and on whole levels, where v adds nothing to finite u
+                v = u if t == 0.0 else quincunx_level(p_data, o_up, w_up, h_up, sx_up, sy_up, off, qx, qy)
+                valid, tr, tg, tb = _tap(u[0], v[0], t, e, tol, 0, 0.0, 0.0, 0.0)
+                valid, tr, tg, tb = _tap(u[1], v[1], t, e, tol, valid, tr, tg, tb)
+                valid, tr, tg, tb = _tap(u[2], v[2], t, e, tol, valid, tr, tg, tb)
+                valid, tr, tg, tb = _tap(u[3], v[3], t, e, tol, valid, tr, tg, tb)
+                valid, tr, tg, tb = _tap(u[4], v[4], t, e, tol, valid, tr, tg, tb)
+                if valid > 0:
+                    i = pixels[s]
+                    alpha = max(alpha_min, 1.0 - valid / 5.0)
+                    r = np.float32(alpha * rgb[s, 0] + (1.0 - alpha) * tr / valid)
+                    g = np.float32(alpha * rgb[s, 1] + (1.0 - alpha) * tg / valid)
+                    b = np.float32(alpha * rgb[s, 2] + (1.0 - alpha) * tb / valid)
+                    data[i, 0], data[i, 1], data[i, 2] = r, g, b
+                    rgb[s, 0], rgb[s, 1], rgb[s, 2] = r, g, b
+    for s in range(start, stop):
+        depth[s] = min(depth[s], FAR)
 
 
 @kernel
@@ -397,13 +403,19 @@ class Weier18(Configurable):
         frustum, view = camera_arrays(cam).frustum, relative_view(state.camera, cam)
         blend = Blend(p.alpha_min, p.taa_depth)
         texel = current.data.itemsize * current.data.shape[1]
-        if "taa" in steps:  # each sample read, its texel written and at least one of the previous frame's read
-            with stats.stage("taa", touches=nbytes(*traced) + 2 * len(traced.pixels) * texel):
+        samples = LevelSamples(
+            state.samples.mask.reshape(-1), traced.pixels, state.samples.starts, traced.rgb, traced.depth
+        )
+        if "taa" in steps:  # each sample read and written back, its texel written, one of the previous frame's read
+            with stats.stage(
+                "taa", touches=nbytes(*traced, samples.rgb, samples.depth) + 2 * len(traced.pixels) * texel
+            ):
                 _taa(traced, frustum, view, blend, previous, True, current, state.reprojected)
-        with stats.stage("ppi", touches=2 * current.data.nbytes + state.samples.mask.nbytes):
+        fine = current.level(0).nbytes  # written by the push; the coarser levels by the pull, then read by the push
+        with stats.stage("ppi", touches=fine + 2 * (current.data.nbytes - fine) + nbytes(*samples)):
             if "taa" not in steps:
                 _taa(traced, frustum, view, blend, previous, False, current, state.reprojected)
-            pull_push(current, state.samples.mask.reshape(-1), state.columns)
+            pull_push(current, samples, state.columns)
         return current
 
     def _depth_of_field(

@@ -123,28 +123,22 @@ def _bilinear(data, o, w, ax, ay):
 
 
 @inline
-def _child(data, bits, i, mask, present):
+def _child(data, bits, i, present):
     """A child texel's weight and its weighted colour and depth in the pull, all 0 where its weight is 0 or it is
     not present (past an odd level's edge; i is then a texel it repeats), whatever its channels hold (NaN too).
     Without a branch: the channels are read as bits (`bits`, data's uint32 view) and masked, where a select per
     term compiles to a branch that mispredicts on sparse samples (the pull took 1.6-2.8x as long)."""
-    if mask is None:  # keep: all ones for a child that counts, else 0
-        keep = np.uint32(0) - np.uint32(present & (data[i, WEIGHT] > 0.0))
-        w = np.uint32(bits[i, WEIGHT] & keep).view(np.float32)
-    else:
-        keep = np.uint32(0) - np.uint32(present & mask[i])
-        w = float(keep & np.uint32(1))
+    keep = np.uint32(0) - np.uint32(present & (data[i, WEIGHT] > 0.0))  # all ones for a child that counts, else 0
+    w = np.uint32(bits[i, WEIGHT] & keep).view(np.float32)
     r = np.uint32(bits[i, 0] & keep).view(np.float32)
     g = np.uint32(bits[i, 1] & keep).view(np.float32)
     b = np.uint32(bits[i, 2] & keep).view(np.float32)
     d = np.uint32(bits[i, DEPTH] & keep).view(np.float32)
-    if mask is None:
-        return w, w * r, w * g, w * b, w * d
-    return w, r, g, b, d  # a sample's weight is 1, and the channels of any other are 0 already
+    return w, w * r, w * g, w * b, w * d
 
 
 @kernel
-def _pull_level(pyramid, k, mask):
+def _pull_level(pyramid, k):
     """Level k from level k - 1: the weighted mean of each texel's valid children (summed in the order top left,
     top right, bottom left, bottom right). Unsigned indices: numba adds no negative-index wraparound to their
     loads."""
@@ -159,10 +153,10 @@ def _pull_level(pyramid, k, mask):
         for x in range(wc):
             right = 2 * x + 1 < wf
             left_x, right_x = np.uint64(2 * x), np.uint64(min(2 * x + 1, wf - 1))
-            w0, r0, g0, b0, d0 = _child(data, bits, top + left_x, mask, True)
-            w1, r1, g1, b1, d1 = _child(data, bits, top + right_x, mask, right)
-            w2, r2, g2, b2, d2 = _child(data, bits, bottom + left_x, mask, down)
-            w3, r3, g3, b3, d3 = _child(data, bits, bottom + right_x, mask, right and down)
+            w0, r0, g0, b0, d0 = _child(data, bits, top + left_x, True)
+            w1, r1, g1, b1, d1 = _child(data, bits, top + right_x, right)
+            w2, r2, g2, b2, d2 = _child(data, bits, bottom + left_x, down)
+            w3, r3, g3, b3, d3 = _child(data, bits, bottom + right_x, right and down)
             wsum = 0.0 + w0 + w1 + w2 + w3
             j = row + np.uint64(x)
             if wsum > 0.0:
@@ -173,21 +167,71 @@ def _pull_level(pyramid, k, mask):
             data[j, WEIGHT] = min(1.0, wsum)
 
 
+class LevelSamples(NamedTuple):
+    """Level 0's samples listed, for a pull-push that reads them in place of level 0's texels: which texels they
+    are, their texel indices (row-major, ascending) and each texel row's first, and their colour and depth as level
+    0 holds them (weight 1; every other texel of level 0 weight 0, whatever it holds)."""
+
+    mask: np.ndarray  # (texels of level 0,) bool
+    texels: np.ndarray  # (n,) int64
+    starts: np.ndarray  # (height + 1,) int64: row y's samples are [starts[y], starts[y + 1])
+    rgb: np.ndarray  # (n, 3) float32
+    depth: np.ndarray  # (n,) float32
+
+
+@kernel
+def _pull_samples(pyramid, samples, sums):
+    """Level 1 from level 0's samples (LevelSamples): the mean of each texel's, as _pull_level takes it with weights
+    1 and 0 (the same sums: the children that count added in the same order, those that do not adding 0). Reads the
+    samples' 16 bytes each in place of every texel of level 0 (20 bytes, most of them not samples where they are
+    sparse). `sums`: a row of scratch per numba thread."""
+    data = pyramid.data
+    texels, starts, rgb, depth = samples.texels, samples.starts, samples.rgb, samples.depth
+    wf, hf = pyramid.widths[0], pyramid.heights[0]
+    o_coarse, wc, hc = pyramid.offsets[1], pyramid.widths[1], pyramid.heights[1]
+    for y in nb.prange(hc):
+        row = sums[nb.get_thread_id()]
+        for c in range(CHANNELS):
+            for x in range(wc):
+                row[c, x] = 0.0
+        for fine in range(2 * y, min(2 * y + 2, hf)):  # the top children, then the bottom ones
+            first = fine * wf
+            for s in range(starts[fine], starts[fine + 1]):
+                x = (texels[s] - first) // 2
+                row[0, x] += rgb[s, 0]
+                row[1, x] += rgb[s, 1]
+                row[2, x] += rgb[s, 2]
+                row[DEPTH, x] += depth[s]
+                row[WEIGHT, x] += 1.0
+        o = o_coarse + y * wc
+        for x in range(wc):
+            wsum, j = row[WEIGHT, x], o + x
+            if wsum > 0.0:
+                data[j, 0] = row[0, x] / wsum
+                data[j, 1] = row[1, x] / wsum
+                data[j, 2] = row[2, x] / wsum
+                data[j, DEPTH] = row[DEPTH, x] / wsum
+            data[j, WEIGHT] = min(1.0, wsum)
+
+
 class Columns(NamedTuple):
-    """Scratch for a push: the coarser level's two texel columns either side of each finer texel's centre and the
-    second one's weight (_axis), one entry per column of the finer level, and per numba thread
-    (nb.get_thread_id()) the columns of a row's texels that miss weight; sized for level 0 (push_columns)."""
+    """Scratch for a pull-push, sized for level 0 (push_columns): for the push, the coarser level's two texel
+    columns either side of each finer texel's centre and the second one's weight (_axis), one entry per column of
+    the finer level, and per numba thread (nb.get_thread_id()) the columns of a row's texels that miss weight; for a
+    pull from level 0's samples (_pull_samples), per thread a row of level 1's sums."""
 
     col0: np.ndarray  # (width,) uint64
     col1: np.ndarray  # (width,) uint64
     weight: np.ndarray  # (width,) float32
     holes: np.ndarray  # (threads, width) uint32
+    sums: np.ndarray  # (threads, CHANNELS, level 1's width) float64
 
 
 def push_columns(width: int) -> Columns:
     """Scratch for pull_push on pyramids whose level 0 is `width` texels wide, to keep across frames."""
-    holes = np.empty((nb.config.NUMBA_NUM_THREADS, width), np.uint32)
-    return Columns(np.empty(width, np.uint64), np.empty(width, np.uint64), np.empty(width, np.float32), holes)
+    threads = nb.config.NUMBA_NUM_THREADS
+    holes, sums = np.empty((threads, width), np.uint32), np.empty((threads, CHANNELS, (width + 1) // 2))
+    return Columns(np.empty(width, np.uint64), np.empty(width, np.uint64), np.empty(width, np.float32), holes, sums)
 
 
 @serial
@@ -221,7 +265,7 @@ def _push_level(pyramid, k, mask, columns):
     o_fine, wf, hf = pyramid.offsets[k], pyramid.widths[k], pyramid.heights[k]
     o_coarse, wc, hc = pyramid.offsets[k + 1], pyramid.widths[k + 1], pyramid.heights[k + 1]
     sx, sy = wc / wf, hc / hf
-    col0, col1, col_weight, holes = columns
+    col0, col1, col_weight, holes = columns.col0, columns.col1, columns.weight, columns.holes
     for x in range(wf):
         col0[x], col1[x], col_weight[x] = _axis((x + 0.5) * sx, wc)
     for y in nb.prange(hf):
@@ -230,19 +274,22 @@ def _push_level(pyramid, k, mask, columns):
         _push_row(data, row, wf, mask, col0, col1, col_weight, o_coarse, wc, ay, holes[nb.get_thread_id()])
 
 
-def pull_push(pyramid: Pyramid, mask: np.ndarray | None = None, columns: Columns | None = None) -> None:
+def pull_push(pyramid: Pyramid, samples: LevelSamples | None = None, columns: Columns | None = None) -> None:
     """Fill every texel of level 0 from its valid samples (weight > 0), in place, coarse levels too.
 
-    mask (level 0's texels, bool), when given, says which texels of level 0 are samples (weight 1, the rest
-    0) in place of level 0's weight channel, so that a frame's samples need not clear the others' weights.
+    samples, when given, lists level 0's samples (weight 1, every other texel 0) in place of level 0's weight
+    channel, so that a frame's samples need not clear the others' weights, and level 1 is pulled from the list.
     columns: push_columns(level 0's width), kept by callers that run every frame (else made here)."""
     columns = push_columns(int(pyramid.widths[0])) if columns is None else columns
     if len(columns.col0) < pyramid.widths[0]:
         raise ValueError(f"columns hold {len(columns.col0)} texels, level 0 has {pyramid.widths[0]}")
     for k in range(1, len(pyramid.offsets)):
-        _pull_level(pyramid, k, mask if k == 1 else None)
+        if k == 1 and samples is not None:
+            _pull_samples(pyramid, samples, columns.sums)
+        else:
+            _pull_level(pyramid, k)
     for k in range(len(pyramid.offsets) - 2, -1, -1):
-        _push_level(pyramid, k, mask if k == 0 else None, columns)
+        _push_level(pyramid, k, samples.mask if k == 0 and samples is not None else None, columns)
 
 
 class RowSamples(NamedTuple):

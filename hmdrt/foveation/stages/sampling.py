@@ -372,6 +372,11 @@ class SampleSet:
         return self._pixels[: self.count]
 
     @property
+    def starts(self) -> np.ndarray:
+        """(height + 1,) int64 each pixel row's first sample, then the count."""
+        return self._starts
+
+    @property
     def xy(self) -> np.ndarray:
         """(count, 2) float32 their pixel centres."""
         return self._xy[: self.count]
