@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from hmdrt.foveation.stages.pyramid import DEPTH, WEIGHT
-from hmdrt.kernels.simd import rgb_accumulate, texel_blend
+from hmdrt.kernels.simd import rgb_accumulate, texel_blend, texel_blend_into
 
 
 @nb.njit(cache=True)
@@ -44,6 +44,30 @@ def test_texel_blend_is_the_channel_by_channel_blend_bit_for_bit():
     # the last texel's first four floats are within the array: no read past it
     last = np.uint64(len(data) - 1)
     assert texel_blend_at(data, last) == pytest.approx(tuple(data[-1, :4]))
+
+
+@nb.njit(cache=True)
+def _blend_into_all(data, taps, weights, out):
+    for i in range(taps.shape[0]):
+        k00, k01, k10, k11 = np.uint64(taps[i, 0]), np.uint64(taps[i, 1]), np.uint64(taps[i, 2]), np.uint64(taps[i, 3])
+        texel_blend_into(data, k00, k01, k10, k11, weights[i, 0], weights[i, 1], out + i)
+
+
+def test_texel_blend_into_stores_the_blend_as_the_texels_colour_and_depth():
+    """texel_blend_into writes texel_blend's four lanes into a texel's r, g, b and depth, and nothing else: its
+    weight and the texels around it stay as they were."""
+    rng = np.random.default_rng(5)
+    data = (rng.standard_normal((700, 5)) * 1e3).astype(np.float32)
+    data[::7, DEPTH] = np.inf
+    taps = rng.integers(0, 500, (200, 4))
+    weights = rng.random((200, 2)).astype(np.float32)
+    before = data.copy()
+    expected = np.empty((200, 4), np.float32)
+    _blend_all(data, taps, weights, True, expected)
+    _blend_into_all(data, taps, weights, 500)
+    assert np.array_equal(data[500:, :4].view(np.uint32), expected.view(np.uint32))
+    assert np.array_equal(data[500:, WEIGHT], before[500:, WEIGHT])
+    assert np.array_equal(data[:500], before[:500])
 
 
 @nb.njit(cache=True)

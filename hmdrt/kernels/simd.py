@@ -2,8 +2,8 @@
 
 numba compiles with LLVM's SLP vectoriser off (it can miscompile: numba pull request 8852), so a blend written
 channel by channel stays one load and one multiply per float. These builders let an intrinsic load a texel's
-channels as one vector and blend them lane by lane; `texel_blend` is such an intrinsic for the foveation pyramids,
-`rgb_accumulate` one for sums of weighted RGB texels in float64.
+channels as one vector and blend them lane by lane; `texel_blend` is such an intrinsic for the foveation pyramids
+(`texel_blend_into` stores its blend as a texel), `rgb_accumulate` one for sums of weighted RGB texels in float64.
 """
 
 from __future__ import annotations
@@ -67,28 +67,56 @@ def texel_blend(typingctx, data, k00, k01, k10, k11, a, b):
     q (p t00 + a t01) + b (p t10 + a t11) with p = 1 - a, q = 1 - b, the multiplies and adds apart (no fused
     multiply-add), so that each lane rounds as the same blend written channel by channel does. Each texel is one
     16-byte load; the blend four lanes at once. The indices are not checked."""
-    if not (isinstance(data, types.Array) and data.ndim == 2 and data.layout == "C" and data.dtype == types.float32):
-        return None
-    if not all(isinstance(k, types.Integer) for k in (k00, k01, k10, k11)) or (a, b) != (types.float32,) * 2:
+    if not _blend_types(data, k00, k01, k10, k11, a, b):
         return None
 
     def codegen(context, builder, sig, args):
-        array = context.make_array(sig.args[0])(context, builder, args[0])
-        channels = cgutils.unpack_tuple(builder, array.shape)[1]
-        taps = [
-            _texel(builder, array.data, channels, context.cast(builder, k, t, types.int64))
-            for k, t in zip(args[1:5], sig.args[1:5], strict=True)
-        ]
-        a4, b4 = splat(builder, args[5], 4), splat(builder, args[6], 4)
-        one = splat(builder, ir.Constant(F32, 1.0), 4)
-        p4, q4 = builder.fsub(one, a4), builder.fsub(one, b4)
-        top = builder.fadd(builder.fmul(p4, taps[0]), builder.fmul(a4, taps[1]))
-        bottom = builder.fadd(builder.fmul(p4, taps[2]), builder.fmul(a4, taps[3]))
-        blend = builder.fadd(builder.fmul(q4, top), builder.fmul(b4, bottom))
+        blend = _blend_texels(context, builder, sig, args)
         lanes = [builder.extract_element(blend, ir.Constant(I32, i)) for i in range(4)]
         return context.make_tuple(builder, sig.return_type, lanes)
 
     return types.UniTuple(types.float32, 4)(data, k00, k01, k10, k11, a, b), codegen
+
+
+def _blend_types(data, k00, k01, k10, k11, a, b) -> bool:
+    """Whether texel_blend takes these argument types."""
+    if not (isinstance(data, types.Array) and data.ndim == 2 and data.layout == "C" and data.dtype == types.float32):
+        return False
+    return all(isinstance(k, types.Integer) for k in (k00, k01, k10, k11)) and (a, b) == (types.float32,) * 2
+
+
+def _blend_texels(context, builder, sig, args) -> ir.Value:
+    """texel_blend's four lanes, for the arguments (data, k00, k01, k10, k11, a, b) at the front of sig and args."""
+    array = context.make_array(sig.args[0])(context, builder, args[0])
+    channels = cgutils.unpack_tuple(builder, array.shape)[1]
+    taps = [
+        _texel(builder, array.data, channels, context.cast(builder, k, t, types.int64))
+        for k, t in zip(args[1:5], sig.args[1:5], strict=True)
+    ]
+    a4, b4 = splat(builder, args[5], 4), splat(builder, args[6], 4)
+    one = splat(builder, ir.Constant(F32, 1.0), 4)
+    p4, q4 = builder.fsub(one, a4), builder.fsub(one, b4)
+    top = builder.fadd(builder.fmul(p4, taps[0]), builder.fmul(a4, taps[1]))
+    bottom = builder.fadd(builder.fmul(p4, taps[2]), builder.fmul(a4, taps[3]))
+    return builder.fadd(builder.fmul(q4, top), builder.fmul(b4, bottom))
+
+
+@intrinsic
+def texel_blend_into(typingctx, data, k00, k01, k10, k11, a, b, i):
+    """texel_blend's four lanes stored as texel i's first four channels of `data`, one 16-byte store (texel i must
+    not be one of the four it reads from). The indices are not checked."""
+    if not (_blend_types(data, k00, k01, k10, k11, a, b) and isinstance(i, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        blend = _blend_texels(context, builder, sig, args)
+        array = context.make_array(sig.args[0])(context, builder, args[0])
+        channels = cgutils.unpack_tuple(builder, array.shape)[1]
+        k = context.cast(builder, args[7], sig.args[7], types.int64)
+        builder.store(blend, vector_at(builder, array.data, builder.mul(k, channels), 4), align=4)
+        return context.get_dummy_value()
+
+    return types.void(data, k00, k01, k10, k11, a, b, i), codegen
 
 
 @intrinsic

@@ -16,7 +16,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.kernels.jit import inline, kernel, serial
-from hmdrt.kernels.simd import texel_blend
+from hmdrt.kernels.simd import texel_blend, texel_blend_into
 
 CHANNELS = 5  # r, g, b, depth, weight
 DEPTH, WEIGHT = 3, 4  # a texel's hit distance and weight: its colour and depth are its first 16 bytes (texel_blend)
@@ -113,13 +113,21 @@ def pixel_texels(p0, p1, scale, n):
 
 
 @serial
-def _bilinear(data, o, w, ax, ay):
-    """Colour and depth of a level (first texel o, width w) between the texels of axes ax and ay, in the
-    pyramid's float32 (simd.texel_blend: each texel one vector load, the blend four lanes at once)."""
+def _corners(o, w, ax, ay):
+    """A bilinear tap's texels on a level (first texel o, width w) between axes ax and ay, top left, top right,
+    bottom left, bottom right, and its weights across and down."""
     i0, i1, a = ax
     j0, j1, b = ay
     top, bottom = np.uint64(o) + j0 * np.uint64(w), np.uint64(o) + j1 * np.uint64(w)
-    return texel_blend(data, top + i0, top + i1, bottom + i0, bottom + i1, a, b)
+    return top + i0, top + i1, bottom + i0, bottom + i1, a, b
+
+
+@serial
+def _bilinear(data, o, w, ax, ay):
+    """Colour and depth of a level (first texel o, width w) between the texels of axes ax and ay, in the
+    pyramid's float32 (simd.texel_blend: each texel one vector load, the blend four lanes at once)."""
+    k00, k01, k10, k11, a, b = _corners(o, w, ax, ay)
+    return texel_blend(data, k00, k01, k10, k11, a, b)
 
 
 @inline
@@ -248,12 +256,17 @@ def _push_row(data, row, wf, mask, col0, col1, col_weight, o_coarse, wc, ay, hol
         x = holes[h]
         i = row + np.uint64(x)
         w = _weight(data, i, mask)
-        r, g, b, d = _bilinear(data, o_coarse, wc, (col0[x], col1[x], col_weight[x]), ay)
+        ax = (col0[x], col1[x], col_weight[x])
         if w > 0.0:
+            r, g, b, d = _bilinear(data, o_coarse, wc, ax, ay)
             v = 1.0 - w
             r, g = w * data[i, 0] + v * r, w * data[i, 1] + v * g
             b, d = w * data[i, 2] + v * b, w * data[i, DEPTH] + v * d
-        data[i, 0], data[i, 1], data[i, 2], data[i, DEPTH], data[i, WEIGHT] = r, g, b, d, 1.0
+            data[i, 0], data[i, 1], data[i, 2], data[i, DEPTH] = r, g, b, d
+        else:  # the coarser level's colour and depth as they are, stored as one vector
+            k00, k01, k10, k11, a, b = _corners(o_coarse, wc, ax, ay)
+            texel_blend_into(data, k00, k01, k10, k11, a, b, i)
+        data[i, WEIGHT] = 1.0
 
 
 @kernel
