@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from hmdrt.foveation.stages.pyramid import DEPTH, WEIGHT
-from hmdrt.kernels.simd import rgb_accumulate, texel_blend, texel_blend_into
+from hmdrt.kernels.simd import rgb_accumulate, texel_blend, texel_blend_into, texel_mean
 
 
 @nb.njit(cache=True)
@@ -68,6 +68,53 @@ def test_texel_blend_into_stores_the_blend_as_the_texels_colour_and_depth():
     assert np.array_equal(data[500:, :4].view(np.uint32), expected.view(np.uint32))
     assert np.array_equal(data[500:, WEIGHT], before[500:, WEIGHT])
     assert np.array_equal(data[:500], before[:500])
+
+
+@nb.njit(cache=True)
+def _mean_by_channel(data, ks, present, j):
+    wsum, sums = 0.0, np.zeros(4)
+    for n in range(4):
+        k, here = ks[n], present[n]
+        w = data[k, WEIGHT] if here and data[k, WEIGHT] > 0.0 else np.float32(0.0)
+        wsum += w
+        for lane, c in enumerate((0, 1, 2, DEPTH)):
+            sums[lane] += w * data[k, c] if w > 0.0 else 0.0
+    if wsum > 0.0:
+        for lane, c in enumerate((0, 1, 2, DEPTH)):
+            data[j, c] = sums[lane] / wsum
+    data[j, WEIGHT] = min(1.0, wsum)
+
+
+@nb.njit(cache=True)
+def _means(data, taps, flags, simd, first):
+    for i in range(taps.shape[0]):
+        k00, k01, k10, k11 = np.uint64(taps[i, 0]), np.uint64(taps[i, 1]), np.uint64(taps[i, 2]), np.uint64(taps[i, 3])
+        right, down = flags[i, 0], flags[i, 1]
+        if simd:
+            texel_mean(data, k00, k01, k10, k11, right, down, first + i)
+        else:
+            _mean_by_channel(data, (k00, k01, k10, k11), (True, right, down, right and down), first + i)
+
+
+def test_texel_mean_is_the_pull_channel_by_channel_bit_for_bit():
+    """texel_mean against the weighted mean written channel by channel: children of weight 0 or below, of NaN
+    weight or absent count for nothing, whatever their channels hold (NaN, inf); no child counted leaves the
+    texel's colour and depth as they were and its weight 0."""
+    rng = np.random.default_rng(6)
+    data = (rng.standard_normal((600, 5)) * 1e3).astype(np.float32)
+    data[:400, WEIGHT] = np.where(rng.random(400) < 0.4, 0.0, rng.random(400)).astype(np.float32)
+    data[:400:9, WEIGHT] = np.nan
+    data[1:400:11, WEIGHT] = -1.0
+    data[2:400:13, 0] = np.nan
+    data[3:400:7, DEPTH] = np.inf
+    taps = rng.integers(0, 400, (200, 4))
+    taps[:20] = np.flatnonzero(data[:400, WEIGHT] == 0.0)[:4]  # nothing counted
+    flags = rng.random((200, 2)) < 0.7
+    simd, scalar = data.copy(), data.copy()
+    _means(simd, taps, flags, True, 400)
+    _means(scalar, taps, flags, False, 400)
+    assert np.array_equal(simd.view(np.uint32), scalar.view(np.uint32))
+    assert (simd[400:420, WEIGHT] == 0.0).all() and np.array_equal(simd[400:420, :4], data[400:420, :4])
 
 
 @nb.njit(cache=True)

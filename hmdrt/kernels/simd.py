@@ -142,3 +142,48 @@ def rgb_accumulate(typingctx, r, g, b, weight, data, i):
         return context.make_tuple(builder, sig.return_type, lanes)
 
     return types.UniTuple(types.float64, 3)(r, g, b, weight, data, i), codegen
+
+
+@intrinsic
+def texel_mean(typingctx, data, k00, k01, k10, k11, right, down, j):
+    """A pyramid's pull at texel j of `data` ((texels, 5) float32: r, g, b, depth, weight): the weighted mean of the
+    four children k00 (top left), k01, k10, k11, each counted where its weight is above 0 and it is present (the right
+    ones where `right`, the lower ones where `down`; k00 always), whatever the others hold, NaN too. Colour and
+    depth are written where the weights sum above 0, and min(1, that sum) as the weight: the sums in float64 in the
+    children's order, each child's channels times its weight in float32, so each lane rounds as channel by channel.
+    Each child's colour and depth one 16-byte load, masked by its bits; the mean one 16-byte store."""
+    if not (_blend_types(data, k00, k01, k10, k11, types.float32, types.float32) and isinstance(j, types.Integer)):
+        return None
+    if (right, down) != (types.boolean,) * 2:
+        return None
+
+    def codegen(context, builder, sig, args):
+        array = context.make_array(sig.args[0])(context, builder, args[0])
+        channels = cgutils.unpack_tuple(builder, array.shape)[1]
+        i32, f32x4 = ir.IntType(32), ir.VectorType(F32, 4)
+        right, down = args[5], args[6]
+        present = [ir.Constant(ir.IntType(1), 1), right, down, builder.and_(right, down)]
+        wsum = ir.Constant(F64, 0.0)
+        acc = ir.Constant(ir.VectorType(F64, 4), [0.0] * 4)
+        for k, t, here in zip(args[1:5], sig.args[1:5], present, strict=True):
+            first = builder.mul(context.cast(builder, k, t, types.int64), channels)
+            weight = builder.load(builder.gep(array.data, [builder.add(first, ir.Constant(first.type, 4))]), align=4)
+            counts = builder.and_(here, builder.fcmp_ordered(">", weight, ir.Constant(F32, 0.0)))
+            keep = builder.select(counts, ir.Constant(i32, -1), ir.Constant(i32, 0))
+            w = builder.bitcast(builder.and_(builder.bitcast(weight, i32), keep), F32)
+            texel = builder.load(vector_at(builder, array.data, first, 4), align=4)
+            bits = builder.bitcast(texel, ir.VectorType(i32, 4))
+            texel = builder.bitcast(builder.and_(bits, splat(builder, keep, 4)), f32x4)
+            wsum = builder.fadd(wsum, builder.fpext(w, F64))
+            acc = builder.fadd(acc, builder.fpext(builder.fmul(splat(builder, w, 4), texel), acc.type))
+        out = builder.mul(context.cast(builder, args[7], sig.args[7], types.int64), channels)
+        with builder.if_then(builder.fcmp_ordered(">", wsum, ir.Constant(F64, 0.0))):
+            mean = builder.fptrunc(builder.fdiv(acc, splat(builder, wsum, 4)), f32x4)
+            builder.store(mean, vector_at(builder, array.data, out, 4), align=4)
+        one = ir.Constant(F64, 1.0)
+        capped = builder.select(builder.fcmp_ordered("<", one, wsum), one, wsum)
+        weight_at = builder.gep(array.data, [builder.add(out, ir.Constant(out.type, 4))])
+        builder.store(builder.fptrunc(capped, F32), weight_at)
+        return context.get_dummy_value()
+
+    return types.void(data, k00, k01, k10, k11, right, down, j), codegen

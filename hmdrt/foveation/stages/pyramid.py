@@ -16,7 +16,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.kernels.jit import inline, kernel, serial
-from hmdrt.kernels.simd import texel_blend, texel_blend_into
+from hmdrt.kernels.simd import texel_blend, texel_blend_into, texel_mean
 
 CHANNELS = 5  # r, g, b, depth, weight
 DEPTH, WEIGHT = 3, 4  # a texel's hit distance and weight: its colour and depth are its first 16 bytes (texel_blend)
@@ -130,28 +130,12 @@ def _bilinear(data, o, w, ax, ay):
     return texel_blend(data, k00, k01, k10, k11, a, b)
 
 
-@inline
-def _child(data, bits, i, present):
-    """A child texel's weight and its weighted colour and depth in the pull, all 0 where its weight is 0 or it is
-    not present (past an odd level's edge; i is then a texel it repeats), whatever its channels hold (NaN too).
-    Without a branch: the channels are read as bits (`bits`, data's uint32 view) and masked, where a select per
-    term compiles to a branch that mispredicts on sparse samples (the pull took 1.6-2.8x as long)."""
-    keep = np.uint32(0) - np.uint32(present & (data[i, WEIGHT] > 0.0))  # all ones for a child that counts, else 0
-    w = np.uint32(bits[i, WEIGHT] & keep).view(np.float32)
-    r = np.uint32(bits[i, 0] & keep).view(np.float32)
-    g = np.uint32(bits[i, 1] & keep).view(np.float32)
-    b = np.uint32(bits[i, 2] & keep).view(np.float32)
-    d = np.uint32(bits[i, DEPTH] & keep).view(np.float32)
-    return w, w * r, w * g, w * b, w * d
-
-
 @kernel
 def _pull_level(pyramid, k):
     """Level k from level k - 1: the weighted mean of each texel's valid children (summed in the order top left,
-    top right, bottom left, bottom right). Unsigned indices: numba adds no negative-index wraparound to their
-    loads."""
+    top right, bottom left, bottom right; simd.texel_mean), a child past an odd level's edge not counted.
+    Unsigned indices: numba adds no negative-index wraparound to their loads."""
     data = pyramid.data
-    bits = data.view(np.uint32)
     o_fine, wf, hf = pyramid.offsets[k - 1], pyramid.widths[k - 1], pyramid.heights[k - 1]
     o_coarse, wc, hc = pyramid.offsets[k], pyramid.widths[k], pyramid.heights[k]
     for y in nb.prange(hc):
@@ -159,20 +143,9 @@ def _pull_level(pyramid, k):
         top, bottom = np.uint64(o_fine + 2 * y * wf), np.uint64(o_fine + min(2 * y + 1, hf - 1) * wf)
         row = np.uint64(o_coarse + y * wc)
         for x in range(wc):
-            right = 2 * x + 1 < wf
             left_x, right_x = np.uint64(2 * x), np.uint64(min(2 * x + 1, wf - 1))
-            w0, r0, g0, b0, d0 = _child(data, bits, top + left_x, True)
-            w1, r1, g1, b1, d1 = _child(data, bits, top + right_x, right)
-            w2, r2, g2, b2, d2 = _child(data, bits, bottom + left_x, down)
-            w3, r3, g3, b3, d3 = _child(data, bits, bottom + right_x, right and down)
-            wsum = 0.0 + w0 + w1 + w2 + w3
             j = row + np.uint64(x)
-            if wsum > 0.0:
-                data[j, 0] = (0.0 + r0 + r1 + r2 + r3) / wsum
-                data[j, 1] = (0.0 + g0 + g1 + g2 + g3) / wsum
-                data[j, 2] = (0.0 + b0 + b1 + b2 + b3) / wsum
-                data[j, DEPTH] = (0.0 + d0 + d1 + d2 + d3) / wsum
-            data[j, WEIGHT] = min(1.0, wsum)
+            texel_mean(data, top + left_x, top + right_x, bottom + left_x, bottom + right_x, 2 * x + 1 < wf, down, j)
 
 
 class LevelSamples(NamedTuple):
