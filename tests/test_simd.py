@@ -18,9 +18,14 @@ def _by_channel(data, k00, k01, k10, k11, a, b):
 
 
 @nb.njit(cache=True)
+def _corners(taps, i):
+    return np.uint64(taps[i, 0]), np.uint64(taps[i, 1]), np.uint64(taps[i, 2]), np.uint64(taps[i, 3])
+
+
+@nb.njit(cache=True)
 def _blend_all(data, taps, weights, simd, out):
     for i in range(taps.shape[0]):
-        k00, k01, k10, k11 = np.uint64(taps[i, 0]), np.uint64(taps[i, 1]), np.uint64(taps[i, 2]), np.uint64(taps[i, 3])
+        k00, k01, k10, k11 = _corners(taps, i)
         a, b = weights[i, 0], weights[i, 1]
         if simd:
             out[i, 0], out[i, 1], out[i, 2], out[i, 3] = texel_blend(data, k00, k01, k10, k11, a, b)
@@ -49,7 +54,7 @@ def test_texel_blend_is_the_channel_by_channel_blend_bit_for_bit():
 @nb.njit(cache=True)
 def _blend_into_all(data, taps, weights, out):
     for i in range(taps.shape[0]):
-        k00, k01, k10, k11 = np.uint64(taps[i, 0]), np.uint64(taps[i, 1]), np.uint64(taps[i, 2]), np.uint64(taps[i, 3])
+        k00, k01, k10, k11 = _corners(taps, i)
         texel_blend_into(data, k00, k01, k10, k11, weights[i, 0], weights[i, 1], out + i)
 
 
@@ -86,14 +91,12 @@ def _mean_by_channel(data, ks, present, j):
 
 
 @nb.njit(cache=True)
-def _means(data, taps, flags, simd, first):
+def _means(simd, scalar, taps, flags, first):
+    """Texel first + i of `simd` by texel_mean and of `scalar` by _mean_by_channel, from the children taps[i]."""
     for i in range(taps.shape[0]):
-        k00, k01, k10, k11 = np.uint64(taps[i, 0]), np.uint64(taps[i, 1]), np.uint64(taps[i, 2]), np.uint64(taps[i, 3])
-        right, down = flags[i, 0], flags[i, 1]
-        if simd:
-            texel_mean(data, k00, k01, k10, k11, right, down, first + i)
-        else:
-            _mean_by_channel(data, (k00, k01, k10, k11), (True, right, down, right and down), first + i)
+        ks, right, down = _corners(taps, i), flags[i, 0], flags[i, 1]
+        texel_mean(simd, ks[0], ks[1], ks[2], ks[3], right, down, first + i)
+        _mean_by_channel(scalar, ks, (True, right, down, right and down), first + i)
 
 
 def test_texel_mean_is_the_pull_channel_by_channel_bit_for_bit():
@@ -111,8 +114,7 @@ def test_texel_mean_is_the_pull_channel_by_channel_bit_for_bit():
     taps[:20] = np.flatnonzero(data[:400, WEIGHT] == 0.0)[:4]  # nothing counted
     flags = rng.random((200, 2)) < 0.7
     simd, scalar = data.copy(), data.copy()
-    _means(simd, taps, flags, True, 400)
-    _means(scalar, taps, flags, False, 400)
+    _means(simd, scalar, taps, flags, 400)
     assert np.array_equal(simd.view(np.uint32), scalar.view(np.uint32))
     assert (simd[400:420, WEIGHT] == 0.0).all() and np.array_equal(simd[400:420, :4], data[400:420, :4])
 
