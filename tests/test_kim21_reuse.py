@@ -12,9 +12,9 @@ import pytest
 
 from hmdrt.evaluate.quality import band_psnr, srgb_encode
 from hmdrt.foveation import make_method
-from hmdrt.foveation.kim21.bands import Foveation
+from hmdrt.foveation.kim21.bands import Foveation, _near_central_row
 from hmdrt.foveation.kim21.disparity import Tests as Thresholds  # not "Test...": pytest would collect it
-from hmdrt.foveation.kim21.reuse import Kept, _store
+from hmdrt.foveation.kim21.reuse import Kept, _clear, _store
 from hmdrt.foveation.stages.temporal import relative_view
 from hmdrt.kernels.schedule import dynamic
 from hmdrt.optics import EyeCamera, get_profile
@@ -126,3 +126,30 @@ def test_the_reuse_test_selects_tau_sel_from_the_attributes_at_both_hits():
     assert reused == 1
     np.testing.assert_array_equal(frame.flags, [0, 1, 0, 0])
     np.testing.assert_array_equal(frame.rendered[1], prev.rendered[1])
+
+
+def test_the_presample_clears_every_hit_the_tests_read():
+    """_clear makes a miss of the secondary hit of every pixel in Foveation.table1 (a central pixel or one of its
+    8 neighbours), whatever it held, from each row's central columns alone: an irregular region, a row without
+    central pixels inside it, the image's edges."""
+    h, w = 12, 17
+    rng = np.random.default_rng(8)
+    central = np.zeros((h, w), bool)
+    central[2:6, 0:5] = True  # at the left edge
+    central[7, 9] = True  # a lone pixel
+    central[9:12, 12:17] = rng.random((3, 5)) < 0.6  # at the bottom right corner, with gaps
+    central[10, 15] = True
+    samples = central.astype(np.uint8).reshape(-1)
+    table1 = np.empty(h * w, bool)
+    for y in range(h):
+        _near_central_row(y, w, samples, table1)
+    spans = np.zeros((h, 2), np.int64)
+    for y in range(h):
+        xs = np.flatnonzero(central[y])
+        if len(xs):
+            spans[y] = xs[0], xs[-1] + 1
+    hits = HitAttributes.empty(h * w, {"object_id"})
+    hits.object_id[:] = 7  # what an earlier frame left
+    _clear(w, hits, spans)
+    assert (hits.object_id[table1] == -1).all()
+    assert table1.sum() < h * w  # the test covers a region, not the whole image

@@ -230,7 +230,7 @@ class Kim21(Configurable):
         colour and the hit distance go straight into the frame's history slot (its kept rendered colour and depth)."""
         h, w = f.state.shape
         with stats.stage("presample"):
-            _clear(w, f.cur.gbuffer.secondary)
+            _clear(w, f.cur.gbuffer.secondary, f.fov.spans)
             keys = self._pixel_keys(h * w, f.request.seed)
             primary, secondary = f.cur.gbuffer.primary, f.cur.gbuffer.secondary
             gbuffer = GBuffer(primary._replace(depth=f.kept.depth), secondary, f.fov.table1)

@@ -107,13 +107,20 @@ def _store_row(y, width, hits, hits2, frustum, frame, view, prev_hits, prev_hits
 
 
 @kernel
-def _clear(width, hits):
-    """Every hit a miss, in its object id alone: the tests read no other attribute of a miss
-    (disparity._discordant_threshold), and the tracer fills the secondary hits it finds."""
+def _clear(width, hits, spans):
+    """Every hit of the pixels the tests read (Foveation.table1: those with a central pixel, of `spans`, among their
+    8 neighbours) a miss, in its object id alone: the tests read no other attribute of a miss
+    (disparity._discordant_threshold), the tracer fills the secondary hits it finds there, and nothing reads the
+    other pixels' hits."""
     obj = hits.object_id
-    for y in nb.prange(obj.shape[0] // width):
-        for i in range(y * width, (y + 1) * width):
-            obj[i] = -1
+    height = obj.shape[0] // width
+    for y in nb.prange(height):
+        first, last = width, 0
+        for row in range(max(y - 1, 0), min(y + 2, height)):
+            if spans[row, 1] > spans[row, 0]:
+                first, last = min(first, spans[row, 0] - 1), max(last, spans[row, 1] + 1)
+        for x in range(max(first, 0), min(last, width)):
+            obj[y * width + x] = -1
 
 
 @kernel
