@@ -146,8 +146,9 @@ def test_pull_averages_the_valid_children_and_ignores_what_zero_weights_hold(mas
 
 
 def test_pull_push_from_a_sample_list_gives_the_bits_of_level_0_with_those_weights():
-    """A pull-push that reads level 0's samples from a list (the weier18 frame's) fills the pyramid as one that
-    reads level 0 with weight 1 at the samples and 0 elsewhere, bit for bit, whatever the other texels hold."""
+    """A pull-push that takes level 0's samples from a list (the weier18 frame's) fills the pyramid as one that reads
+    level 0 with weight 1 at the samples and 0 elsewhere, bit for bit, whatever level 0 held: it writes the samples
+    into their texels itself."""
     rng = np.random.default_rng(4)
     w, h = 51, 37
     listed_pyr, weighted = Pyramid.empty(w, h), Pyramid.empty(w, h)
@@ -156,10 +157,23 @@ def test_pull_push_from_a_sample_list_gives_the_bits_of_level_0_with_those_weigh
     mask[10:20, 15:30] = True  # a dense patch, as the fovea is
     weighted.data[...] = listed_pyr.data
     weighted.data[: w * h, WEIGHT] = mask.reshape(-1)
-    listed_pyr.data[: w * h, WEIGHT] = np.where(mask.reshape(-1), 1.0, np.nan)  # a sample's 1 kept, the rest not read
-    pull_push(listed_pyr, listed(listed_pyr, mask))
+    samples = listed(listed_pyr, mask)
+    listed_pyr.data[: w * h] = np.nan  # level 0's texels are not read: the samples come from the list
+    pull_push(listed_pyr, samples)
     pull_push(weighted)
     np.testing.assert_array_equal(listed_pyr.data, weighted.data)
+
+
+def test_pull_push_of_a_one_texel_image_places_its_sample():
+    """A 1x1 image's pyramid has no coarser level to pull into or push from: its sample still lands in its texel."""
+    pyr = Pyramid.empty(1, 1)
+    pyr.data[...] = np.nan
+    samples = LevelSamples(
+        np.ones(1, bool), np.zeros(1, np.int64), np.array([0, 1]), np.array([[0.25, 0.5, 0.75]], np.float32),
+        np.array([3.0], np.float32),
+    )  # fmt: skip
+    pull_push(pyr, samples)
+    np.testing.assert_array_equal(pyr.data, [[0.25, 0.5, 0.75, 3.0, 1.0]])
 
 
 def test_pull_push_with_kept_columns_matches_and_refuses_short_ones():
@@ -302,7 +316,7 @@ def test_weier18_taa_blends_each_sample_only_with_taps_that_see_its_surface(prev
 
     w, h = 16, 12
     cam = camera("sim-cpu", width=w, height=h)
-    previous, current = Pyramid.empty(w, h), Pyramid.empty(w, h)
+    previous = Pyramid.empty(w, h)
     previous.data[:, :3] = (1.0, 0.0, 0.0)
     previous.data[:, WEIGHT], previous.data[:, DEPTH] = 1.0, previous_depth
     surface, miss = 5 * w + 5, 6 * w + 9
@@ -316,11 +330,9 @@ def test_weier18_taa_blends_each_sample_only_with_taps_that_see_its_surface(prev
     )
     alpha_min = 0.2
     blend = Blend(alpha_min, 0.05)
-    _taa(
-        traced, camera_arrays(cam).frustum, relative_view(cam, cam), blend, previous, True, current, Reprojected.empty()
-    )
+    _taa(traced, camera_arrays(cam).frustum, relative_view(cam, cam), blend, previous, True, Reprojected.empty())
     blended = alpha_min * np.array([0.0, 0.0, 1.0]) + (1 - alpha_min) * np.array([1.0, 0.0, 0.0])
-    seen = {surface: previous_depth == 2.0, miss: previous_depth == FAR}
-    for pixel, hit in seen.items():
-        np.testing.assert_allclose(current.data[pixel, :3], blended if hit else (0.0, 0.0, 1.0), rtol=1e-6)
-        assert current.data[pixel, WEIGHT] == 1.0
+    seen = [previous_depth == 2.0, previous_depth == FAR]  # the surface sample's taps, the miss's
+    for k, hit in enumerate(seen):
+        np.testing.assert_allclose(traced.rgb[k], blended if hit else (0.0, 0.0, 1.0), rtol=1e-6)
+    np.testing.assert_array_equal(traced.depth, [2.0, FAR])  # the miss's capped, as level 0 is to hold it

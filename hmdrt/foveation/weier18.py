@@ -40,7 +40,6 @@ from hmdrt.foveation.stages.dof import (
 from hmdrt.foveation.stages.filters import FINE_LEVELS, Contrast, contrast_levels, enhance_windows, prefilter
 from hmdrt.foveation.stages.pyramid import (
     DEPTH,
-    WEIGHT,
     Columns,
     LevelSamples,
     PixelAxes,
@@ -148,28 +147,19 @@ def _tap(u, v, t, expected, tol, valid, r, g, b):
 
 
 @serial
-def _taa_block(traced, frustum, view, blend, previous, history, data, start, stop, where):
-    """Samples [start, stop) into level 0 (weight 1, depth capped at FAR); with history, each one's point in the
-    current eye frame (frustum) seen from the previous frame (its relative_view `view`) into `where`, in a loop
-    of selects that vectorises, then the previous pyramid's quincunx taps there blended in, in one pass per
-    level the block reads (as pyramid.sample_row: a pass's level constants stay put, where a loop that picks
-    each sample's level reloads them); a sample on a whole level reads that level alone. Last, the samples' rgb
-    and depth hold what level 0 does (blended, capped), for the pull (pyramid.LevelSamples)."""
-    pixels, xy, levels, offsets, depth, rgb = traced
+def _taa_block(traced, frustum, view, blend, previous, history, start, stop, where):
+    """Samples [start, stop): with history, each one's point in the current eye frame (frustum) seen from the
+    previous frame (its relative_view `view`) into `where`, in a loop of selects that vectorises, then the previous
+    pyramid's quincunx taps there blended into its rgb, in one pass per level the block reads (as
+    pyramid.sample_row: a pass's level constants stay put, where a loop that picks each sample's level reloads
+    them); a sample on a whole level reads that level alone. Last, each sample's depth capped at FAR: what level 0
+    is to hold, which the pull-push writes there (pyramid.LevelSamples)."""
+    _, xy, levels, offsets, depth, rgb = traced
     alpha_min, tol = blend
     p_data, p_offsets, p_widths, p_heights, p_sx, p_sy = previous
     at_x, at_y, expected, at_level = where
     top = len(p_offsets) - 1
     pw, ph = p_widths[0], p_heights[0]
-    for s in range(start, stop):
-        i = pixels[s]
-        data[i, 0], data[i, 1], data[i, 2], data[i, DEPTH], data[i, WEIGHT] = (
-            rgb[s, 0],
-            rgb[s, 1],
-            rgb[s, 2],
-            min(depth[s], FAR),
-            1.0,
-        )
     if history:
         ftop = float(top)
         for s in range(start, stop):
@@ -203,23 +193,19 @@ def _taa_block(traced, frustum, view, blend, previous, history, data, start, sto
                 valid, tr, tg, tb = _tap(u[3], v[3], t, e, tol, valid, tr, tg, tb)
                 valid, tr, tg, tb = _tap(u[4], v[4], t, e, tol, valid, tr, tg, tb)
                 if valid > 0:
-                    i = pixels[s]
                     alpha = max(alpha_min, 1.0 - valid / 5.0)
-                    r = np.float32(alpha * rgb[s, 0] + (1.0 - alpha) * tr / valid)
-                    g = np.float32(alpha * rgb[s, 1] + (1.0 - alpha) * tg / valid)
-                    b = np.float32(alpha * rgb[s, 2] + (1.0 - alpha) * tb / valid)
-                    data[i, 0], data[i, 1], data[i, 2] = r, g, b
-                    rgb[s, 0], rgb[s, 1], rgb[s, 2] = r, g, b
+                    rgb[s, 0] = alpha * rgb[s, 0] + (1.0 - alpha) * tr / valid
+                    rgb[s, 1] = alpha * rgb[s, 1] + (1.0 - alpha) * tg / valid
+                    rgb[s, 2] = alpha * rgb[s, 2] + (1.0 - alpha) * tb / valid
     for s in range(start, stop):
         depth[s] = min(depth[s], FAR)
 
 
 @kernel
-def _taa_blocks(traced, frustum, view, blend, previous, history, pyramid, where, counter, threads):
+def _taa_blocks(traced, frustum, view, blend, previous, history, where, counter, threads):
     """_taa's blocks, claimed (hmdrt.kernels.schedule): a foveal sample taps one level, a peripheral one two, one
     outside the previous frame none."""
     n = traced.pixels.shape[0]
-    data = pyramid.data
     blocks = (n + BLOCK - 1) // BLOCK
     for _ in nb.prange(threads):
         t = nb.get_thread_id()
@@ -227,7 +213,7 @@ def _taa_blocks(traced, frustum, view, blend, previous, history, pyramid, where,
         block = claim(counter)
         while block < blocks:
             start, stop = block * BLOCK, min(n, (block + 1) * BLOCK)
-            _taa_block(traced, frustum, view, blend, previous, history, data, start, stop, rows)
+            _taa_block(traced, frustum, view, blend, previous, history, start, stop, rows)
             block = claim(counter)
 
 
@@ -238,13 +224,12 @@ def _taa(
     blend: Blend,
     previous: Pyramid,
     history: bool,
-    pyramid: Pyramid,
     where: Reprojected,
 ) -> None:
-    """Each traced sample into level 0 of `pyramid` (weight 1, depth capped at FAR), blended with the previous
-    frame's pyramid around its back-projection (temporal.relative_view `view` of the previous camera) when there
-    is history; `where`: Reprojected scratch."""
-    dynamic(_taa_blocks, traced, frustum, view, blend, previous, history, pyramid, where)
+    """Each traced sample's colour blended with the previous frame's pyramid around its back-projection
+    (temporal.relative_view `view` of the previous camera) when there is history, and its depth capped at FAR, in
+    place: what level 0 is to hold (pull_push writes them there); `where`: Reprojected scratch."""
+    dynamic(_taa_blocks, traced, frustum, view, blend, previous, history, where)
 
 
 @dataclass
@@ -406,15 +391,15 @@ class Weier18(Configurable):
         samples = LevelSamples(
             state.samples.mask.reshape(-1), traced.pixels, state.samples.starts, traced.rgb, traced.depth
         )
-        if "taa" in steps:  # each sample read and written back, its texel written, one of the previous frame's read
-            with stats.stage(
-                "taa", touches=nbytes(*traced, samples.rgb, samples.depth) + 2 * len(traced.pixels) * texel
-            ):
-                _taa(traced, frustum, view, blend, previous, True, current, state.reprojected)
-        fine = current.level(0).nbytes  # written by the push; the coarser levels by the pull, then read by the push
-        with stats.stage("ppi", touches=fine + 2 * (current.data.nbytes - fine) + nbytes(*samples)):
+        if "taa" in steps:  # each sample read and written back, and at least one texel of the previous frame read
+            with stats.stage("taa", touches=nbytes(*traced, samples.rgb, samples.depth) + len(traced.pixels) * texel):
+                _taa(traced, frustum, view, blend, previous, True, state.reprojected)
+        # level 0 written by the push (its samples too), the coarser levels by the pull and read by the push, the
+        # samples read twice
+        fine = current.level(0).nbytes
+        with stats.stage("ppi", touches=fine + 2 * (current.data.nbytes - fine) + 2 * nbytes(*samples)):
             if "taa" not in steps:
-                _taa(traced, frustum, view, blend, previous, False, current, state.reprojected)
+                _taa(traced, frustum, view, blend, previous, False, state.reprojected)
             pull_push(current, samples, state.columns)
         return current
 

@@ -149,9 +149,9 @@ def _pull_level(pyramid, k):
 
 
 class LevelSamples(NamedTuple):
-    """Level 0's samples listed, for a pull-push that reads them in place of level 0's texels: which texels they
-    are, their texel indices (row-major, ascending) and each texel row's first, and their colour and depth as level
-    0 holds them (weight 1; every other texel of level 0 weight 0, whatever it holds)."""
+    """Level 0's samples listed, for a pull-push that reads them in place of level 0's texels and writes them there:
+    which texels they are, their texel indices (row-major, ascending) and each texel row's first, and their colour
+    and depth (weight 1; every other texel of level 0 weight 0, whatever it holds)."""
 
     mask: np.ndarray  # (texels of level 0,) bool
     texels: np.ndarray  # (n,) int64
@@ -242,10 +242,28 @@ def _push_row(data, row, wf, mask, col0, col1, col_weight, o_coarse, wc, ay, hol
         data[i, WEIGHT] = 1.0
 
 
+@serial
+def _place_row(data, samples, y):
+    """Level 0's samples of row y (LevelSamples) into their texels, weight 1."""
+    texels, rgb, depth = samples.texels, samples.rgb, samples.depth
+    for s in range(samples.starts[y], samples.starts[y + 1]):
+        i = np.uint64(texels[s])
+        data[i, 0], data[i, 1], data[i, 2] = rgb[s, 0], rgb[s, 1], rgb[s, 2]
+        data[i, DEPTH], data[i, WEIGHT] = depth[s], 1.0
+
+
+@serial
+def _place(pyramid, samples):
+    """Level 0's samples into their texels, row by row: for a pyramid of one level, which no push fills."""
+    for y in range(pyramid.heights[0]):
+        _place_row(pyramid.data, samples, y)
+
+
 @kernel
-def _push_level(pyramid, k, mask, columns):
+def _push_level(pyramid, k, mask, samples, columns):
     """Fill the missing weight of level k's texels from level k + 1, bilinearly; the columns' taps are taken once
-    per level (into `columns`), the rows' once per row. Unsigned indices: numba adds no negative-index
+    per level (into `columns`), the rows' once per row. With `samples` (level 0's, LevelSamples), each row's are
+    written into their texels too, while the row is in the cache. Unsigned indices: numba adds no negative-index
     wraparound to their loads and stores."""
     data = pyramid.data
     o_fine, wf, hf = pyramid.offsets[k], pyramid.widths[k], pyramid.heights[k]
@@ -258,24 +276,32 @@ def _push_level(pyramid, k, mask, columns):
         ay = _axis((y + 0.5) * sy, hc)
         row = np.uint64(o_fine + y * wf)
         _push_row(data, row, wf, mask, col0, col1, col_weight, o_coarse, wc, ay, holes[nb.get_thread_id()])
+        if samples is not None:
+            _place_row(data, samples, y)
 
 
 def pull_push(pyramid: Pyramid, samples: LevelSamples | None = None, columns: Columns | None = None) -> None:
     """Fill every texel of level 0 from its valid samples (weight > 0), in place, coarse levels too.
 
-    samples, when given, lists level 0's samples (weight 1, every other texel 0) in place of level 0's weight
-    channel, so that a frame's samples need not clear the others' weights, and level 1 is pulled from the list.
+    samples, when given, lists level 0's samples (weight 1, every other texel 0) in place of level 0's texels: a
+    frame's samples need not clear the others' weights nor be written into level 0 first. Level 1 is pulled from the
+    list, and level 0's push writes them into their texels as it fills the others.
     columns: push_columns(level 0's width), kept by callers that run every frame (else made here)."""
     columns = push_columns(int(pyramid.widths[0])) if columns is None else columns
     if len(columns.col0) < pyramid.widths[0]:
         raise ValueError(f"columns hold {len(columns.col0)} texels, level 0 has {pyramid.widths[0]}")
+    if len(pyramid.offsets) == 1 and samples is not None:  # a 1x1 image: nothing to pull or push
+        _place(pyramid, samples)
     for k in range(1, len(pyramid.offsets)):
         if k == 1 and samples is not None:
             _pull_samples(pyramid, samples, columns.sums)
         else:
             _pull_level(pyramid, k)
     for k in range(len(pyramid.offsets) - 2, -1, -1):
-        _push_level(pyramid, k, samples.mask if k == 0 and samples is not None else None, columns)
+        if k == 0 and samples is not None:
+            _push_level(pyramid, k, samples.mask, samples, columns)
+        else:
+            _push_level(pyramid, k, None, None, columns)
 
 
 class RowSamples(NamedTuple):
