@@ -78,11 +78,17 @@ def texel_blend(typingctx, data, k00, k01, k10, k11, a, b):
     return types.UniTuple(types.float32, 4)(data, k00, k01, k10, k11, a, b), codegen
 
 
-def _blend_types(data, k00, k01, k10, k11, a, b) -> bool:
-    """Whether texel_blend takes these argument types."""
+def _texels_types(data, *indices) -> bool:
+    """Whether `data` is a C-contiguous 2-d float32 array of texels and `indices` integers, as the texel intrinsics
+    take them."""
     if not (isinstance(data, types.Array) and data.ndim == 2 and data.layout == "C" and data.dtype == types.float32):
         return False
-    return all(isinstance(k, types.Integer) for k in (k00, k01, k10, k11)) and (a, b) == (types.float32,) * 2
+    return all(isinstance(k, types.Integer) for k in indices)
+
+
+def _blend_types(data, k00, k01, k10, k11, a, b) -> bool:
+    """Whether texel_blend takes these argument types."""
+    return _texels_types(data, k00, k01, k10, k11) and (a, b) == (types.float32,) * 2
 
 
 def _blend_texels(context, builder, sig, args) -> ir.Value:
@@ -105,7 +111,7 @@ def _blend_texels(context, builder, sig, args) -> ir.Value:
 def texel_blend_into(typingctx, data, k00, k01, k10, k11, a, b, i):
     """texel_blend's four lanes stored as texel i's first four channels of `data`, one 16-byte store (texel i must
     not be one of the four it reads from). The indices are not checked."""
-    if not (_blend_types(data, k00, k01, k10, k11, a, b) and isinstance(i, types.Integer)):
+    if not (_blend_types(data, k00, k01, k10, k11, a, b) and _texels_types(data, i)):
         return None
 
     def codegen(context, builder, sig, args):
@@ -152,9 +158,7 @@ def texel_mean(typingctx, data, k00, k01, k10, k11, right, down, j):
     depth are written where the weights sum above 0, and min(1, that sum) as the weight: the sums in float64 in the
     children's order, each child's channels times its weight in float32, so each lane rounds as channel by channel.
     Each child's colour and depth one 16-byte load, masked by its bits; the mean one 16-byte store."""
-    if not (_blend_types(data, k00, k01, k10, k11, types.float32, types.float32) and isinstance(j, types.Integer)):
-        return None
-    if (right, down) != (types.boolean,) * 2:
+    if not (_texels_types(data, k00, k01, k10, k11, j) and (right, down) == (types.boolean,) * 2):
         return None
 
     def codegen(context, builder, sig, args):

@@ -260,11 +260,11 @@ def _place(pyramid, samples):
 
 
 @kernel
-def _push_level(pyramid, k, mask, samples, columns):
+def _push_level(pyramid, k, samples, columns):
     """Fill the missing weight of level k's texels from level k + 1, bilinearly; the columns' taps are taken once
-    per level (into `columns`), the rows' once per row. With `samples` (level 0's, LevelSamples), each row's are
-    written into their texels too, while the row is in the cache. Unsigned indices: numba adds no negative-index
-    wraparound to their loads and stores."""
+    per level (into `columns`), the rows' once per row. With `samples` (level 0's, LevelSamples), their mask stands
+    for level 0's weights and each row's samples are written into their texels too, while the row is in the cache.
+    Unsigned indices: numba adds no negative-index wraparound to their loads and stores."""
     data = pyramid.data
     o_fine, wf, hf = pyramid.offsets[k], pyramid.widths[k], pyramid.heights[k]
     o_coarse, wc, hc = pyramid.offsets[k + 1], pyramid.widths[k + 1], pyramid.heights[k + 1]
@@ -274,9 +274,11 @@ def _push_level(pyramid, k, mask, samples, columns):
         col0[x], col1[x], col_weight[x] = _axis((x + 0.5) * sx, wc)
     for y in nb.prange(hf):
         ay = _axis((y + 0.5) * sy, hc)
-        row = np.uint64(o_fine + y * wf)
-        _push_row(data, row, wf, mask, col0, col1, col_weight, o_coarse, wc, ay, holes[nb.get_thread_id()])
-        if samples is not None:
+        row, scratch = np.uint64(o_fine + y * wf), holes[nb.get_thread_id()]
+        if samples is None:
+            _push_row(data, row, wf, None, col0, col1, col_weight, o_coarse, wc, ay, scratch)
+        else:
+            _push_row(data, row, wf, samples.mask, col0, col1, col_weight, o_coarse, wc, ay, scratch)
             _place_row(data, samples, y)
 
 
@@ -298,10 +300,7 @@ def pull_push(pyramid: Pyramid, samples: LevelSamples | None = None, columns: Co
         else:
             _pull_level(pyramid, k)
     for k in range(len(pyramid.offsets) - 2, -1, -1):
-        if k == 0 and samples is not None:
-            _push_level(pyramid, k, samples.mask, samples, columns)
-        else:
-            _push_level(pyramid, k, None, None, columns)
+        _push_level(pyramid, k, samples if k == 0 else None, columns)
 
 
 class RowSamples(NamedTuple):
