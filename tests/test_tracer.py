@@ -16,8 +16,10 @@ from hmdrt.scene.shapes import quad, sphere
 from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.blocks import BLOCK
+from hmdrt.trace.gbuffer import GBuffer, HitAttributes, LightBuffer
 from hmdrt.trace.integrator import Whitted
 from hmdrt.trace.tracer import Tracer
+from hmdrt.trace.wavefront import TILE_ROWS, _tile_order
 
 from .helpers import render
 
@@ -237,3 +239,54 @@ def test_whitted_traces_the_same_on_one_thread_and_on_two():
     (one, rays_one), (two, rays_two) = results
     np.testing.assert_array_equal(one, two)
     assert rays_one == rays_two and rays_one["secondary"] > 0
+
+
+def _scanline_subset(w: int, h: int, fraction: float, seed: int) -> np.ndarray:
+    """Pixel centres of a random subset of a w x h image, in scanline order (as the foveated methods list them)."""
+    xy = pixel_centres(w, h)
+    return xy[np.random.default_rng(seed).random(len(xy)) < fraction]
+
+
+@pytest.mark.parametrize("fraction", [1.0, 0.3])
+def test_tile_order_merges_each_band_of_four_rows_by_pairs_of_columns(fraction):
+    """Samples in scanline order are traced in bands of TILE_ROWS rows, by pair of columns, then row: a packet of 8
+    dense camera rays covers 2 x 4 pixels; in any other order they are still each listed once."""
+    xy = _scanline_subset(37, 23, fraction, 1)
+    listed = np.full(len(xy), -1, np.int64)
+    _tile_order(xy, len(xy), listed)
+    rows, columns = xy[:, 1].astype(int), xy[:, 0].astype(int)
+    expected = np.lexsort((columns, rows, columns // 2, rows // TILE_ROWS))
+    np.testing.assert_array_equal(listed, expected)
+    if fraction == 1.0:
+        np.testing.assert_array_equal(listed[:8], [0, 1, 37, 38, 74, 75, 111, 112])
+    shuffled = xy[np.random.default_rng(2).permutation(len(xy))]
+    _tile_order(shuffled, len(xy), listed)
+    np.testing.assert_array_equal(np.sort(listed), np.arange(len(xy)))
+
+
+@pytest.mark.parametrize("scene_name", ["whitted", "interior"])
+def test_a_sample_traces_the_same_in_whatever_order_it_is_listed(scene_name):
+    """The tracer traces a block's rays in tiles, not in the samples' order: each sample's radiance, G-buffer rows and
+    light buffer are the same, bit for bit, wherever it stands in the list (its secondary rays, area and AO samples
+    among them), and every sample's results land on its own rows."""
+    scene = load_scene(scene_name)
+    cam = EyeCamera.for_eye(get_profile("sim-cpu").with_resolution(96, 80), scene.start)
+    xy = _scanline_subset(96, 80, 0.4, 3)
+    keys = np.random.default_rng(4).integers(0, 2**40, len(xy))
+    shuffle = np.random.default_rng(5).permutation(len(xy))
+    traced = []
+    with Whitted(scene, 2) as tracer:
+        for order in (np.arange(len(xy)), shuffle):
+            gbuf, light = GBuffer.empty(len(xy)), LightBuffer.empty(len(xy))
+            rgb = tracer.trace_samples(cam, xy[order], keys[order], FrameStats(), gbuf, light)
+            traced.append((order, rgb, gbuf, light))
+    (_, rgb, gbuf, light), (order, rgb_s, gbuf_s, light_s) = traced
+    np.testing.assert_array_equal(rgb_s, rgb[order])
+    np.testing.assert_array_equal(light_s.irradiance, light.irradiance[order])
+    np.testing.assert_array_equal(light_s.albedo, light.albedo[order])
+    for half in ("primary", "secondary"):
+        for name in HitAttributes._fields:
+            ours, theirs = getattr(getattr(gbuf_s, half), name), getattr(getattr(gbuf, half), name)
+            np.testing.assert_array_equal(ours, theirs[order], err_msg=f"{half}.{name}")
+    assert (gbuf.secondary.object_id >= 0).any() or scene_name == "interior"
+    assert np.ptp(rgb) > 0

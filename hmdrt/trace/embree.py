@@ -210,63 +210,41 @@ def lane_id(p, k):
     return p.words[_ID * PACKET + k]
 
 
+@inline
+def _listed(listed, r):
+    """The r-th ray of a trace: r itself, or listed[r] where the caller lists the rays in the order to trace them."""
+    return r if listed is None else listed[r]
+
+
 @serial
-def intersect_rays(scene, args, packet, origins, directions, far, hits, start, stop):
-    """hits[i] = first hit of ray i within (0, far[i]] (far None: MISS_T), for i in [start, stop), in packets of
-    consecutive rays."""
+def intersect_rays(scene, args, packet, origins, directions, far, hits, start, stop, listed=None):
+    """hits[i] = first hit of ray i within (0, far[i]] (far None: MISS_T), for the rays i at [start, stop) of
+    `listed` (None: the rays [start, stop) themselves), in packets of consecutive ones."""
     prim, t, u, v = hits
     p, o, d = packet_views(packet), origins, directions
     for s in range(start, stop, PACKET):
         lanes = min(PACKET, stop - s)
         for k in range(lanes):
-            i = s + k
+            i = _listed(listed, s + k)
             tfar = MISS_T if far is None else far[i]
             set_lane(p, k, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], tfar, 0)
         intersect_packet(scene, p, lanes, args)
         for k in range(lanes):
-            prim[s + k], t[s + k], u[s + k], v[s + k] = lane_hit(p, k)
-
-
-@serial
-def intersect_selected(scene, args, packet, origins, directions, select, want, hits, count):
-    """hits[i] = first hit of ray i (within MISS_T), for the rays i < count with select[i] == want, in packets of
-    such rays (reflected and refracted rays apart: each kind is coherent on its own, a mix is not)."""
-    p, o, d = packet_views(packet), origins, directions
-    lanes = 0
-    for i in range(count):
-        if select[i] != want:
-            continue
-        set_lane(p, lanes, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], MISS_T, i)
-        lanes += 1
-        if lanes == PACKET:
-            _flush_hits(scene, args, p, lanes, hits)
-            lanes = 0
-    _flush_hits(scene, args, p, lanes, hits)
-
-
-@inline
-def _flush_hits(scene, args, p, lanes, hits):
-    if lanes:
-        intersect_packet(scene, p, lanes, args)
-        prim, t, u, v = hits
-        for k in range(lanes):
-            i = lane_id(p, k)
+            i = _listed(listed, s + k)
             prim[i], t[i], u[i], v[i] = lane_hit(p, k)
 
 
 @serial
-def occluded_rays(scene, args, packet, origins, directions, far, occluded, rows, columns, select=None, want=False):
+def occluded_rays(scene, args, packet, origins, directions, far, occluded, rows, columns, listed=None):
     """occluded[j] = whether anything lies along ray j within (0, far[j]], for the rows x columns rays
-    j = row * columns + column, of the rows with select[row] == want (select None: all). Rays with far <= 0 are
-    not traced (False); the others go in packets column by column, so that a packet holds the same light sample
+    j = row * columns + column, of the first `rows` rows of `listed` (None: rows 0 to rows - 1). Rays with far <= 0
+    are not traced (False); the others go in packets column by column, so that a packet holds the same light sample
     of neighbouring hits. Returns how many were traced."""
     p, o, d = packet_views(packet), origins, directions
     traced = lanes = 0
     for column in range(columns):
-        for row in range(rows):
-            if select is not None and select[row] != want:
-                continue
-            j = row * columns + column
+        for r in range(rows):
+            j = _listed(listed, r) * columns + column
             if far[j] <= 0.0:
                 occluded[j] = False
                 continue

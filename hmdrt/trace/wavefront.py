@@ -65,6 +65,7 @@ class Work(NamedTuple):
     spawners: np.ndarray  # (n,) int64 the hits with children, in order
     first: np.ndarray  # (n,) int64 where its children go
     rows: np.ndarray  # (n,) int64 G-buffer row of each ray, -1 for none
+    listed: np.ndarray  # (n,) int64 the level's rays in the order they are traced (_listed_rays)
 
 
 class Lane(NamedTuple):
@@ -127,6 +128,7 @@ def work_empty(n, n_point, n_area, n_ao):
         np.empty(n, np.int64),
         np.empty(n, np.int64),
         np.empty(n, np.int64),
+        np.empty(n, np.int64),
     )
 
 
@@ -144,18 +146,82 @@ def lane_empty(capacity: int, block: int, n_point: int, n_area: int, n_ao: int) 
 
 
 @inline
-def _occlude(scene, packet, batch, rays, hits, per_hit, depth):
-    """The occlusion rays of a level's hits; below the first, those of reflected and refracted rays' hits apart
-    (as _intersect traces them: each kind's hits lie together, a mix of the two does not)."""
+def _occlude(scene, packet, batch, listed, hits, per_hit):
+    """The occlusion rays of a level's hits, in the order its rays were traced (_listed_rays)."""
     o, d, far, occluded = batch
+    return embree.occluded_rays(scene.handle, scene.args, packet, o, d, far, occluded, hits, per_hit, listed)
+
+
+TILE_ROWS = 4  # pixel rows whose samples _tile_order interleaves: a packet of 8 dense ones spans 2 columns by 4 rows
+
+
+@inline
+def _band(xy, s):
+    return int(xy[s, 1]) // TILE_ROWS
+
+
+@inline
+def _pair(xy, s, stop):
+    """The pair of columns that sample s lies in, the largest int64 for s at `stop` (a run's end)."""
+    return int(xy[s, 0]) // 2 if s < stop else 0x7FFFFFFFFFFFFFFF
+
+
+@inline
+def _tile_order(xy, count, listed):
+    """listed[:count]: samples 0 to count - 1 of xy in the order their camera rays are traced. Samples in scanline
+    order come as runs of one pixel row each; up to TILE_ROWS runs in one band of rows are merged by pair of columns
+    (a stable merge, its first run first on a tie), so that a packet of 8 neighbouring rays covers 2 x 4 pixels, or
+    the sparse samples of a few rows, not 8 x 1: Embree's coherent packets trace such rays faster (docs/performance.md,
+    "Rays in tiles"). Samples in any other order still give a permutation: each run keeps its order."""
+    i = 0
+    while i < count:
+        band, row = _band(xy, i), int(xy[i, 1])
+        c0, c1, c2, c3 = i, count, count, count  # each run's next sample; a run that does not exist is empty
+        runs, j = 1, i + 1
+        while j < count and _band(xy, j) == band:
+            if int(xy[j, 1]) != row:
+                if runs == TILE_ROWS:
+                    break
+                row, runs = int(xy[j, 1]), runs + 1
+                if runs == 2:
+                    c1 = j
+                elif runs == 3:
+                    c2 = j
+                else:
+                    c3 = j
+            j += 1
+        e0, e1, e2, e3 = min(c1, j), min(c2, j), min(c3, j), j
+        k0, k1, k2, k3 = _pair(xy, c0, e0), _pair(xy, c1, e1), _pair(xy, c2, e2), _pair(xy, c3, e3)
+        for out in range(i, j):
+            if k0 <= k1 and k0 <= k2 and k0 <= k3:
+                listed[out], c0 = c0, c0 + 1
+                k0 = _pair(xy, c0, e0)
+            elif k1 <= k2 and k1 <= k3:
+                listed[out], c1 = c1, c1 + 1
+                k1 = _pair(xy, c1, e1)
+            elif k2 <= k3:
+                listed[out], c2 = c2, c2 + 1
+                k2 = _pair(xy, c2, e2)
+            else:
+                listed[out], c3 = c3, c3 + 1
+                k3 = _pair(xy, c3, e3)
+        i = j
+
+
+@inline
+def _listed_rays(frame, rays, listed, start, count, depth):
+    """The order in which a level's rays are traced: the camera rays of samples [start, start + count) in tiles
+    (_tile_order); below, the reflected rays, then the refracted ones, each kind in the order of the level (each is
+    coherent on its own, a mix of the two is not)."""
     if depth == 0:
-        return embree.occluded_rays(scene.handle, scene.args, packet, o, d, far, occluded, hits, per_hit)
-    traced = 0
+        _tile_order(frame.xy[start : start + count], count, listed)
+        return
+    n = 0
     for through in (False, True):
-        traced += embree.occluded_rays(
-            scene.handle, scene.args, packet, o, d, far, occluded, hits, per_hit, rays.through, through
-        )
-    return traced
+        for i in range(count):
+            if rays.through[i] == through:
+                listed[n] = i
+                n += 1
 
 
 @inline
@@ -214,15 +280,9 @@ def _store_gbuffer(frame, scene, w, rays, start, count, depth):
 
 
 @inline
-def _intersect(scene, packet, rays, hits, count, depth):
-    """Primary rays in packets of neighbours; secondary rays with the reflected and refracted ones apart (each kind
-    is coherent on its own, a mix of the two is not)."""
-    o, d = rays.origins, rays.directions
-    if depth == 0:
-        embree.intersect_rays(scene.handle, scene.args, packet, o, d, None, hits, 0, count)
-        return
-    for through in (False, True):
-        embree.intersect_selected(scene.handle, scene.args, packet, o, d, rays.through, through, hits, count)
+def _intersect(scene, packet, rays, hits, listed, count):
+    """The level's rays to their first hits, in packets of consecutive rays of `listed` (_listed_rays)."""
+    embree.intersect_rays(scene.handle, scene.args, packet, rays.origins, rays.directions, None, hits, 0, count, listed)
 
 
 @inline
@@ -246,9 +306,18 @@ def _shade(scene, w, rays, count):
 
 
 @inline
-def _spawn(scene, w, rays, children, spawners, depth):
+def _spawn(scene, w, rays, children, spawners, count, depth):
     """The next level's rays, the children of the level's first `spawners` hits in w.spawners, in a larger buffer
-    than `children` where they do not fit, and how many there are."""
+    than `children` where they do not fit, and how many there are. The camera rays' children go in the order their
+    parents were traced (w.listed: tiles), deeper ones in their parents' order, so that each sample's rays keep
+    theirs: its radiance adds up in the same order whatever the tiles."""
+    if depth == 0:
+        spawners = 0
+        for r in range(count):
+            i = w.listed[r]
+            if w.counts[i]:
+                w.spawners[spawners] = i
+                spawners += 1
     total = 0
     for j in range(spawners):
         i = w.spawners[j]
@@ -277,7 +346,8 @@ def _block(scene, frame, lane, start, stop):
             break
         tally[meter.NEED] = max(tally[meter.NEED], count)
         w = lane.work if count <= lane.work.kr.shape[0] else work_empty(count, n_point, n_area, n_ao)
-        _intersect(scene, packet, rays, w.hits, count, depth)
+        _listed_rays(frame, rays, w.listed, start, count, depth)
+        _intersect(scene, packet, rays, w.hits, w.listed, count)
         kind = meter.PRIMARY if depth == 0 else meter.SECONDARY
         tally[meter.RAYS_PRIMARY if depth == 0 else meter.RAYS_SECONDARY] += count
         t = meter.tick(tally, clock, kind, t)
@@ -289,13 +359,13 @@ def _block(scene, frame, lane, start, stop):
             light_rays_block(scene.lights, plan, w.surf, rays.key, w.point, w.area, w.ao, 0, count)
             t = meter.tick(tally, clock, meter.LIGHTGEN, t)
         if n_point:
-            tally[meter.RAYS_SHADOW] += _occlude(scene, packet, w.point, rays, count, n_point, depth)
+            tally[meter.RAYS_SHADOW] += _occlude(scene, packet, w.point, w.listed, count, n_point)
             t = meter.tick(tally, clock, meter.SHADOW, t)
         if n_area:
-            tally[meter.RAYS_AREA] += _occlude(scene, packet, w.area, rays, count, n_area, depth)
+            tally[meter.RAYS_AREA] += _occlude(scene, packet, w.area, w.listed, count, n_area)
             t = meter.tick(tally, clock, meter.AREA, t)
         if n_ao:
-            tally[meter.RAYS_AO] += _occlude(scene, packet, w.ao, rays, count, n_ao, depth)
+            tally[meter.RAYS_AO] += _occlude(scene, packet, w.ao, w.listed, count, n_ao)
             t = meter.tick(tally, clock, meter.AO, t)
         _shade(scene, w, rays, count)
         _accumulate(frame, w, rays, radiance, start, count, depth)
@@ -313,7 +383,7 @@ def _block(scene, frame, lane, start, stop):
             t = meter.tick(tally, clock, meter.GBUFFER, t)
         if not spawn:
             break
-        next_rays, count = _spawn(scene, w, rays, children, spawners, depth)
+        next_rays, count = _spawn(scene, w, rays, children, spawners, count, depth)
         rays, children = next_rays, rays
         tally[meter.NEED] = max(tally[meter.NEED], count)
         t = meter.tick(tally, clock, meter.SECONDARY, t)
@@ -357,8 +427,7 @@ def compile_part(scene: SceneArgs, lane: Lane, gbuffer: object, part: int) -> No
     embree_args = (scene.handle, scene.args, lane.packet)
     if part == 0:
         o, d, hits = rays.origins, rays.directions, w.hits
-        _compile(embree.intersect_rays, *embree_args, o, d, None, hits, zero, count)
-        _compile(embree.intersect_selected, *embree_args, o, d, rays.through, True, hits, count)
+        _compile(embree.intersect_rays, *embree_args, o, d, None, hits, zero, count, w.listed)
         _compile(surface_block, scene.geometry, mats, d, hits.prim, hits.u, hits.v, surf, zero, count)
         _compile(_point_rays, lights, surf, w.point, zero, count)
         _compile(_area_rays, lights, plan, surf, rays.key, w.area, zero, count)
@@ -367,9 +436,7 @@ def compile_part(scene: SceneArgs, lane: Lane, gbuffer: object, part: int) -> No
         _compile(store_block, *attrs, zero, count)
     elif part == 1:
         o, d, far, occluded = w.point
-        omitted = (types.Omitted(None), types.Omitted(False))  # select and want, as the first level leaves them
-        _compile(embree.occluded_rays, *embree_args, o, d, far, occluded, count, count, *omitted)
-        _compile(embree.occluded_rays, *embree_args, o, d, far, occluded, count, count, rays.through, True)
+        _compile(embree.occluded_rays, *embree_args, o, d, far, occluded, count, count, w.listed)
         shading = (mats, surf, rays.directions)
         shaded = (w.acc, w.local, w.stochastic, w.shadow_count)
         _compile(_shade_points, lights, plan, *shading, w.point, w.ao, shaded, True, zero, count)
