@@ -19,7 +19,7 @@ from hmdrt.trace.blocks import BLOCK
 from hmdrt.trace.gbuffer import GBuffer, HitAttributes, LightBuffer
 from hmdrt.trace.integrator import Whitted
 from hmdrt.trace.tracer import Tracer
-from hmdrt.trace.wavefront import TILE_ROWS, _tile_order
+from hmdrt.trace.wavefront import TILE_ROWS, _band_start, _tile_order
 
 from .helpers import render
 
@@ -262,6 +262,19 @@ def test_tile_order_merges_each_band_of_four_rows_by_pairs_of_columns(fraction):
     shuffled = xy[np.random.default_rng(2).permutation(len(xy))]
     _tile_order(shuffled, len(xy), listed)
     np.testing.assert_array_equal(np.sort(listed), np.arange(len(xy)))
+
+
+def test_block_bounds_move_back_to_the_start_of_their_band_within_reach():
+    """A block's bounds move back to the first sample of their band of TILE_ROWS rows, so that _tile_order sees
+    whole bands, but by no more than `reach` samples (a block then holds at most 1.5 blocks); the ends stay put."""
+    xy = pixel_centres(10, 13)  # bands of 40 samples: rows 0-3, 4-7, 8-11, then row 12 alone
+    n = len(xy)
+    assert [_band_start(xy, s, 20) for s in (0, 45, 60, 61, 100, 125, n)] == [0, 40, 40, 61, 80, 120, n]
+    assert _band_start(xy, 15, 20) == 0  # within reach of the first sample
+    assert _band_start(xy, 79, 20) == 79  # its band began 39 samples before: out of reach
+    bounds = np.array([_band_start(xy, min(n, b * 64), 32) for b in range(-(-n // 64) + 1)])  # blocks of 64
+    sizes = np.diff(bounds)
+    assert bounds[0] == 0 and bounds[-1] == n and sizes.min() > 0 and sizes.max() <= 64 + 32
 
 
 @pytest.mark.parametrize("scene_name", ["whitted", "interior"])

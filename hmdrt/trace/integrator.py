@@ -25,7 +25,8 @@ from hmdrt.trace.tracer import Tracer
 from hmdrt.trace.wavefront import Frame, Lane, SceneArgs, compile_part, lane_empty, trace
 
 RAYS_PER_CHUNK = 1 << 20  # callers that build sample arrays in bands keep a band's rays near this (see chunk)
-MAX_BLOCK = 4096  # samples per block at most: a block's calls cost ~10 us, ~2 ns a sample at this size
+MAX_BLOCK = 4096  # samples per block: a block's calls cost ~10 us, ~2 ns a sample at this size
+LANE_BLOCK = MAX_BLOCK + MAX_BLOCK // 2  # the most a block holds once its bounds move to bands (wavefront._band_start)
 MIN_BLOCK = 256
 BLOCKS_PER_THREAD = 4  # smaller blocks for small batches, so that every thread has some
 
@@ -61,7 +62,7 @@ class Whitted:
         self._no_gbuffer, self._no_light = GBuffer.empty(0), LightBuffer.empty(0)
         # one lane of scratch per tracer thread, with room for a block and its children at first, each growing to the
         # largest level it met (meter.NEED)
-        first = MAX_BLOCK * (2 if self.secondary and self.max_depth else 1)
+        first = LANE_BLOCK * (2 if self.secondary and self.max_depth else 1)
         self._lanes = [self._lane(first) for _ in range(self.tracer.threads)]
         if self._aside is not None:  # the other part of the steps' kernels, then the second process compiles the tracer
             try:
@@ -74,7 +75,7 @@ class Whitted:
         compile_part(self._scene, self._lanes[0], self._no_gbuffer, part)
 
     def _lane(self, capacity: int) -> Lane:
-        return lane_empty(capacity, MAX_BLOCK, self.n_point, self.plan.area_total, self.plan.ao_samples)
+        return lane_empty(capacity, LANE_BLOCK, self.n_point, self.plan.area_total, self.plan.ao_samples)
 
     def _grow(self) -> None:
         """Give each lane that met a level larger than its scratch room for that level."""

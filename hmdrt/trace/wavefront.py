@@ -394,14 +394,30 @@ def _block(scene, frame, lane, start, stop):
     meter.tick(tally, clock, meter.SHADE, t)
 
 
+@inline
+def _band_start(xy, s, reach):
+    """Where block boundary s moves to: back to the start of its band of TILE_ROWS rows if that lies at most `reach`
+    samples before it, so that _tile_order sees whole bands; else s."""
+    if s >= xy.shape[0]:
+        return s
+    band = _band(xy, s)
+    for back in range(s - 1, max(s - reach - 2, -1), -1):  # down to s - reach - 1: the sample before a band at reach
+        if _band(xy, back) != band:
+            return back + 1
+    return 0 if s <= reach else s
+
+
 @serial
 def _trace_blocks(scene, frame, lane, block, counter):
-    """One thread's share of a trace call: blocks of `block` samples claimed from `counter` until none is left."""
+    """One thread's share of a trace call: blocks of about `block` samples (their bounds moved back to the starts of
+    bands of rows, by up to half a block: _band_start) claimed from `counter` until none is left."""
     n = frame.xy.shape[0]
     blocks = (n + block - 1) // block
+    reach = block // 2
     b = claim(counter)
     while b < blocks:
-        _block(scene, frame, lane, b * block, min(n, (b + 1) * block))
+        start = _band_start(frame.xy, b * block, reach)
+        _block(scene, frame, lane, start, _band_start(frame.xy, min(n, (b + 1) * block), reach))
         b = claim(counter)
 
 
