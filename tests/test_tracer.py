@@ -16,10 +16,11 @@ from hmdrt.scene.shapes import quad, sphere
 from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.blocks import BLOCK
+from hmdrt.trace.embree import PACKET
 from hmdrt.trace.gbuffer import GBuffer, HitAttributes, LightBuffer
 from hmdrt.trace.integrator import Whitted
 from hmdrt.trace.tracer import Tracer
-from hmdrt.trace.wavefront import TILE_ROWS, _band_start, _tile_order
+from hmdrt.trace.wavefront import TILE_COLUMNS, TILE_ROWS, _band_start, _tile_order
 
 from .helpers import render
 
@@ -249,16 +250,18 @@ def _scanline_subset(w: int, h: int, fraction: float, seed: int) -> np.ndarray:
 
 @pytest.mark.parametrize("fraction", [1.0, 0.3])
 def test_tile_order_merges_each_band_of_four_rows_by_pairs_of_columns(fraction):
-    """Samples in scanline order are traced in bands of TILE_ROWS rows, by pair of columns, then row: a packet of 8
-    dense camera rays covers 2 x 4 pixels; in any other order they are still each listed once."""
+    """Samples in scanline order are traced in bands of TILE_ROWS rows, by group of TILE_COLUMNS columns, then row: a
+    packet of dense camera rays covers TILE_COLUMNS x 4 pixels; in any other order they are still each listed
+    once."""
     xy = _scanline_subset(37, 23, fraction, 1)
     listed = np.full(len(xy), -1, np.int64)
     _tile_order(xy, len(xy), listed)
     rows, columns = xy[:, 1].astype(int), xy[:, 0].astype(int)
-    expected = np.lexsort((columns, rows, columns // 2, rows // TILE_ROWS))
+    expected = np.lexsort((columns, rows, columns // TILE_COLUMNS, rows // TILE_ROWS))
     np.testing.assert_array_equal(listed, expected)
-    if fraction == 1.0:
-        np.testing.assert_array_equal(listed[:8], [0, 1, 37, 38, 74, 75, 111, 112])
+    if fraction == 1.0:  # the first packet: the first TILE_COLUMNS pixels of each of the first four rows
+        tile = (37 * np.arange(TILE_ROWS)[:, None] + np.arange(TILE_COLUMNS)).ravel()
+        np.testing.assert_array_equal(listed[:PACKET], tile)
     shuffled = xy[np.random.default_rng(2).permutation(len(xy))]
     _tile_order(shuffled, len(xy), listed)
     np.testing.assert_array_equal(np.sort(listed), np.arange(len(xy)))

@@ -6,11 +6,13 @@ one core; calling Embree from numba removes both. The scene is built exactly as 
 device, robust scene, one triangle geometry with 16-byte vertex stride), so the hits are the same
 (tests/test_tracer.py compares them ray by ray).
 
-Rays go to Embree in packets of PACKET (RTCRayHit8 of rtcore_ray.h: RTCRayHit's fields as arrays of 8, in
-a float32 array per thread) with the coherent flag, which traverses the BVH once for the whole packet:
-primary and shadow rays of neighbouring pixels trace about 2x faster than one by one (rtcIntersect1), with
-the same hits. The kernels take a packet's views and rays' coordinates apart once per batch, not per ray:
-each array view numba makes costs reference counting.
+Rays go to Embree in packets of PACKET (RTCRayHit8 or RTCRayHit16 of rtcore_ray.h: RTCRayHit's fields as arrays
+of 8 or 16, in a float32 array per thread) with the coherent flag, which traverses the BVH once for the whole
+packet: primary and shadow rays of neighbouring pixels trace about 2x faster than one by one (rtcIntersect1), with
+the same hits. PACKET is 16 where Embree traces such packets natively (AVX-512), else 8 (an rtcIntersect16 there
+traces its rays one by one); numba's cache keeps each CPU's code apart, so each machine compiles its own.
+The kernels take a packet's views and rays' coordinates apart once per batch, not per ray: each array view numba
+makes costs reference counting.
 """
 
 from __future__ import annotations
@@ -33,8 +35,6 @@ _TFAR, _MASK, _ID, _FLAGS, _U, _V, _PRIM, _GEOM, _INST = 8, 9, 10, 11, 15, 16, 1
 INVALID_ID = 0xFFFFFFFF
 MISS_T = 1e37  # tfar of a ray that may hit anything (as embreex)
 
-PACKET = 8  # rays per packet (RTCRayHit8): native on AVX2 and AVX-512
-PACKET_WORDS = 24 * PACKET  # float32 words of a packet (RTCRayHit8 with room for instPrimID), then its valid mask
 ARGS_WORDS = 16  # uint32 words holding an RTCIntersectArguments / RTCOccludedArguments
 _COHERENT, _ALL_FEATURES = 1 << 16, 0xFFFFFFFF  # RTC_RAY_QUERY_FLAG_COHERENT, RTC_FEATURE_FLAG_ALL
 
@@ -56,13 +56,14 @@ def _library_path() -> str:
 
 
 _PATH = _library_path()
-llvm.load_library_permanently(_PATH)  # numba links rtcIntersect8 / rtcOccluded8 against it, also from its cache
+llvm.load_library_permanently(_PATH)  # numba links rtcIntersectN / rtcOccludedN against it, also from its cache
 _lib = ctypes.CDLL(_PATH)
 _P = ctypes.c_void_p
 for _name, _res, _args in (
     ("rtcNewDevice", _P, [ctypes.c_char_p]),
     ("rtcReleaseDevice", None, [_P]),
     ("rtcGetDeviceError", ctypes.c_int, [_P]),
+    ("rtcGetDeviceProperty", ctypes.c_ssize_t, [_P, ctypes.c_int]),
     ("rtcNewScene", _P, [_P]),
     ("rtcSetSceneFlags", None, [_P, ctypes.c_int]),
     ("rtcCommitScene", None, [_P]),
@@ -76,10 +77,27 @@ for _name, _res, _args in (
     _fn = getattr(_lib, _name)
     _fn.restype, _fn.argtypes = _res, _args
 
+_NATIVE_RAY16 = 34  # RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED
+
+
+def native_packet() -> int:
+    """Rays per packet: 16 where this CPU's Embree traces RTCRayHit16 packets natively, else 8."""
+    device = _lib.rtcNewDevice(None)
+    if not device:
+        raise RuntimeError("Embree could not create a device")
+    try:
+        return 16 if _lib.rtcGetDeviceProperty(device, _NATIVE_RAY16) else 8
+    finally:
+        _lib.rtcReleaseDevice(device)
+
+
+PACKET = native_packet()
+PACKET_WORDS = 24 * PACKET  # float32 words of a packet (RTCRayHitN with room for instPrimID), then its valid mask
+
 # pointers travel as integers: the same registers on every 64-bit ABI Embree supports
-_sig8 = types.void(types.intp, types.intp, types.intp, types.intp)
-_rtc_intersect8 = types.ExternalFunction("rtcIntersect8", _sig8)
-_rtc_occluded8 = types.ExternalFunction("rtcOccluded8", _sig8)
+_sig = types.void(types.intp, types.intp, types.intp, types.intp)
+_rtc_intersect = types.ExternalFunction(f"rtcIntersect{PACKET}", _sig)
+_rtc_occluded = types.ExternalFunction(f"rtcOccluded{PACKET}", _sig)
 
 
 class EmbreeScene:
@@ -182,13 +200,13 @@ def _valid(p, lanes):
 @inline
 def intersect_packet(scene, p, lanes, args):
     """Trace the first `lanes` rays of Packet p (set_lane) to their first hits (lane_hit)."""
-    _rtc_intersect8(_valid(p, lanes).ctypes.data, scene, p.rays.ctypes.data, args.ctypes.data)
+    _rtc_intersect(_valid(p, lanes).ctypes.data, scene, p.rays.ctypes.data, args.ctypes.data)
 
 
 @inline
 def occluded_packet(scene, p, lanes, args):
     """Trace the first `lanes` rays of Packet p (set_lane) for occluders (lane_occluded)."""
-    _rtc_occluded8(_valid(p, lanes).ctypes.data, scene, p.rays.ctypes.data, args.ctypes.data)
+    _rtc_occluded(_valid(p, lanes).ctypes.data, scene, p.rays.ctypes.data, args.ctypes.data)
 
 
 @inline

@@ -152,7 +152,8 @@ def _occlude(scene, packet, batch, listed, hits, per_hit):
     return embree.occluded_rays(scene.handle, scene.args, packet, o, d, far, occluded, hits, per_hit, listed)
 
 
-TILE_ROWS = 4  # pixel rows whose samples _tile_order interleaves: a packet of 8 dense ones spans 2 columns by 4 rows
+TILE_ROWS = 4  # pixel rows whose samples _tile_order interleaves
+TILE_COLUMNS = embree.PACKET // TILE_ROWS  # so that a packet of dense samples spans 2 or 4 columns by 4 rows
 
 
 @inline
@@ -162,17 +163,18 @@ def _band(xy, s):
 
 @inline
 def _pair(xy, s, stop):
-    """The pair of columns that sample s lies in, the largest int64 for s at `stop` (a run's end)."""
-    return int(xy[s, 0]) // 2 if s < stop else 0x7FFFFFFFFFFFFFFF
+    """The group of TILE_COLUMNS columns that sample s lies in, the largest int64 for s at `stop` (a run's end)."""
+    return int(xy[s, 0]) // TILE_COLUMNS if s < stop else 0x7FFFFFFFFFFFFFFF
 
 
 @inline
 def _tile_order(xy, count, listed):
     """listed[:count]: samples 0 to count - 1 of xy in the order their camera rays are traced. Samples in scanline
-    order come as runs of one pixel row each; up to TILE_ROWS runs in one band of rows are merged by pair of columns
-    (a stable merge, its first run first on a tie), so that a packet of 8 neighbouring rays covers 2 x 4 pixels, or
-    the sparse samples of a few rows, not 8 x 1: Embree's coherent packets trace such rays faster (docs/performance.md,
-    "Rays in tiles"). Samples in any other order still give a permutation: each run keeps its order."""
+    order come as runs of one pixel row each; up to TILE_ROWS runs in one band of rows are merged by group of
+    TILE_COLUMNS columns (a stable merge, its first run first on a tie), so that a packet of neighbouring rays covers
+    TILE_COLUMNS x 4 pixels, or the sparse samples of a few rows, not a row's: Embree's coherent packets trace such
+    rays faster (docs/performance.md, "Rays in tiles"). Samples in any other order still give a permutation: each
+    run keeps its order."""
     i = 0
     while i < count:
         band, row = _band(xy, i), int(xy[i, 1])
