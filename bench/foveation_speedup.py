@@ -25,7 +25,7 @@ import statistics
 import time
 
 import numpy as np
-from references import left_eye_requests, tracer_ms
+from references import frame_arguments, left_eye_requests, tracer_ms
 
 from hmdrt.evaluate.quality import band_psnr
 from hmdrt.foveation import make_method
@@ -45,11 +45,7 @@ def default_methods() -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", default="whitted")
-    ap.add_argument("--profile", default="rift_s")
-    ap.add_argument("--frames", type=int, default=14)
-    ap.add_argument("--gaze", default="0,0")
-    ap.add_argument("--trace", choices=["builtin"], default=None, help="the built-in head path (default: still)")
+    frame_arguments(ap, 14)
     ap.add_argument("--methods", nargs="+", default=default_methods())
     args = ap.parse_args()
 

@@ -30,7 +30,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-from references import left_eye_requests
+from references import frame_arguments, left_eye_requests
 
 from hmdrt.evaluate.provenance import stamp
 from hmdrt.foveation import make_method
@@ -91,12 +91,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("spec", help="the method, as the other benches take it (weier18?dof=none)")
     ap.add_argument("targets", nargs="+", help="MODULE:NAME, MODULE:Class.method, either with [K]")
-    ap.add_argument("--scene", default="whitted")
-    ap.add_argument("--profile", default="rift_s")
-    ap.add_argument("--frames", type=int, default=10)
-    ap.add_argument("--warmup", type=int, default=3)
-    ap.add_argument("--trace", choices=["builtin"], default=None, help="the built-in head path (default: still)")
-    ap.add_argument("--gaze", default="0,0")
+    frame_arguments(ap, 10, 3)
     args = ap.parse_args()
     if args.frames <= args.warmup:
         ap.error("--frames must exceed --warmup")

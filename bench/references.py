@@ -3,6 +3,7 @@ per second, and the frames a bench renders (a still view or the built-in head pa
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import statistics
 import subprocess
@@ -215,6 +216,18 @@ def tracer_ms(stats: FrameStats) -> float:
 def floor_ms(rays: dict[str, float], rates: dict[str, float]) -> float:
     """The bare-embreex time of a frame's rays by kind at `rates` (BareRays.rates)."""
     return sum(n / rates[kind] * 1e3 for kind, n in rays.items() if n)
+
+
+def frame_arguments(ap: argparse.ArgumentParser, frames: int, warmup: int | None = None) -> None:
+    """The options of a bench that renders one eye's frames of a method (left_eye_requests): --scene, --profile,
+    --frames, --warmup (where the bench leaves warm-up frames out), --trace and --gaze."""
+    ap.add_argument("--scene", default="whitted")
+    ap.add_argument("--profile", default="rift_s")
+    ap.add_argument("--frames", type=int, default=frames)
+    if warmup is not None:
+        ap.add_argument("--warmup", type=int, default=warmup)
+    ap.add_argument("--trace", choices=["builtin"], default=None, help="the built-in head path (default: still)")
+    ap.add_argument("--gaze", default="0,0")
 
 
 def left_eye_requests(

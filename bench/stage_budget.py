@@ -34,7 +34,7 @@ import time
 from collections import defaultdict
 
 import numpy as np
-from references import BareRays, ImageCopy, floor_ms, left_eye_requests, tracer_ms
+from references import BareRays, ImageCopy, floor_ms, frame_arguments, left_eye_requests, tracer_ms
 
 from hmdrt.foveation import make_method
 from hmdrt.foveation.registry import bench_methods
@@ -54,12 +54,7 @@ def default_methods() -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", default="whitted")
-    ap.add_argument("--profile", default="rift_s")
-    ap.add_argument("--frames", type=int, default=8)
-    ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--trace", choices=["builtin"], default=None, help="the built-in head path (default: still)")
-    ap.add_argument("--gaze", default="0,0")
+    frame_arguments(ap, 8, 2)
     ap.add_argument("--methods", nargs="+", default=default_methods())
     args = ap.parse_args()
     if args.frames <= args.warmup:
