@@ -162,7 +162,7 @@ def _band(xy, s):
 
 
 @inline
-def _pair(xy, s, stop):
+def _group(xy, s, stop):
     """The group of TILE_COLUMNS columns that sample s lies in, the largest int64 for s at `stop` (a run's end)."""
     return int(xy[s, 0]) // TILE_COLUMNS if s < stop else 0x7FFFFFFFFFFFFFFF
 
@@ -193,20 +193,20 @@ def _tile_order(xy, count, listed):
                     c3 = j
             j += 1
         e0, e1, e2, e3 = min(c1, j), min(c2, j), min(c3, j), j
-        k0, k1, k2, k3 = _pair(xy, c0, e0), _pair(xy, c1, e1), _pair(xy, c2, e2), _pair(xy, c3, e3)
+        k0, k1, k2, k3 = _group(xy, c0, e0), _group(xy, c1, e1), _group(xy, c2, e2), _group(xy, c3, e3)
         for out in range(i, j):
             if k0 <= k1 and k0 <= k2 and k0 <= k3:
                 listed[out], c0 = c0, c0 + 1
-                k0 = _pair(xy, c0, e0)
+                k0 = _group(xy, c0, e0)
             elif k1 <= k2 and k1 <= k3:
                 listed[out], c1 = c1, c1 + 1
-                k1 = _pair(xy, c1, e1)
+                k1 = _group(xy, c1, e1)
             elif k2 <= k3:
                 listed[out], c2 = c2, c2 + 1
-                k2 = _pair(xy, c2, e2)
+                k2 = _group(xy, c2, e2)
             else:
                 listed[out], c3 = c3, c3 + 1
-                k3 = _pair(xy, c3, e3)
+                k3 = _group(xy, c3, e3)
         i = j
 
 
