@@ -1,11 +1,14 @@
 """The SIMD intrinsics against the same arithmetic written channel by channel: bit for bit."""
 
+import ctypes
+import mmap
+
 import numba as nb
 import numpy as np
 import pytest
 
 from hmdrt.foveation.stages.pyramid import DEPTH, WEIGHT
-from hmdrt.kernels.simd import rgb_accumulate, texel_blend, texel_blend_into, texel_mean
+from hmdrt.kernels.simd import rgb_accumulate, rgb_bilinear, texel_blend, texel_blend_into, texel_mean
 
 
 @nb.njit(cache=True)
@@ -156,3 +159,55 @@ def test_rgb_accumulate_is_the_channel_by_channel_sum_bit_for_bit_to_the_last_te
     _accumulate_all(data, weights, True, simd)
     _accumulate_all(data, weights, False, scalar)
     assert np.array_equal(simd.view(np.uint64), scalar.view(np.uint64))
+
+
+@nb.njit(cache=True)
+def _bilinear_all(image, taps, weights, simd, out):
+    flat = image.reshape(-1)
+    for t in range(taps.shape[0]):
+        i, step_x, step_y = np.uint64(taps[t, 0]), np.uint64(taps[t, 1]), np.uint64(taps[t, 2])
+        a, b = weights[t, 0], weights[t, 1]
+        if simd:
+            out[t, 0], out[t, 1], out[t, 2] = rgb_bilinear(image, i, step_x, step_y, a, b)
+            continue
+        w00, w01, w10, w11 = (1.0 - a) * (1.0 - b), a * (1.0 - b), (1.0 - a) * b, a * b
+        for c in range(3):
+            k = i + np.uint64(c)
+            out[t, c] = (
+                w00 * flat[k] + w01 * flat[k + step_x] + w10 * flat[k + step_y] + w11 * flat[k + step_y + step_x]
+            )
+
+
+def _guarded(texels: int) -> tuple[np.ndarray, mmap.mmap]:
+    """A (texels, 3) float32 array that ends where an unreadable page begins: a read past its last float faults."""
+    page = mmap.PAGESIZE
+    size = -(-texels * 12 // page) * page
+    pages = mmap.mmap(-1, size + page)
+    libc = ctypes.CDLL(None, use_errno=True)
+    base = ctypes.addressof(ctypes.c_char.from_buffer(pages))
+    assert libc.mprotect(ctypes.c_void_p(base + size), page, 0) == 0  # PROT_NONE
+    return np.frombuffer(pages, np.float32, texels * 3, size - texels * 12).reshape(texels, 3), pages
+
+
+def test_rgb_bilinear_is_the_channel_by_channel_tap_bit_for_bit_and_reads_nothing_past_the_image():
+    """Taps over a 20 x 50 RGB image (inf and NaN among its channels, weights 0 and 1 among theirs), clamped at its
+    border as bilinear_footprint clamps them, the last texel among their corners, against the same products and
+    sums written channel by channel; the image ends at an unreadable page, so a load past its last float faults."""
+    h, w, n = 20, 50, 5000
+    rng = np.random.default_rng(8)
+    image, pages = _guarded(h * w)
+    image[:] = rng.standard_normal((h * w, 3)) * 1e3
+    image[::11, 0] = np.inf
+    image[5::13, 2] = np.nan
+    x, y = rng.integers(0, w, n), rng.integers(0, h, n)
+    x[:50], y[:50] = w - 1, h - 1  # the last texel, every step clamped to 0
+    taps = np.stack([3 * (y * w + x), np.where(x < w - 1, 3, 0), np.where(y < h - 1, 3 * w, 0)], 1)
+    weights = rng.random((n, 2))
+    weights[50:100] = 0.0
+    weights[100:150] = 1.0
+    simd, scalar = np.empty((n, 3)), np.empty((n, 3))
+    _bilinear_all(image, taps, weights, True, simd)
+    _bilinear_all(image, taps, weights, False, scalar)
+    assert np.array_equal(simd.view(np.uint64), scalar.view(np.uint64))
+    del image
+    pages.close()

@@ -3,7 +3,8 @@
 numba compiles with LLVM's SLP vectoriser off (it can miscompile: numba pull request 8852), so a blend written
 channel by channel stays one load and one multiply per float. These builders let an intrinsic load a texel's
 channels as one vector and blend them lane by lane; `texel_blend` is such an intrinsic for the foveation pyramids
-(`texel_blend_into` stores its blend as a texel), `rgb_accumulate` one for sums of weighted RGB texels in float64.
+(`texel_blend_into` stores its blend as a texel), `rgb_accumulate` one for sums of weighted RGB texels in float64,
+`rgb_bilinear` a bilinear tap of an RGB image in float64.
 """
 
 from __future__ import annotations
@@ -148,6 +149,53 @@ def rgb_accumulate(typingctx, r, g, b, weight, data, i):
         return context.make_tuple(builder, sig.return_type, lanes)
 
     return types.UniTuple(types.float64, 3)(r, g, b, weight, data, i), codegen
+
+
+def _rgb_at(builder: ir.IRBuilder, data: ir.Value, index: ir.Value) -> ir.Value:
+    """The three float32 from element `index` of data as the first lanes of four (the fourth 0): one masked load
+    (llvm.masked.load), which reads nothing past the three, so the last texel of an image needs no spare float."""
+    vector, mask = ir.VectorType(F32, 4), ir.VectorType(ir.IntType(1), 4)
+    fn = cgutils.get_or_insert_function(
+        builder.module,
+        ir.FunctionType(vector, [vector.as_pointer(), I32, mask, vector]),
+        "llvm.masked.load.v4f32.p0v4f32",
+    )
+    lanes, zero = ir.Constant(mask, [1, 1, 1, 0]), ir.Constant(vector, [0.0] * 4)
+    return builder.call(fn, [vector_at(builder, data, index, 4), ir.Constant(I32, 4), lanes, zero])
+
+
+@intrinsic
+def rgb_bilinear(typingctx, data, i, step_x, step_y, a, b):
+    """The bilinear tap of an RGB image read flat (`data`, a C-contiguous float32 array of any shape, indexed by
+    element as its flat view is) at element i (a texel's red) and its neighbours step_x to the right and step_y down,
+    with float64 weights a across and b down, in float64: (1 - a)(1 - b) t00 + a (1 - b) t01 + (1 - a) b t10 + a b t11,
+    the weights, products and sums in that order, each rounded on its own as the same sum written channel by
+    channel (projection.blend_footprint's). Each texel one masked load, the sums three lanes at once. The indices
+    are not checked."""
+    if (a, b) != (types.float64,) * 2 or not all(isinstance(k, types.Integer) for k in (i, step_x, step_y)):
+        return None
+    if not (isinstance(data, types.Array) and data.layout == "C" and data.dtype == types.float32):
+        return None
+
+    def codegen(context, builder, sig, args):
+        array = context.make_array(sig.args[0])(context, builder, args[0])
+        indices = zip(args[1:4], sig.args[1:4], strict=True)
+        first, right, down = (context.cast(builder, v, t, types.uint64) for v, t in indices)
+        a, b = args[4], args[5]
+        one = ir.Constant(F64, 1.0)
+        p, q = builder.fsub(one, a), builder.fsub(one, b)
+        weights = (builder.fmul(p, q), builder.fmul(a, q), builder.fmul(p, b), builder.fmul(a, b))
+        below = builder.add(first, down)
+        texels = (first, builder.add(first, right), below, builder.add(below, right))
+        total = None
+        for weight, k in zip(weights, texels, strict=True):
+            texel = builder.fpext(_rgb_at(builder, array.data, k), ir.VectorType(F64, 4))
+            term = builder.fmul(splat(builder, weight, 4), texel)
+            total = term if total is None else builder.fadd(total, term)
+        lanes = [builder.extract_element(total, ir.Constant(I32, lane)) for lane in range(3)]
+        return context.make_tuple(builder, sig.return_type, lanes)
+
+    return types.UniTuple(types.float64, 3)(data, i, step_x, step_y, a, b), codegen
 
 
 @intrinsic

@@ -14,6 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 from hmdrt.kernels.jit import inline, serial
+from hmdrt.kernels.simd import rgb_bilinear
 from hmdrt.optics.camera import EyeCamera
 
 FAR = 1e7  # metres: where a miss is placed so that it reprojects as a direction
@@ -102,19 +103,10 @@ def nearest_index(x, y, w, h):
 
 @serial
 def bilinear3(image, x, y):
-    """The three channels of image (h, w, 3) at continuous (x, y), clamped at the border."""
-    h, w = image.shape[0], image.shape[1]
-    fx, fy = x - 0.5, y - 0.5
-    x0, y0 = math.floor(fx), math.floor(fy)
-    ax, ay = fx - x0, fy - y0
-    ix0, iy0 = min(max(int(x0), 0), w - 1), min(max(int(y0), 0), h - 1)
-    ix1, iy1 = min(max(int(x0) + 1, 0), w - 1), min(max(int(y0) + 1, 0), h - 1)
-    w00, w01, w10, w11 = (1.0 - ax) * (1.0 - ay), ax * (1.0 - ay), (1.0 - ax) * ay, ax * ay
-    return (
-        w00 * image[iy0, ix0, 0] + w01 * image[iy0, ix1, 0] + w10 * image[iy1, ix0, 0] + w11 * image[iy1, ix1, 0],
-        w00 * image[iy0, ix0, 1] + w01 * image[iy0, ix1, 1] + w10 * image[iy1, ix0, 1] + w11 * image[iy1, ix1, 1],
-        w00 * image[iy0, ix0, 2] + w01 * image[iy0, ix1, 2] + w10 * image[iy1, ix0, 2] + w11 * image[iy1, ix1, 2],
-    )
+    """The three channels of image (h, w, 3), C-contiguous, at continuous (x, y), clamped at the border
+    (bilinear_footprint, then blend_footprint)."""
+    a, b, i, step_x, step_y = bilinear_footprint(x, y, image.shape[1], image.shape[0])
+    return blend_footprint(image, i, step_x, step_y, a, b)  # indexed flat, without a reshaped view's reference count
 
 
 @inline
@@ -133,15 +125,11 @@ def bilinear_footprint(x, y, w, h):
 
 @inline
 def blend_footprint(flat, i, step_x, step_y, a, b):
-    """The three channels at a bilinear_footprint (i, step_x, step_y, weights a, b) of the flat image: bilinear3's
-    sums in the same order, so the same values."""
-    w00, w01, w10, w11 = (1.0 - a) * (1.0 - b), a * (1.0 - b), (1.0 - a) * b, a * b
-    red = w00 * flat[i] + w01 * flat[i + step_x] + w10 * flat[i + step_y] + w11 * flat[i + step_y + step_x]
-    i += np.uint64(1)
-    green = w00 * flat[i] + w01 * flat[i + step_x] + w10 * flat[i + step_y] + w11 * flat[i + step_y + step_x]
-    i += np.uint64(1)
-    blue = w00 * flat[i] + w01 * flat[i + step_x] + w10 * flat[i + step_y] + w11 * flat[i + step_y + step_x]
-    return red, green, blue
+    """The three channels at a bilinear_footprint (i, step_x, step_y, weights a, b) of an image read flat (any
+    C-contiguous float32 array of its texels' channels), in float64:
+    the weights (1 - a)(1 - b), a (1 - b), (1 - a) b and a b times the top-left, top-right, bottom-left and
+    bottom-right texels, summed in that order (simd.rgb_bilinear: each texel one load, three channels at once)."""
+    return rgb_bilinear(flat, i, step_x, step_y, a, b)
 
 
 NEAR = 1e-4  # metres: mesh vertices closer to (or behind) the current eye drop their triangles
