@@ -311,8 +311,7 @@ def test_weier18_taa_blends_each_sample_only_with_taps_that_see_its_surface(prev
     its distance, a miss only with taps that missed too; all five taps seen, the new sample keeps alpha_min."""
     from hmdrt.foveation.stages.pyramid import quincunx_offset
     from hmdrt.foveation.stages.temporal import relative_view
-    from hmdrt.foveation.weier18 import Blend, Reprojected, Traced, _taa
-    from hmdrt.optics.projection import camera_arrays
+    from hmdrt.foveation.weier18 import Blend, Reprojected, Tangents, Traced, _taa
 
     w, h = 16, 12
     cam = camera("sim-cpu", width=w, height=h)
@@ -330,9 +329,25 @@ def test_weier18_taa_blends_each_sample_only_with_taps_that_see_its_surface(prev
     )
     alpha_min = 0.2
     blend = Blend(alpha_min, 0.05)
-    _taa(traced, camera_arrays(cam).frustum, relative_view(cam, cam), blend, previous, True, Reprojected.empty())
+    _taa(traced, Tangents.of(cam), relative_view(cam, cam), blend, previous, True, Reprojected.empty())
     blended = alpha_min * np.array([0.0, 0.0, 1.0]) + (1 - alpha_min) * np.array([1.0, 0.0, 0.0])
     seen = [previous_depth == 2.0, previous_depth == FAR]  # the surface sample's taps, the miss's
     for k, hit in enumerate(seen):
         np.testing.assert_allclose(traced.rgb[k], blended if hit else (0.0, 0.0, 1.0), rtol=1e-6)
     np.testing.assert_array_equal(traced.depth, [2.0, FAR])  # the miss's capped, as level 0 is to hold it
+
+
+def test_weier18_tangent_tables_are_the_rays_through_every_pixel_centre_bit_for_bit():
+    """TAA looks up each sample's ray tangents by its pixel's column and row (weier18.Tangents): the same numbers
+    pixel_tangents gives at that pixel's centre, on an off-centre frustum, so its back-projections are unchanged."""
+    from hmdrt.foveation.weier18 import Tangents
+    from hmdrt.optics.projection import camera_arrays, pixel_tangents
+
+    cam = camera("dk2", width=37, height=23)
+    tables = Tangents.of(cam)
+    frustum = camera_arrays(cam).frustum
+    assert frustum[0] != -frustum[1]  # an asymmetric frustum, as HMD eyes have
+    for y in range(cam.height):
+        for x in range(cam.width):
+            tx, ty = pixel_tangents(frustum, x + 0.5, y + 0.5)
+            assert (tables.x[x], tables.y[y]) == (tx, ty)

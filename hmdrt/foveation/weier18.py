@@ -59,11 +59,11 @@ from hmdrt.foveation.stages.sampling import (
     pixels_per_degree,
     sampling_tables,
 )
-from hmdrt.foveation.stages.temporal import eye_point, relative_view, view_project
+from hmdrt.foveation.stages.temporal import ray_point, relative_view, view_project
 from hmdrt.kernels.jit import kernel, serial
 from hmdrt.kernels.schedule import claim, dynamic
 from hmdrt.optics.camera import EyeCamera, eccentricity_map
-from hmdrt.optics.projection import FAR, camera_arrays
+from hmdrt.optics.projection import FAR, camera_arrays, pixel_tangents
 from hmdrt.ranges import Deg, Fraction
 from hmdrt.telemetry.stats import FrameStats, nbytes
 from hmdrt.trace.gbuffer import GBufferPool
@@ -136,6 +136,29 @@ class Reprojected(NamedTuple):
         return cls(np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape))
 
 
+class Tangents(NamedTuple):
+    """The view rays' tangents through the centres of an image's pixel columns and rows (projection.pixel_tangents
+    depends on x and y apart): a sample at a pixel centre looks them up, where each would take a division."""
+
+    x: np.ndarray  # (width,) float64
+    y: np.ndarray  # (height,) float64
+
+    @classmethod
+    def of(cls, camera: EyeCamera) -> Tangents:
+        out = cls(np.empty(camera.width), np.empty(camera.height))
+        _tangent_tables(camera_arrays(camera).frustum, out)
+        return out
+
+
+@serial
+def _tangent_tables(frustum, out):
+    """The Tangents of the camera with this frustum (CameraArrays.frustum) into `out`, of its size."""
+    for i in range(out.x.shape[0]):
+        out.x[i] = pixel_tangents(frustum, i + 0.5, 0.5)[0]
+    for j in range(out.y.shape[0]):
+        out.y[j] = pixel_tangents(frustum, 0.5, j + 0.5)[1]
+
+
 @serial
 def _tap(u, v, t, expected, tol, valid, r, g, b):
     """Adds the quincunx tap t of the way from its level's u to the next level's v to the count and the colour
@@ -147,13 +170,13 @@ def _tap(u, v, t, expected, tol, valid, r, g, b):
 
 
 @serial
-def _taa_block(traced, frustum, view, blend, previous, history, start, stop, where):
-    """Samples [start, stop): with history, each one's point in the current eye frame (frustum) seen from the
-    previous frame (its relative_view `view`) into `where`, in a loop of selects that vectorises, then the previous
-    pyramid's quincunx taps there blended into its rgb, in one pass per level the block reads (as
-    pyramid.sample_row: a pass's level constants stay put, where a loop that picks each sample's level reloads
-    them); a sample on a whole level reads that level alone. Last, each sample's depth capped at FAR: what level 0
-    is to hold, which the pull-push writes there (pyramid.LevelSamples)."""
+def _taa_block(traced, tangents, view, blend, previous, history, start, stop, where):
+    """Samples [start, stop): with history, each one's point in the current eye frame (along its pixel centre's ray,
+    Tangents) seen from the previous frame (its relative_view `view`) into `where`, in a loop of selects that
+    vectorises, then the previous pyramid's quincunx taps there blended into its rgb, in one pass per level the block
+    reads (as pyramid.sample_row: a pass's level constants stay put, where a loop that picks each sample's level
+    reloads them); a sample on a whole level reads that level alone. Last, each sample's depth capped at FAR: what
+    level 0 is to hold, which the pull-push writes there (pyramid.LevelSamples)."""
     _, xy, levels, offsets, depth, rgb = traced
     alpha_min, tol = blend
     p_data, p_offsets, p_widths, p_heights, p_sx, p_sy = previous
@@ -162,14 +185,17 @@ def _taa_block(traced, frustum, view, blend, previous, history, start, stop, whe
     pw, ph = p_widths[0], p_heights[0]
     if history:
         ftop = float(top)
-        for s in range(start, stop):
-            j = s - start
-            px, py, pz = eye_point(frustum, np.float64(xy[s, 0]), np.float64(xy[s, 1]), depth[s])
+        tan_x, tan_y = tangents
+        block_xy, block_depth, block_levels = xy[start:stop], depth[start:stop], levels[start:stop]
+        for j in range(stop - start):  # the rays' tangents, table lookups that would keep the next loop scalar
+            at_x[j], at_y[j] = tan_x[np.uint64(block_xy[j, 0])], tan_y[np.uint64(block_xy[j, 1])]
+        for j in range(stop - start):  # indices from 0: no negative-index selects, so the loop vectorises
+            px, py, pz = ray_point(at_x[j], at_y[j], block_depth[j])
             qx, qy, dist = view_project(view, px, py, pz)
             at_x[j], at_y[j] = qx, qy
-            expected[j] = dist if depth[s] < FAR else math.inf
+            expected[j] = dist if block_depth[j] < FAR else math.inf
             inside = (qx >= 0.0) & (qy >= 0.0) & (qx < pw) & (qy < ph)
-            at_level[j] = min(max(levels[s], 0.0), ftop) if inside else -1.0
+            at_level[j] = min(max(block_levels[j], 0.0), ftop) if inside else -1.0
         lo, hi = top, -1
         for j in range(stop - start):
             if at_level[j] >= 0.0:
@@ -202,7 +228,7 @@ def _taa_block(traced, frustum, view, blend, previous, history, start, stop, whe
 
 
 @kernel
-def _taa_blocks(traced, frustum, view, blend, previous, history, where, counter, threads):
+def _taa_blocks(traced, tangents, view, blend, previous, history, where, counter, threads):
     """_taa's blocks, claimed (hmdrt.kernels.schedule): a foveal sample taps one level, a peripheral one two, one
     outside the previous frame none."""
     n = traced.pixels.shape[0]
@@ -213,13 +239,13 @@ def _taa_blocks(traced, frustum, view, blend, previous, history, where, counter,
         block = claim(counter)
         while block < blocks:
             start, stop = block * BLOCK, min(n, (block + 1) * BLOCK)
-            _taa_block(traced, frustum, view, blend, previous, history, start, stop, rows)
+            _taa_block(traced, tangents, view, blend, previous, history, start, stop, rows)
             block = claim(counter)
 
 
 def _taa(
     traced: Traced,
-    frustum: np.ndarray,
+    tangents: Tangents,
     view: np.ndarray,
     blend: Blend,
     previous: Pyramid,
@@ -227,9 +253,10 @@ def _taa(
     where: Reprojected,
 ) -> None:
     """Each traced sample's colour blended with the previous frame's pyramid around its back-projection
-    (temporal.relative_view `view` of the previous camera) when there is history, and its depth capped at FAR, in
-    place: what level 0 is to hold (pull_push writes them there); `where`: Reprojected scratch."""
-    dynamic(_taa_blocks, traced, frustum, view, blend, previous, history, where)
+    (temporal.relative_view `view` of the previous camera; `tangents`: the current camera's) when there is history,
+    and its depth capped at FAR, in place: what level 0 is to hold (pull_push writes them there); `where`:
+    Reprojected scratch."""
+    dynamic(_taa_blocks, traced, tangents, view, blend, previous, history, where)
 
 
 @dataclass
@@ -249,6 +276,8 @@ class _EyeState:
     windows: np.ndarray | None = None  # the texels of each level the enhancement reads (enhance_windows)
     blurred: Pyramid | None = None  # contrast enhancement's prefiltered pyramid
     levels_for: tuple | None = None  # the (gaze, r0, r1) the levels and windows were computed for
+    tangents: Tangents | None = None  # TAA's view rays through the pixel centres
+    tangents_for: tuple | None = None  # the frustum they were computed for
     layers: Layers | None = None  # the depth of field's buffers
 
 
@@ -377,6 +406,13 @@ class Weier18(Configurable):
             self.tracer.trace_samples(request.camera, samples.xy, keys, stats, gbuf, out=rgb)
         return Traced(samples.pixels, samples.xy, samples.level, samples.offset, gbuf.primary.depth, rgb)
 
+    @staticmethod
+    def _tangents(state: _EyeState, cam: EyeCamera) -> Tangents:
+        """The camera's Tangents, computed again only when its frustum changes."""
+        if state.tangents_for != cam._frustum():
+            state.tangents, state.tangents_for = Tangents.of(cam), cam._frustum()
+        return state.tangents
+
     def _reconstruct(
         self, state: _EyeState, cam: EyeCamera, traced: Traced, steps: tuple[str, ...], stats: FrameStats
     ) -> Pyramid:
@@ -385,7 +421,7 @@ class Weier18(Configurable):
         p = self.params
         state.pyramids.reverse()
         current, previous = state.pyramids
-        frustum, view = camera_arrays(cam).frustum, relative_view(state.camera, cam)
+        tangents, view = self._tangents(state, cam), relative_view(state.camera, cam)
         blend = Blend(p.alpha_min, p.taa_depth)
         texel = current.data.itemsize * current.data.shape[1]
         samples = LevelSamples(
@@ -393,13 +429,13 @@ class Weier18(Configurable):
         )
         if "taa" in steps:  # each sample read and written back, and at least one texel of the previous frame read
             with stats.stage("taa", touches=nbytes(*traced, samples.rgb, samples.depth) + len(traced.pixels) * texel):
-                _taa(traced, frustum, view, blend, previous, True, state.reprojected)
+                _taa(traced, tangents, view, blend, previous, True, state.reprojected)
         # level 0 written by the push (its samples too), the coarser levels by the pull and read by the push, the
         # samples read twice
         fine = current.level(0).nbytes
         with stats.stage("ppi", touches=fine + 2 * (current.data.nbytes - fine) + 2 * nbytes(*samples)):
             if "taa" not in steps:
-                _taa(traced, frustum, view, blend, previous, False, state.reprojected)
+                _taa(traced, tangents, view, blend, previous, False, state.reprojected)
             pull_push(current, samples, state.columns)
         return current
 

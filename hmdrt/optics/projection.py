@@ -36,7 +36,7 @@ def camera_arrays(camera: EyeCamera, width: int | None = None, height: int | Non
 
 
 @serial
-def _tangents(f, x, y):
+def pixel_tangents(f, x, y):
     """The view ray's tangents (x right, y up) through continuous pixel (x, y) of frustum f. Divisions as ufuncs
     here and below: numba's zero-division branch on `/` keeps a loop that calls these from vectorising."""
     return f[0] + np.divide(x * (f[1] - f[0]), f[4]), f[2] - np.divide(y * (f[2] - f[3]), f[5])
@@ -63,7 +63,7 @@ def _to_eye(cam, px, py, pz):
 @inline
 def ray_direction(cam, x, y):
     """World unit direction of the view ray through continuous pixel (x, y)."""
-    tx, ty = _tangents(cam.frustum, x, y)
+    tx, ty = pixel_tangents(cam.frustum, x, y)
     inv = np.divide(1.0, math.sqrt(tx * tx + ty * ty + 1.0))
     r = cam.rotation
     ex, ey, ez = tx * inv, ty * inv, -inv
@@ -139,7 +139,7 @@ NEAR = 1e-4  # metres: mesh vertices closer to (or behind) the current eye drop 
 def view_point(cam, x, y, z):
     """The world point at view depth z (along -Z) on the view ray through continuous pixel (x, y)."""
     r = cam.rotation
-    tx, ty = _tangents(cam.frustum, x, y)
+    tx, ty = pixel_tangents(cam.frustum, x, y)
     return (
         cam.position[0] + z * (r[0, 0] * tx + r[0, 1] * ty - r[0, 2]),
         cam.position[1] + z * (r[1, 0] * tx + r[1, 1] * ty - r[1, 2]),
@@ -150,7 +150,7 @@ def view_point(cam, x, y, z):
 @inline
 def view_distance(cam, x, y, z):
     """The distance from the eye of the point at view depth z on the view ray through pixel (x, y)."""
-    tx, ty = _tangents(cam.frustum, x, y)
+    tx, ty = pixel_tangents(cam.frustum, x, y)
     return z * math.sqrt(tx * tx + ty * ty + 1.0)
 
 

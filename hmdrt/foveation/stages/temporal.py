@@ -19,7 +19,7 @@ from hmdrt.kernels.memory import touched
 from hmdrt.kernels.schedule import claim, dynamic
 from hmdrt.kernels.simd import rgb_accumulate
 from hmdrt.optics.camera import EyeCamera
-from hmdrt.optics.projection import FAR, bilinear_footprint, blend_footprint, camera_arrays
+from hmdrt.optics.projection import FAR, bilinear_footprint, blend_footprint, camera_arrays, pixel_tangents
 
 
 @inline
@@ -161,13 +161,19 @@ def relative_view(earlier: EyeCamera, current: EyeCamera) -> np.ndarray:
 
 
 @inline
+def ray_point(tx, ty, depth):
+    """The point at hit distance `depth` (FAR for a miss) along the view ray with tangents (tx, ty)
+    (projection.pixel_tangents), in its camera's eye frame."""
+    s = np.divide(min(depth, FAR), math.sqrt(tx * tx + ty * ty + 1.0))
+    return s * tx, s * ty, -s
+
+
+@inline
 def eye_point(frustum, x, y, depth):
     """The point at hit distance `depth` (FAR for a miss) along the view ray through continuous pixel (x, y), in
     the eye frame of the camera with this frustum (CameraArrays.frustum)."""
-    tx = frustum[0] + np.divide(x * (frustum[1] - frustum[0]), frustum[4])
-    ty = frustum[2] - np.divide(y * (frustum[2] - frustum[3]), frustum[5])
-    s = np.divide(min(depth, FAR), math.sqrt(tx * tx + ty * ty + 1.0))
-    return s * tx, s * ty, -s
+    tx, ty = pixel_tangents(frustum, x, y)
+    return ray_point(tx, ty, depth)
 
 
 @inline
