@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hmdrt.foveation.stages.pyramid import DEPTH, WEIGHT
-from hmdrt.kernels.simd import rgb_accumulate, rgb_bilinear, texel_blend, texel_blend_into, texel_mean
+from hmdrt.kernels.simd import rgb_accumulate, rgb_bilinear, texel_blend, texel_blend_into, texel_mean, texel_trilinear
 
 
 @nb.njit(cache=True)
@@ -52,6 +52,43 @@ def test_texel_blend_is_the_channel_by_channel_blend_bit_for_bit():
     # the last texel's first four floats are within the array: no read past it
     last = np.uint64(len(data) - 1)
     assert texel_blend_at(data, last) == pytest.approx(tuple(data[-1, :4]))
+
+
+@nb.njit(cache=True)
+def _trilinear_all(data, taps, weights, ts, simd, out):
+    for i in range(taps.shape[0]):
+        k00, k01, k10, k11 = _corners(taps, i)
+        m00, m01, m10, m11 = _corners(taps[:, 4:], i)
+        a, b, c, d, t = weights[i, 0], weights[i, 1], weights[i, 2], weights[i, 3], ts[i]
+        if simd:
+            out[i, 0], out[i, 1], out[i, 2], out[i, 3] = texel_trilinear(
+                data, k00, k01, k10, k11, a, b, m00, m01, m10, m11, c, d, t
+            )
+        else:
+            u, v = _by_channel(data, k00, k01, k10, k11, a, b), _by_channel(data, m00, m01, m10, m11, c, d)
+            for lane in range(4):
+                out[i, lane] = u[lane] + t * (v[lane] - u[lane])
+
+
+def test_texel_trilinear_is_the_lerp_of_two_blends_channel_by_channel_bit_for_bit():
+    """Two texel blends and the float64 lerp between them (t 0, 1 and between; inf depths among the texels), against
+    the blends channel by channel and the lerp written lane by lane: v - u in float32, the rest in float64. NaN
+    where both depths are inf, in either."""
+    rng = np.random.default_rng(9)
+    data = (rng.standard_normal((500, 5)) * 1e3).astype(np.float32)
+    data[::7, DEPTH] = np.inf
+    taps = rng.integers(0, len(data), (20000, 8))
+    weights = rng.random((20000, 4)).astype(np.float32)
+    ts = rng.random(20000)
+    ts[:100], ts[100:200] = 0.0, 1.0
+    taps[:100, 4:] = taps[:100, :4]  # t = 0 with the same taps twice, as quincunx reads a whole level
+    weights[:100, 2:] = weights[:100, :2]
+    simd, scalar = np.empty((20000, 4)), np.empty((20000, 4))
+    _trilinear_all(data, taps, weights, ts, True, simd)
+    _trilinear_all(data, taps, weights, ts, False, scalar)
+    assert np.array_equal(np.isnan(simd), np.isnan(scalar))  # inf - inf in a depth lane, whichever NaN it makes
+    finite = ~np.isnan(scalar)
+    assert np.array_equal(simd[finite].view(np.uint64), scalar[finite].view(np.uint64))
 
 
 @nb.njit(cache=True)

@@ -48,7 +48,7 @@ from hmdrt.foveation.stages.pyramid import (
     pixel_axes,
     pull_push,
     push_columns,
-    quincunx_level,
+    quincunx,
 )
 from hmdrt.foveation.stages.sampling import (
     FOVEAL_REGION_KNOBS,
@@ -160,12 +160,12 @@ def _tangent_tables(frustum, out):
 
 
 @serial
-def _tap(u, v, t, expected, tol, valid, r, g, b):
-    """Adds the quincunx tap t of the way from its level's u to the next level's v to the count and the colour
-    sums if it sees the sample's surface (its depth within tol of the expected one, or both misses)."""
-    d = u[3] + t * (v[3] - u[3])
+def _tap(tap, expected, tol, valid, r, g, b):
+    """Adds quincunx tap `tap` (colour and depth, pyramid.quincunx) to the count and the colour sums if it sees the
+    sample's surface (its depth within tol of the expected one, or both misses)."""
+    d = tap[3]
     if (d >= 0.5 * FAR) if math.isinf(expected) else abs(d - expected) <= tol * expected:
-        return valid + 1, r + (u[0] + t * (v[0] - u[0])), g + (u[1] + t * (v[1] - u[1])), b + (u[2] + t * (v[2] - u[2]))
+        return valid + 1, r + tap[0], g + tap[1], b + tap[2]
     return valid, r, g, b
 
 
@@ -202,22 +202,21 @@ def _taa_block(traced, tangents, view, blend, previous, history, start, stop, wh
                 lo, hi = min(lo, int(at_level[j])), max(hi, int(at_level[j]))
         for k in range(lo, hi + 1):
             up = min(k + 1, top)
-            o, w, h, sx, sy = p_offsets[k], p_widths[k], p_heights[k], p_sx[k], p_sy[k]
-            o_up, w_up, h_up, sx_up, sy_up = p_offsets[up], p_widths[up], p_heights[up], p_sx[up], p_sy[up]
+            lower = (p_offsets[k], p_widths[k], p_heights[k], p_sx[k], p_sy[k])
+            upper = (p_offsets[up], p_widths[up], p_heights[up], p_sx[up], p_sy[up])
             for s in range(start, stop):
                 j = s - start
                 level = at_level[j]
                 if level < 0.0 or int(level) != k:
                     continue
                 qx, qy, off, e = at_x[j], at_y[j], offsets[s], expected[j]
-                u = quincunx_level(p_data, o, w, h, sx, sy, off, qx, qy)
-                t = level - k  # 0 on the top level and on whole levels, where v adds nothing to finite u
-                v = u if t == 0.0 else quincunx_level(p_data, o_up, w_up, h_up, sx_up, sy_up, off, qx, qy)
-                valid, tr, tg, tb = _tap(u[0], v[0], t, e, tol, 0, 0.0, 0.0, 0.0)
-                valid, tr, tg, tb = _tap(u[1], v[1], t, e, tol, valid, tr, tg, tb)
-                valid, tr, tg, tb = _tap(u[2], v[2], t, e, tol, valid, tr, tg, tb)
-                valid, tr, tg, tb = _tap(u[3], v[3], t, e, tol, valid, tr, tg, tb)
-                valid, tr, tg, tb = _tap(u[4], v[4], t, e, tol, valid, tr, tg, tb)
+                t = level - k  # 0 on the top level and on whole levels, where the next level adds nothing
+                taps = quincunx(p_data, lower, upper, t, off, qx, qy)
+                valid, tr, tg, tb = _tap(taps[0], e, tol, 0, 0.0, 0.0, 0.0)
+                valid, tr, tg, tb = _tap(taps[1], e, tol, valid, tr, tg, tb)
+                valid, tr, tg, tb = _tap(taps[2], e, tol, valid, tr, tg, tb)
+                valid, tr, tg, tb = _tap(taps[3], e, tol, valid, tr, tg, tb)
+                valid, tr, tg, tb = _tap(taps[4], e, tol, valid, tr, tg, tb)
                 if valid > 0:
                     alpha = max(alpha_min, 1.0 - valid / 5.0)
                     rgb[s, 0] = alpha * rgb[s, 0] + (1.0 - alpha) * tr / valid

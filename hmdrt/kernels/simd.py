@@ -109,6 +109,31 @@ def _blend_texels(context, builder, sig, args) -> ir.Value:
 
 
 @intrinsic
+def texel_trilinear(typingctx, data, k00, k01, k10, k11, a, b, m00, m01, m10, m11, c, d, t):
+    """u + t (v - u) lane by lane in float64, for u the texel_blend of texels k00..k11 with weights a, b and v that of
+    m00..m11 with c, d (two pyramid levels, say): v - u in float32, then t times it added to u in float64, the
+    multiply and the add apart, so that each lane rounds as the same lerp written channel by channel with a
+    float64 t does. Each texel one 16-byte load; the blends and the lerp four lanes at once. The indices are not
+    checked."""
+    if not (_blend_types(data, k00, k01, k10, k11, a, b) and _blend_types(data, m00, m01, m10, m11, c, d)):
+        return None
+    if t != types.float64:
+        return None
+
+    def codegen(context, builder, sig, args):
+        u = _blend_texels(context, builder, sig, args)
+        v = _blend_texels(context, builder, sig.return_type(sig.args[0], *sig.args[7:13]), (args[0], *args[7:13]))
+        wide = ir.VectorType(F64, 4)
+        step = builder.fmul(splat(builder, args[13], 4), builder.fpext(builder.fsub(v, u), wide))
+        lerp = builder.fadd(builder.fpext(u, wide), step)
+        lanes = [builder.extract_element(lerp, ir.Constant(I32, i)) for i in range(4)]
+        return context.make_tuple(builder, sig.return_type, lanes)
+
+    signature = types.UniTuple(types.float64, 4)(data, k00, k01, k10, k11, a, b, m00, m01, m10, m11, c, d, t)
+    return signature, codegen
+
+
+@intrinsic
 def texel_blend_into(typingctx, data, k00, k01, k10, k11, a, b, i):
     """texel_blend's four lanes stored as texel i's first four channels of `data`, one 16-byte store (texel i must
     not be one of the four it reads from). The indices are not checked."""

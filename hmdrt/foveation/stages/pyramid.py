@@ -16,7 +16,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.kernels.jit import inline, kernel, serial
-from hmdrt.kernels.simd import texel_blend, texel_blend_into, texel_mean
+from hmdrt.kernels.simd import texel_blend, texel_blend_into, texel_mean, texel_trilinear
 
 CHANNELS = 5  # r, g, b, depth, weight
 DEPTH, WEIGHT = 3, 4  # a texel's hit distance and weight: its colour and depth are its first 16 bytes (texel_blend)
@@ -380,20 +380,43 @@ def sample_row(data, widths, axes, y, levels, values, texels):
 
 
 @inline
-def quincunx_level(data, o, w, h, sx, sy, off, x, y):
-    """weier2018 Figure 3's five taps (the centre, then the diagonals) on one level of a pyramid (first texel o,
-    w x h texels, sx and sy of its texels per full-resolution pixel) around full-resolution pixel coordinates
-    (x, y), `off` full-resolution pixels apart diagonally: each one's colour and depth. Taps in line share an
-    axis."""
+def _quincunx_axes(w, h, sx, sy, off, x, y):
+    """The axes of weier2018 Figure 3's taps on a level of w x h texels (sx and sy of them per full-resolution
+    pixel) around full-resolution pixel coordinates (x, y), `off` full-resolution pixels apart diagonally: x - off,
+    x and x + off across, then the same down."""
     x, y, off_x, off_y = x * sx, y * sy, off * sx, off * sy
-    xm, xc, xp = _axis(x - off_x, w), _axis(x, w), _axis(x + off_x, w)
-    ym, yc, yp = _axis(y - off_y, h), _axis(y, h), _axis(y + off_y, h)
+    return _axis(x - off_x, w), _axis(x, w), _axis(x + off_x, w), _axis(y - off_y, h), _axis(y, h), _axis(y + off_y, h)
+
+
+@inline
+def _trilinear(data, o, w, ax, ay, o_up, w_up, bx, by, t):
+    """A tap t of the way from the bilinear tap between axes ax and ay of one level (first texel o, width w) to the
+    one between bx and by of another (simd.texel_trilinear)."""
+    k00, k01, k10, k11, a, b = _corners(o, w, ax, ay)
+    m00, m01, m10, m11, c, d = _corners(o_up, w_up, bx, by)
+    return texel_trilinear(data, k00, k01, k10, k11, a, b, m00, m01, m10, m11, c, d, t)
+
+
+@inline
+def quincunx(data, lower, upper, t, off, x, y):
+    """weier2018 Figure 3's five taps (the centre, then the diagonals) around full-resolution pixel coordinates
+    (x, y), `off` full-resolution pixels apart diagonally, each t of the way from a pyramid level to the next:
+    `lower` and `upper` each a level's first texel, width, height and texels per full-resolution pixel across and
+    down. Each tap's colour and depth in float64; t = 0 reads the lower level alone, as u + 0 (u - u). Taps in line
+    share an axis."""
+    o, w, h, sx, sy = lower
+    xm, xc, xp, ym, yc, yp = _quincunx_axes(w, h, sx, sy, off, x, y)
+    if t == 0.0:
+        o_up, w_up, um, uc, up, vm, vc, vp = o, w, xm, xc, xp, ym, yc, yp
+    else:
+        o_up, w_up, h_up, sx_up, sy_up = upper
+        um, uc, up, vm, vc, vp = _quincunx_axes(w_up, h_up, sx_up, sy_up, off, x, y)
     return (
-        _bilinear(data, o, w, xc, yc),
-        _bilinear(data, o, w, xm, ym),
-        _bilinear(data, o, w, xp, ym),
-        _bilinear(data, o, w, xm, yp),
-        _bilinear(data, o, w, xp, yp),
+        _trilinear(data, o, w, xc, yc, o_up, w_up, uc, vc, t),
+        _trilinear(data, o, w, xm, ym, o_up, w_up, um, vm, t),
+        _trilinear(data, o, w, xp, ym, o_up, w_up, up, vm, t),
+        _trilinear(data, o, w, xm, yp, o_up, w_up, um, vp, t),
+        _trilinear(data, o, w, xp, yp, o_up, w_up, up, vp, t),
     )
 
 
