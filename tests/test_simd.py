@@ -8,7 +8,16 @@ import numpy as np
 import pytest
 
 from hmdrt.foveation.stages.pyramid import DEPTH, WEIGHT
-from hmdrt.kernels.simd import rgb_accumulate, rgb_bilinear, texel_blend, texel_blend_into, texel_mean, texel_trilinear
+from hmdrt.kernels.simd import (
+    rgb_accumulate,
+    rgb_bilinear,
+    rgb_blend,
+    rgb_lerp_to_blend,
+    texel_blend,
+    texel_blend_into,
+    texel_mean,
+    texel_trilinear,
+)
 
 
 @nb.njit(cache=True)
@@ -247,4 +256,41 @@ def test_rgb_bilinear_is_the_channel_by_channel_tap_bit_for_bit_and_reads_nothin
     _bilinear_all(image, taps, weights, False, scalar)
     assert np.array_equal(simd.view(np.uint64), scalar.view(np.uint64))
     del image
+    pages.close()
+
+
+@nb.njit(cache=True)
+def _row_lerps(rows, taps, weights, ts, simd, out):
+    for i in range(taps.shape[0]):
+        i0, i1, j0, j1 = taps[i, 0], taps[i, 1], taps[i, 2], taps[i, 3]
+        a, c, t = weights[i, 0], weights[i, 1], ts[i]
+        if simd:
+            r, g, b = rgb_blend(rows, i0, i1, a)
+            out[i, 0], out[i, 1], out[i, 2] = rgb_lerp_to_blend(r, g, b, rows, j0, j1, c, t)
+            out[i, 3], out[i, 4], out[i, 5] = r, g, b
+            continue
+        p, q = np.float32(1.0) - a, np.float32(1.0) - c
+        for ch in range(3):
+            x = p * rows[i0, ch] + a * rows[i1, ch]
+            v = q * rows[j0, ch] + c * rows[j1, ch]
+            out[i, ch], out[i, 3 + ch] = x + t * (v - x), x
+
+
+def test_rgb_blend_and_its_lerp_are_channel_by_channel_bit_for_bit_to_the_last_texel():
+    """rgb_blend and rgb_lerp_to_blend (pyramid.sample_row's steps) against the same float32 blends and float64 lerp
+    written channel by channel, over texels that end at an unreadable page (the last one among the taps)."""
+    rng = np.random.default_rng(10)
+    rows, pages = _guarded(400)
+    rows[:] = rng.standard_normal((400, 3)) * 1e3
+    taps = rng.integers(0, 400, (5000, 4))
+    taps[:50] = 399
+    weights = rng.random((5000, 2)).astype(np.float32)
+    weights[50:100] = 0.0
+    ts = rng.random(5000)
+    ts[100:150] = 0.0
+    simd, scalar = np.empty((5000, 6)), np.empty((5000, 6))
+    _row_lerps(rows, taps, weights, ts, True, simd)
+    _row_lerps(rows, taps, weights, ts, False, scalar)
+    assert np.array_equal(simd.view(np.uint64), scalar.view(np.uint64))
+    del rows
     pages.close()

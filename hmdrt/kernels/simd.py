@@ -223,6 +223,65 @@ def rgb_bilinear(typingctx, data, i, step_x, step_y, a, b):
     return types.UniTuple(types.float64, 3)(data, i, step_x, step_y, a, b), codegen
 
 
+def _rgb_row_types(rows, *indices) -> bool:
+    """Whether `rows` is a C-contiguous (n, 3) float32 array of RGB texels and `indices` integers."""
+    if not (isinstance(rows, types.Array) and rows.ndim == 2 and rows.layout == "C" and rows.dtype == types.float32):
+        return False
+    return all(isinstance(k, types.Integer) for k in indices)
+
+
+def _rgb_blend(context, builder, sig, args) -> ir.Value:
+    """(1 - a) rows[i0] + a rows[i1] in float32, four lanes (the fourth 0), for (rows, i0, i1, a) at the front of sig
+    and args; each texel one masked load (_rgb_at)."""
+    array = context.make_array(sig.args[0])(context, builder, args[0])
+    three = ir.Constant(ir.IntType(64), 3)
+    first, second = (
+        _rgb_at(builder, array.data, builder.mul(context.cast(builder, k, t, types.int64), three))
+        for k, t in zip(args[1:3], sig.args[1:3], strict=True)
+    )
+    a = splat(builder, args[3], 4)
+    p = builder.fsub(splat(builder, ir.Constant(F32, 1.0), 4), a)
+    return builder.fadd(builder.fmul(p, first), builder.fmul(a, second))
+
+
+@intrinsic
+def rgb_blend(typingctx, rows, i0, i1, a):
+    """(1 - a) rows[i0] + a rows[i1] for the three channels of an (n, 3) float32 array of texels, in float32, the
+    multiplies and the add apart as channel by channel; each texel one masked load, the blend three lanes at once.
+    The indices are not checked."""
+    if not (_rgb_row_types(rows, i0, i1) and a == types.float32):
+        return None
+
+    def codegen(context, builder, sig, args):
+        blend = _rgb_blend(context, builder, sig, args)
+        lanes = [builder.extract_element(blend, ir.Constant(I32, lane)) for lane in range(3)]
+        return context.make_tuple(builder, sig.return_type, lanes)
+
+    return types.UniTuple(types.float32, 3)(rows, i0, i1, a), codegen
+
+
+@intrinsic
+def rgb_lerp_to_blend(typingctx, r, g, b, rows, j0, j1, c, t):
+    """x + t (v - x) for the float32 colour x = (r, g, b) and v = rgb_blend(rows, j0, j1, c): v - x in float32, then
+    t times it added to x in float64, the multiply and the add apart, as channel by channel with a float64 t; three
+    lanes at once. The indices are not checked."""
+    if (r, g, b, c, t) != (types.float32,) * 4 + (types.float64,) or not _rgb_row_types(rows, j0, j1):
+        return None
+
+    def codegen(context, builder, sig, args):
+        x = ir.Constant(ir.VectorType(F32, 4), [0.0] * 4)
+        for lane, value in enumerate(args[:3]):
+            x = builder.insert_element(x, value, ir.Constant(I32, lane))
+        v = _rgb_blend(context, builder, sig.return_type(*sig.args[3:7]), args[3:7])
+        wide = ir.VectorType(F64, 4)
+        step = builder.fmul(splat(builder, args[7], 4), builder.fpext(builder.fsub(v, x), wide))
+        lerp = builder.fadd(builder.fpext(x, wide), step)
+        lanes = [builder.extract_element(lerp, ir.Constant(I32, lane)) for lane in range(3)]
+        return context.make_tuple(builder, sig.return_type, lanes)
+
+    return types.UniTuple(types.float64, 3)(r, g, b, rows, j0, j1, c, t), codegen
+
+
 @intrinsic
 def texel_mean(typingctx, data, k00, k01, k10, k11, right, down, j):
     """A pyramid's pull at texel j of `data` ((texels, 5) float32: r, g, b, depth, weight): the weighted mean of the

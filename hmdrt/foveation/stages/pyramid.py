@@ -16,7 +16,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.kernels.jit import inline, kernel, serial
-from hmdrt.kernels.simd import texel_blend, texel_blend_into, texel_mean, texel_trilinear
+from hmdrt.kernels.simd import rgb_blend, rgb_lerp_to_blend, texel_blend, texel_blend_into, texel_mean, texel_trilinear
 
 CHANNELS = 5  # r, g, b, depth, weight
 DEPTH, WEIGHT = 3, 4  # a texel's hit distance and weight: its colour and depth are its first 16 bytes (texel_blend)
@@ -365,18 +365,13 @@ def sample_row(data, widths, axes, y, levels, values, texels):
                 i = first + np.uint64(x)
                 r, g, b = data[i, 0], data[i, 1], data[i, 2]
             else:
-                i0, i1, a = k0[x], k1[x], kw[x]
-                p = np.float32(1.0) - a
-                r, g = p * here[i0, 0] + a * here[i1, 0], p * here[i0, 1] + a * here[i1, 1]
-                b = p * here[i0, 2] + a * here[i1, 2]
+                r, g, b = rgb_blend(here, k0[x], k1[x], kw[x])
             if k < top:  # level - k is 0 on integer levels, where this adds 0 to finite values
-                t = level - k
-                i0, i1, a = u0[x], u1[x], uw[x]
-                p = np.float32(1.0) - a
-                ur, ug = p * above[i0, 0] + a * above[i1, 0], p * above[i0, 1] + a * above[i1, 1]
-                ub = p * above[i0, 2] + a * above[i1, 2]
-                r, g, b = r + t * (ur - r), g + t * (ug - g), b + t * (ub - b)
-            values[x, 0], values[x, 1], values[x, 2] = r, g, b
+                values[x, 0], values[x, 1], values[x, 2] = rgb_lerp_to_blend(
+                    r, g, b, above, u0[x], u1[x], uw[x], level - k
+                )
+            else:
+                values[x, 0], values[x, 1], values[x, 2] = r, g, b
 
 
 @inline
