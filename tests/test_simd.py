@@ -11,6 +11,7 @@ from hmdrt.foveation.stages.pyramid import DEPTH, WEIGHT
 from hmdrt.kernels.simd import (
     rgb_accumulate,
     rgb_bilinear,
+    rgb_bilinear_add,
     rgb_blend,
     rgb_lerp_to_blend,
     texel_blend,
@@ -224,6 +225,23 @@ def _bilinear_all(image, taps, weights, simd, out):
             )
 
 
+@nb.njit(cache=True)
+def _bilinear_sums(image, taps, weights, fades, simd, sums):
+    flat = image.reshape(-1)
+    for t in range(taps.shape[0]):
+        i, step_x, step_y = np.uint64(taps[t, 0]), np.uint64(taps[t, 1]), np.uint64(taps[t, 2])
+        a, b, fade, s = weights[t, 0], weights[t, 1], fades[t], 4 * (t % 7)
+        if simd:
+            rgb_bilinear_add(sums, s, fade, image, i, step_x, step_y, a, b)
+            continue
+        w00, w01, w10, w11 = (1.0 - a) * (1.0 - b), a * (1.0 - b), (1.0 - a) * b, a * b
+        sums[s + 3] += fade
+        for c in range(3):
+            k = i + np.uint64(c)
+            tap = w00 * flat[k] + w01 * flat[k + step_x] + w10 * flat[k + step_y] + w11 * flat[k + step_y + step_x]
+            sums[s + c] += fade * tap
+
+
 def _guarded(texels: int) -> tuple[np.ndarray, mmap.mmap]:
     """A (texels, 3) float32 array that ends where an unreadable page begins: a read past its last float faults."""
     page = mmap.PAGESIZE
@@ -238,7 +256,8 @@ def _guarded(texels: int) -> tuple[np.ndarray, mmap.mmap]:
 def test_rgb_bilinear_is_the_channel_by_channel_tap_bit_for_bit_and_reads_nothing_past_the_image():
     """Taps over a 20 x 50 RGB image (inf and NaN among its channels, weights 0 and 1 among theirs), clamped at its
     border as bilinear_footprint clamps them, the last texel among their corners, against the same products and
-    sums written channel by channel; the image ends at an unreadable page, so a load past its last float faults."""
+    sums written channel by channel; the image ends at an unreadable page, so a load past its last float faults.
+    Then rgb_bilinear_add's weighted sums of the same taps against the sums written channel by channel."""
     h, w, n = 20, 50, 5000
     rng = np.random.default_rng(8)
     image, pages = _guarded(h * w)
@@ -255,6 +274,16 @@ def test_rgb_bilinear_is_the_channel_by_channel_tap_bit_for_bit_and_reads_nothin
     _bilinear_all(image, taps, weights, True, simd)
     _bilinear_all(image, taps, weights, False, scalar)
     assert np.array_equal(simd.view(np.uint64), scalar.view(np.uint64))
+    # rgb_bilinear_add: the same taps weighted into seven running sums of four (colour, then the weights' sum), over
+    # finite texels, so that every sum stays a number to compare bit for bit
+    image[~np.isfinite(image)] = 7.0
+    fades = rng.random(n)
+    fades[::9] = 0.0
+    simd_sums, scalar_sums = np.ones(28), np.ones(28)
+    _bilinear_sums(image, taps, weights, fades, True, simd_sums)
+    _bilinear_sums(image, taps, weights, fades, False, scalar_sums)
+    assert np.isfinite(scalar_sums).all()
+    assert np.array_equal(simd_sums.view(np.uint64), scalar_sums.view(np.uint64))
     del image
     pages.close()
 

@@ -4,7 +4,7 @@ numba compiles with LLVM's SLP vectoriser off (it can miscompile: numba pull req
 channel by channel stays one load and one multiply per float. These builders let an intrinsic load a texel's
 channels as one vector and blend them lane by lane; `texel_blend` is such an intrinsic for the foveation pyramids
 (`texel_blend_into` stores its blend as a texel), `rgb_accumulate` one for sums of weighted RGB texels in float64,
-`rgb_bilinear` a bilinear tap of an RGB image in float64.
+`rgb_bilinear` a bilinear tap of an RGB image in float64 (`rgb_bilinear_add` adds one to a weighted sum).
 """
 
 from __future__ import annotations
@@ -189,6 +189,31 @@ def _rgb_at(builder: ir.IRBuilder, data: ir.Value, index: ir.Value) -> ir.Value:
     return builder.call(fn, [vector_at(builder, data, index, 4), ir.Constant(I32, 4), lanes, zero])
 
 
+def _bilinear_rgb(context, builder, data_type, data, indices, a, b) -> ir.Value:
+    """rgb_bilinear's sums in four float64 lanes (the fourth 0), for its data, (i, step_x, step_y) as (value, type)
+    pairs and float64 weights a and b."""
+    array = context.make_array(data_type)(context, builder, data)
+    first, right, down = (context.cast(builder, v, t, types.uint64) for v, t in indices)
+    one = ir.Constant(F64, 1.0)
+    p, q = builder.fsub(one, a), builder.fsub(one, b)
+    weights = (builder.fmul(p, q), builder.fmul(a, q), builder.fmul(p, b), builder.fmul(a, b))
+    below = builder.add(first, down)
+    texels = (first, builder.add(first, right), below, builder.add(below, right))
+    total = None
+    for weight, k in zip(weights, texels, strict=True):
+        texel = builder.fpext(_rgb_at(builder, array.data, k), ir.VectorType(F64, 4))
+        term = builder.fmul(splat(builder, weight, 4), texel)
+        total = term if total is None else builder.fadd(total, term)
+    return total
+
+
+def _rgb_image_types(data, i, step_x, step_y, a, b) -> bool:
+    """Whether rgb_bilinear takes these argument types."""
+    if (a, b) != (types.float64,) * 2 or not all(isinstance(k, types.Integer) for k in (i, step_x, step_y)):
+        return False
+    return isinstance(data, types.Array) and data.layout == "C" and data.dtype == types.float32
+
+
 @intrinsic
 def rgb_bilinear(typingctx, data, i, step_x, step_y, a, b):
     """The bilinear tap of an RGB image read flat (`data`, a C-contiguous float32 array of any shape, indexed by
@@ -197,30 +222,43 @@ def rgb_bilinear(typingctx, data, i, step_x, step_y, a, b):
     the weights, products and sums in that order, each rounded on its own as the same sum written channel by
     channel (projection.blend_footprint's). Each texel one masked load, the sums three lanes at once. The indices
     are not checked."""
-    if (a, b) != (types.float64,) * 2 or not all(isinstance(k, types.Integer) for k in (i, step_x, step_y)):
-        return None
-    if not (isinstance(data, types.Array) and data.layout == "C" and data.dtype == types.float32):
+    if not _rgb_image_types(data, i, step_x, step_y, a, b):
         return None
 
     def codegen(context, builder, sig, args):
-        array = context.make_array(sig.args[0])(context, builder, args[0])
-        indices = zip(args[1:4], sig.args[1:4], strict=True)
-        first, right, down = (context.cast(builder, v, t, types.uint64) for v, t in indices)
-        a, b = args[4], args[5]
-        one = ir.Constant(F64, 1.0)
-        p, q = builder.fsub(one, a), builder.fsub(one, b)
-        weights = (builder.fmul(p, q), builder.fmul(a, q), builder.fmul(p, b), builder.fmul(a, b))
-        below = builder.add(first, down)
-        texels = (first, builder.add(first, right), below, builder.add(below, right))
-        total = None
-        for weight, k in zip(weights, texels, strict=True):
-            texel = builder.fpext(_rgb_at(builder, array.data, k), ir.VectorType(F64, 4))
-            term = builder.fmul(splat(builder, weight, 4), texel)
-            total = term if total is None else builder.fadd(total, term)
+        indices = tuple(zip(args[1:4], sig.args[1:4], strict=True))
+        total = _bilinear_rgb(context, builder, sig.args[0], args[0], indices, args[4], args[5])
         lanes = [builder.extract_element(total, ir.Constant(I32, lane)) for lane in range(3)]
         return context.make_tuple(builder, sig.return_type, lanes)
 
     return types.UniTuple(types.float64, 3)(data, i, step_x, step_y, a, b), codegen
+
+
+@intrinsic
+def rgb_bilinear_add(typingctx, sums, j, weight, data, i, step_x, step_y, a, b):
+    """sums[j:j + 3] += weight times rgb_bilinear(data, i, step_x, step_y, a, b), and sums[j + 3] += weight: a
+    weighted sum of taps and of their weights, kept as four float64 in a row (`sums` a C-contiguous 1-d float64
+    array); each a multiply and then an add, as channel by channel, the four lanes at once (one load and one
+    store). The indices are not checked."""
+    if not (_rgb_image_types(data, i, step_x, step_y, a, b) and weight == types.float64):
+        return None
+    if not (isinstance(sums, types.Array) and sums.ndim == 1 and sums.layout == "C" and sums.dtype == types.float64):
+        return None
+    if not isinstance(j, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        indices = tuple(zip(args[4:7], sig.args[4:7], strict=True))
+        tap = _bilinear_rgb(context, builder, sig.args[3], args[3], indices, args[7], args[8])
+        tap = builder.insert_element(tap, ir.Constant(F64, 1.0), ir.Constant(I32, 3))  # weight x 1 is the weight
+        array = context.make_array(sig.args[0])(context, builder, args[0])
+        k = context.cast(builder, args[1], sig.args[1], types.int64)
+        at = builder.bitcast(builder.gep(array.data, [k]), ir.VectorType(F64, 4).as_pointer())
+        total = builder.fadd(builder.load(at, align=8), builder.fmul(splat(builder, args[2], 4), tap))
+        builder.store(total, at, align=8)
+        return context.get_dummy_value()
+
+    return types.void(sums, j, weight, data, i, step_x, step_y, a, b), codegen
 
 
 def _rgb_row_types(rows, *indices) -> bool:

@@ -17,9 +17,9 @@ import numpy as np
 from hmdrt.kernels.jit import inline, kernel, serial
 from hmdrt.kernels.memory import touched
 from hmdrt.kernels.schedule import claim, dynamic
-from hmdrt.kernels.simd import rgb_accumulate
+from hmdrt.kernels.simd import rgb_accumulate, rgb_bilinear_add
 from hmdrt.optics.camera import EyeCamera
-from hmdrt.optics.projection import FAR, bilinear_footprint, blend_footprint, camera_arrays, pixel_tangents
+from hmdrt.optics.projection import FAR, bilinear_footprint, camera_arrays, pixel_tangents
 
 
 @inline
@@ -128,7 +128,8 @@ class History:
         return np.array([(self._newest - k) % (self.size + 1) for k in range(self._count)], np.int64)
 
 
-ROW = 11  # smoothing's float values per pixel of a row: point (3), footprint weights (2), distance, sums (4), fade
+SUMS = 7  # smoothing's float values per pixel of a row: point (3), footprint weights (2), distance, fade; then
+ROW = SUMS + 4  # its colour sums and their weights' sum, interleaved (simd.rgb_bilinear_add adds a tap to all four)
 TAPS = 4  # and its integer ones: the depth texel, the colour footprint's first element and steps (_footprints)
 
 
@@ -234,25 +235,15 @@ def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row, t
     itself."""
     slots, views, same, ring_depth, ring_color, _, _ = earlier
     h, w = depth.shape
-    px, py, pz, ax, ay, dists, acc_r, acc_g, acc_b, wsum, fade = (
-        row[0],
-        row[1],
-        row[2],
-        row[3],
-        row[4],
-        row[5],
-        row[6],
-        row[7],
-        row[8],
-        row[9],
-        row[10],
-    )
+    px, py, pz, ax, ay, dists, fade = row[0], row[1], row[2], row[3], row[4], row[5], row[6]
+    sums = row[SUMS:].reshape(-1)  # per pixel its colour sums and their weights' sum, four in a row
     for x in range(w):
         px[x], py[x], pz[x] = eye_point(frustum, x + 0.5, y + 0.5, depth[y, x])
-        acc_r[x], acc_g[x], acc_b[x] = color[y, x, 0], color[y, x, 1], color[y, x, 2]
+        s = 4 * x
+        sums[s], sums[s + 1], sums[s + 2] = color[y, x, 0], color[y, x, 1], color[y, x, 2]
         # the weights a (1 - a)^i over their sum, with the common factor a taken out: at a = 0 (the limit)
         # they are equal, where a (1 - a)^i / sum would be 0 / 0
-        wsum[x] = fade[x] = 1.0
+        sums[s + 3] = fade[x] = 1.0
     near_row, corner_row, step_x_row, step_y_row = taps[0], taps[1], taps[2], taps[3]
     off = np.uint64(-1)
     for k in range(slots.shape[0]):
@@ -273,18 +264,19 @@ def _smooth_row(y, frustum, depth, color, alpha, earlier, rel_depth, out, row, t
             d_prev = image_depth[near]
             if not (math.isinf(d_prev) if math.isinf(d) else abs(d_prev - dist) <= rel_depth * dist):
                 continue
+            weight, s = fade[x], 4 * x
             if same[k]:
                 i = np.uint64(3) * near
-                cr, cg, cb = image[i], image[i + np.uint64(1)], image[i + np.uint64(2)]
+                sums[s] += weight * image[i]
+                sums[s + 1] += weight * image[i + np.uint64(1)]
+                sums[s + 2] += weight * image[i + np.uint64(2)]
+                sums[s + 3] += weight
             else:
-                cr, cg, cb = blend_footprint(image, corner_row[x], step_x_row[x], step_y_row[x], ax[x], ay[x])
-            weight = fade[x]
-            wsum[x] += weight
-            acc_r[x] += weight * cr
-            acc_g[x] += weight * cg
-            acc_b[x] += weight * cb
+                rgb_bilinear_add(sums, s, weight, image, corner_row[x], step_x_row[x], step_y_row[x], ax[x], ay[x])
     for x in range(w):
-        r, g, b = np.divide(acc_r[x], wsum[x]), np.divide(acc_g[x], wsum[x]), np.divide(acc_b[x], wsum[x])
+        s = 4 * x
+        wsum = sums[s + 3]
+        r, g, b = np.divide(sums[s], wsum), np.divide(sums[s + 1], wsum), np.divide(sums[s + 2], wsum)
         out[y, x, 0], out[y, x, 1], out[y, x, 2] = r, g, b
 
 
