@@ -17,6 +17,7 @@ from numba.extending import intrinsic
 I32 = ir.IntType(32)
 F32 = ir.FloatType()
 F64 = ir.DoubleType()
+TEXEL_FLOATS = 5  # the float32 of a texel the texel intrinsics read: a foveation pyramid's r, g, b, depth, weight
 
 
 def splat(builder: ir.IRBuilder, x: ir.Value, lanes: int) -> ir.Value:
@@ -56,15 +57,21 @@ def vector_at(builder: ir.IRBuilder, data: ir.Value, index: ir.Value, lanes: int
     return builder.bitcast(builder.gep(data, [index]), ir.VectorType(F32, lanes).as_pointer())
 
 
-def _texel(builder: ir.IRBuilder, data: ir.Value, channels: ir.Value, k: ir.Value) -> ir.Value:
-    """Texel k's first four channels (of a row of `channels` float32): one 16-byte load."""
-    return builder.load(vector_at(builder, data, builder.mul(k, channels), 4), align=4)
+def _first(builder: ir.IRBuilder, k: ir.Value) -> ir.Value:
+    """The element of texel k's first float, k times TEXEL_FLOATS: a constant, which the compiler multiplies by with
+    an add and a shift, where the array's row length would take a load and a multiply (TAA 5% longer)."""
+    return builder.mul(k, ir.Constant(k.type, TEXEL_FLOATS))
+
+
+def _texel(builder: ir.IRBuilder, data: ir.Value, k: ir.Value) -> ir.Value:
+    """Texel k's first four channels: one 16-byte load."""
+    return builder.load(vector_at(builder, data, _first(builder, k), 4), align=4)
 
 
 @intrinsic
 def texel_blend(typingctx, data, k00, k01, k10, k11, a, b):
     """The first four channels (a pyramid's r, g, b and depth) in float32 between texels k00 (top left), k01, k10 and
-    k11 of `data`, a C-contiguous (texels, 4 or more) float32 array, with float32 weights a across and b down:
+    k11 of `data`, a C-contiguous (texels, TEXEL_FLOATS) float32 array, with float32 weights a across and b down:
     q (p t00 + a t01) + b (p t10 + a t11) with p = 1 - a, q = 1 - b, the multiplies and adds apart (no fused
     multiply-add), so that each lane rounds as the same blend written channel by channel does. Each texel is one
     16-byte load; the blend four lanes at once. The indices are not checked."""
@@ -95,9 +102,8 @@ def _blend_types(data, k00, k01, k10, k11, a, b) -> bool:
 def _blend_texels(context, builder, sig, args) -> ir.Value:
     """texel_blend's four lanes, for the arguments (data, k00, k01, k10, k11, a, b) at the front of sig and args."""
     array = context.make_array(sig.args[0])(context, builder, args[0])
-    channels = cgutils.unpack_tuple(builder, array.shape)[1]
     taps = [
-        _texel(builder, array.data, channels, context.cast(builder, k, t, types.int64))
+        _texel(builder, array.data, context.cast(builder, k, t, types.int64))
         for k, t in zip(args[1:5], sig.args[1:5], strict=True)
     ]
     a4, b4 = splat(builder, args[5], 4), splat(builder, args[6], 4)
@@ -143,9 +149,8 @@ def texel_blend_into(typingctx, data, k00, k01, k10, k11, a, b, i):
     def codegen(context, builder, sig, args):
         blend = _blend_texels(context, builder, sig, args)
         array = context.make_array(sig.args[0])(context, builder, args[0])
-        channels = cgutils.unpack_tuple(builder, array.shape)[1]
         k = context.cast(builder, args[7], sig.args[7], types.int64)
-        builder.store(blend, vector_at(builder, array.data, builder.mul(k, channels), 4), align=4)
+        builder.store(blend, vector_at(builder, array.data, _first(builder, k), 4), align=4)
         return context.get_dummy_value()
 
     return types.void(data, k00, k01, k10, k11, a, b, i), codegen
@@ -322,25 +327,25 @@ def rgb_lerp_to_blend(typingctx, r, g, b, rows, j0, j1, c, t):
 
 @intrinsic
 def texel_mean(typingctx, data, k00, k01, k10, k11, right, down, j):
-    """A pyramid's pull at texel j of `data` ((texels, 5) float32: r, g, b, depth, weight): the weighted mean of the
-    four children k00 (top left), k01, k10, k11, each counted where its weight is above 0 and it is present (the right
-    ones where `right`, the lower ones where `down`; k00 always), whatever the others hold, NaN too. Colour and
-    depth are written where the weights sum above 0, and min(1, that sum) as the weight: the sums in float64 in the
-    children's order, each child's channels times its weight in float32, so each lane rounds as channel by channel.
-    Each child's colour and depth one 16-byte load, masked by its bits; the mean one 16-byte store."""
+    """A pyramid's pull at texel j of `data` ((texels, TEXEL_FLOATS) float32: r, g, b, depth, weight): the weighted
+    mean of the four children k00 (top left), k01, k10, k11, each counted where its weight is above 0 and it is
+    present (the right ones where `right`, the lower ones where `down`; k00 always), whatever the others hold, NaN
+    too. Colour and depth are written where the weights sum above 0, and min(1, that sum) as the weight: the sums in
+    float64 in the children's order, each child's channels times its weight in float32, so each lane rounds as
+    channel by channel. Each child's colour and depth one 16-byte load, masked by its bits; the mean one 16-byte
+    store."""
     if not (_texels_types(data, k00, k01, k10, k11, j) and (right, down) == (types.boolean,) * 2):
         return None
 
     def codegen(context, builder, sig, args):
         array = context.make_array(sig.args[0])(context, builder, args[0])
-        channels = cgutils.unpack_tuple(builder, array.shape)[1]
         i32, f32x4 = ir.IntType(32), ir.VectorType(F32, 4)
         right, down = args[5], args[6]
         present = [ir.Constant(ir.IntType(1), 1), right, down, builder.and_(right, down)]
         wsum = ir.Constant(F64, 0.0)
         acc = ir.Constant(ir.VectorType(F64, 4), [0.0] * 4)
         for k, t, here in zip(args[1:5], sig.args[1:5], present, strict=True):
-            first = builder.mul(context.cast(builder, k, t, types.int64), channels)
+            first = _first(builder, context.cast(builder, k, t, types.int64))
             weight = builder.load(builder.gep(array.data, [builder.add(first, ir.Constant(first.type, 4))]), align=4)
             counts = builder.and_(here, builder.fcmp_ordered(">", weight, ir.Constant(F32, 0.0)))
             keep = builder.select(counts, ir.Constant(i32, -1), ir.Constant(i32, 0))
@@ -350,7 +355,7 @@ def texel_mean(typingctx, data, k00, k01, k10, k11, right, down, j):
             texel = builder.bitcast(builder.and_(bits, splat(builder, keep, 4)), f32x4)
             wsum = builder.fadd(wsum, builder.fpext(w, F64))
             acc = builder.fadd(acc, builder.fpext(builder.fmul(splat(builder, w, 4), texel), acc.type))
-        out = builder.mul(context.cast(builder, args[7], sig.args[7], types.int64), channels)
+        out = _first(builder, context.cast(builder, args[7], sig.args[7], types.int64))
         with builder.if_then(builder.fcmp_ordered(">", wsum, ir.Constant(F64, 0.0))):
             mean = builder.fptrunc(builder.fdiv(acc, splat(builder, wsum, 4)), f32x4)
             builder.store(mean, vector_at(builder, array.data, out, 4), align=4)

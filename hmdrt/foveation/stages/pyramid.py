@@ -16,9 +16,17 @@ import numba as nb
 import numpy as np
 
 from hmdrt.kernels.jit import inline, kernel, serial
-from hmdrt.kernels.simd import rgb_blend, rgb_lerp_to_blend, texel_blend, texel_blend_into, texel_mean, texel_trilinear
+from hmdrt.kernels.simd import (
+    TEXEL_FLOATS,
+    rgb_blend,
+    rgb_lerp_to_blend,
+    texel_blend,
+    texel_blend_into,
+    texel_mean,
+    texel_trilinear,
+)
 
-CHANNELS = 5  # r, g, b, depth, weight
+CHANNELS = TEXEL_FLOATS  # r, g, b, depth, weight: the texel the simd intrinsics read
 DEPTH, WEIGHT = 3, 4  # a texel's hit distance and weight: its colour and depth are its first 16 bytes (texel_blend)
 
 
