@@ -41,6 +41,25 @@ def lerp(builder: ir.IRBuilder, a: ir.Value, b: ir.Value, t: ir.Value) -> ir.Val
     return builder.call(fmuladd, [t, builder.fsub(b, a), a])
 
 
+def lanes_tuple(context, builder: ir.IRBuilder, tuple_type, v: ir.Value, n: int) -> ir.Value:
+    """The first n lanes of vector v as a numba tuple of `tuple_type`: what an intrinsic returns."""
+    return context.make_tuple(builder, tuple_type, [builder.extract_element(v, ir.Constant(I32, i)) for i in range(n)])
+
+
+def lerp_wide(builder: ir.IRBuilder, u: ir.Value, v: ir.Value, t: ir.Value) -> ir.Value:
+    """u + t (v - u) for float32 vectors u and v and a float64 t, in float64: v - u in float32, then t times it added
+    to u, the multiply and the add apart, as the same lerp written channel by channel does."""
+    wide = ir.VectorType(F64, u.type.count)
+    return builder.fadd(
+        builder.fpext(u, wide), builder.fmul(splat(builder, t, u.type.count), builder.fpext(builder.fsub(v, u), wide))
+    )
+
+
+def _flat(a, dtype) -> bool:
+    """Whether numba type `a` is a C-contiguous 1-d array of `dtype`."""
+    return isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C" and a.dtype == dtype
+
+
 def prefetch(builder: ir.IRBuilder, data: ir.Value, index: ir.Value) -> None:
     """A hint to bring the cache line of element `index` of data into every cache level (llvm.prefetch: a read,
     locality 3, data); it never faults, so an index past the image is harmless."""
@@ -80,15 +99,14 @@ def texel_blend(typingctx, data, k00, k01, k10, k11, a, b):
 
     def codegen(context, builder, sig, args):
         blend = _blend_texels(context, builder, sig, args)
-        lanes = [builder.extract_element(blend, ir.Constant(I32, i)) for i in range(4)]
-        return context.make_tuple(builder, sig.return_type, lanes)
+        return lanes_tuple(context, builder, sig.return_type, blend, 4)
 
     return types.UniTuple(types.float32, 4)(data, k00, k01, k10, k11, a, b), codegen
 
 
 def _texels_types(data, *indices) -> bool:
-    """Whether `data` is a C-contiguous 2-d float32 array of texels and `indices` integers, as the texel intrinsics
-    take them."""
+    """Whether `data` is a C-contiguous 2-d float32 array of texels (a pyramid's, or rows of RGB) and `indices`
+    integers, as the texel and RGB-row intrinsics take them."""
     if not (isinstance(data, types.Array) and data.ndim == 2 and data.layout == "C" and data.dtype == types.float32):
         return False
     return all(isinstance(k, types.Integer) for k in indices)
@@ -129,11 +147,7 @@ def texel_trilinear(typingctx, data, k00, k01, k10, k11, a, b, m00, m01, m10, m1
     def codegen(context, builder, sig, args):
         u = _blend_texels(context, builder, sig, args)
         v = _blend_texels(context, builder, sig.return_type(sig.args[0], *sig.args[7:13]), (args[0], *args[7:13]))
-        wide = ir.VectorType(F64, 4)
-        step = builder.fmul(splat(builder, args[13], 4), builder.fpext(builder.fsub(v, u), wide))
-        lerp = builder.fadd(builder.fpext(u, wide), step)
-        lanes = [builder.extract_element(lerp, ir.Constant(I32, i)) for i in range(4)]
-        return context.make_tuple(builder, sig.return_type, lanes)
+        return lanes_tuple(context, builder, sig.return_type, lerp_wide(builder, u, v, args[13]), 4)
 
     signature = types.UniTuple(types.float64, 4)(data, k00, k01, k10, k11, a, b, m00, m01, m10, m11, c, d, t)
     return signature, codegen
@@ -165,7 +179,7 @@ def rgb_accumulate(typingctx, r, g, b, weight, data, i):
     buffer keeps (temporal.History's colour ring does). i is not checked."""
     if (r, g, b, weight) != (types.float64,) * 4 or not isinstance(i, types.Integer):
         return None
-    if not (isinstance(data, types.Array) and data.ndim == 1 and data.layout == "C" and data.dtype == types.float32):
+    if not _flat(data, types.float32):
         return None
 
     def codegen(context, builder, sig, args):
@@ -175,8 +189,7 @@ def rgb_accumulate(typingctx, r, g, b, weight, data, i):
         for lane, x in enumerate(args[:3]):
             acc = builder.insert_element(acc, x, ir.Constant(I32, lane))
         total = builder.fadd(acc, builder.fmul(splat(builder, args[3], 4), builder.fpext(texel, acc.type)))
-        lanes = [builder.extract_element(total, ir.Constant(I32, lane)) for lane in range(3)]
-        return context.make_tuple(builder, sig.return_type, lanes)
+        return lanes_tuple(context, builder, sig.return_type, total, 3)
 
     return types.UniTuple(types.float64, 3)(r, g, b, weight, data, i), codegen
 
@@ -233,8 +246,7 @@ def rgb_bilinear(typingctx, data, i, step_x, step_y, a, b):
     def codegen(context, builder, sig, args):
         indices = tuple(zip(args[1:4], sig.args[1:4], strict=True))
         total = _bilinear_rgb(context, builder, sig.args[0], args[0], indices, args[4], args[5])
-        lanes = [builder.extract_element(total, ir.Constant(I32, lane)) for lane in range(3)]
-        return context.make_tuple(builder, sig.return_type, lanes)
+        return lanes_tuple(context, builder, sig.return_type, total, 3)
 
     return types.UniTuple(types.float64, 3)(data, i, step_x, step_y, a, b), codegen
 
@@ -247,9 +259,7 @@ def rgb_bilinear_add(typingctx, sums, j, weight, data, i, step_x, step_y, a, b):
     store). The indices are not checked."""
     if not (_rgb_image_types(data, i, step_x, step_y, a, b) and weight == types.float64):
         return None
-    if not (isinstance(sums, types.Array) and sums.ndim == 1 and sums.layout == "C" and sums.dtype == types.float64):
-        return None
-    if not isinstance(j, types.Integer):
+    if not (_flat(sums, types.float64) and isinstance(j, types.Integer)):
         return None
 
     def codegen(context, builder, sig, args):
@@ -264,13 +274,6 @@ def rgb_bilinear_add(typingctx, sums, j, weight, data, i, step_x, step_y, a, b):
         return context.get_dummy_value()
 
     return types.void(sums, j, weight, data, i, step_x, step_y, a, b), codegen
-
-
-def _rgb_row_types(rows, *indices) -> bool:
-    """Whether `rows` is a C-contiguous (n, 3) float32 array of RGB texels and `indices` integers."""
-    if not (isinstance(rows, types.Array) and rows.ndim == 2 and rows.layout == "C" and rows.dtype == types.float32):
-        return False
-    return all(isinstance(k, types.Integer) for k in indices)
 
 
 def _rgb_blend(context, builder, sig, args) -> ir.Value:
@@ -292,13 +295,11 @@ def rgb_blend(typingctx, rows, i0, i1, a):
     """(1 - a) rows[i0] + a rows[i1] for the three channels of an (n, 3) float32 array of texels, in float32, the
     multiplies and the add apart as channel by channel; each texel one masked load, the blend three lanes at once.
     The indices are not checked."""
-    if not (_rgb_row_types(rows, i0, i1) and a == types.float32):
+    if not (_texels_types(rows, i0, i1) and a == types.float32):
         return None
 
     def codegen(context, builder, sig, args):
-        blend = _rgb_blend(context, builder, sig, args)
-        lanes = [builder.extract_element(blend, ir.Constant(I32, lane)) for lane in range(3)]
-        return context.make_tuple(builder, sig.return_type, lanes)
+        return lanes_tuple(context, builder, sig.return_type, _rgb_blend(context, builder, sig, args), 3)
 
     return types.UniTuple(types.float32, 3)(rows, i0, i1, a), codegen
 
@@ -308,7 +309,7 @@ def rgb_lerp_to_blend(typingctx, r, g, b, rows, j0, j1, c, t):
     """x + t (v - x) for the float32 colour x = (r, g, b) and v = rgb_blend(rows, j0, j1, c): v - x in float32, then
     t times it added to x in float64, the multiply and the add apart, as channel by channel with a float64 t; three
     lanes at once. The indices are not checked."""
-    if (r, g, b, c, t) != (types.float32,) * 4 + (types.float64,) or not _rgb_row_types(rows, j0, j1):
+    if (r, g, b, c, t) != (types.float32,) * 4 + (types.float64,) or not _texels_types(rows, j0, j1):
         return None
 
     def codegen(context, builder, sig, args):
@@ -316,11 +317,7 @@ def rgb_lerp_to_blend(typingctx, r, g, b, rows, j0, j1, c, t):
         for lane, value in enumerate(args[:3]):
             x = builder.insert_element(x, value, ir.Constant(I32, lane))
         v = _rgb_blend(context, builder, sig.return_type(*sig.args[3:7]), args[3:7])
-        wide = ir.VectorType(F64, 4)
-        step = builder.fmul(splat(builder, args[7], 4), builder.fpext(builder.fsub(v, x), wide))
-        lerp = builder.fadd(builder.fpext(x, wide), step)
-        lanes = [builder.extract_element(lerp, ir.Constant(I32, lane)) for lane in range(3)]
-        return context.make_tuple(builder, sig.return_type, lanes)
+        return lanes_tuple(context, builder, sig.return_type, lerp_wide(builder, x, v, args[7]), 3)
 
     return types.UniTuple(types.float64, 3)(r, g, b, rows, j0, j1, c, t), codegen
 
