@@ -8,11 +8,22 @@ hands grouped arguments on to others (the Whitted kernel's steps, hmdrt.trace.wa
 serial function into a library in which LLVM optimises and compiles again everything it calls, so a layer
 of steps costs a compile of all below it. Each inlining re-types its caller, so only those: with every helper
 of the tracer inlined, its cold compile takes 70 s of CPU, not 21 s.
+
+SPIN_COUNT: how long the threads of numba's OpenMP layer (libgomp) poll for the next parallel kernel before they
+sleep. libgomp's own default, 300,000 polls (several milliseconds on the Xeon), has them burn a core after every
+kernel, which the tracer's threads, the display thread and the next kernel's Python need on a 2-core machine; 20,000
+polls still span the Python between two kernels. Set, unless the environment already sets GOMP_SPINCOUNT, before
+libgomp loads (at the first parallel kernel), which reads it then.
 """
 
 from __future__ import annotations
 
+import os
+
 import numba as nb
+
+SPIN_COUNT = 20_000
+os.environ.setdefault("GOMP_SPINCOUNT", str(SPIN_COUNT))
 
 kernel = nb.njit(parallel=True, cache=True, nogil=True)
 serial = nb.njit(cache=True, nogil=True)
