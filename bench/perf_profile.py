@@ -2,6 +2,7 @@
 
     python bench/perf_profile.py SPEC [--scene whitted] [--profile rift_s] [--frames 30] [--warmup 3]
                                       [--trace builtin] [--gaze 0,0] [--seconds 5] [--frequency 999] [--top 25]
+                                      [--annotate FUNCTION]
 
 perf sees numba's code as anonymous memory ("[JIT]"), with no names. So after --warmup frames (compiles, an empty
 history) this bench writes /tmp/perf-PID.map, where perf looks for the names of such code: every function numba
@@ -11,6 +12,9 @@ function's address, as numba keeps no symbol sizes), a parallel kernel's body un
 and over), and prints the share of samples by library (numba's code, embreex's Embree, libgomp: numba's OpenMP
 threads, Python) and the --top functions. A function's share is of both cores' samples: a function at 10% of a
 2-core frame of 80 ms takes about 16 ms of CPU a frame. Functions LLVM inlined are counted in their callers.
+--annotate FUNCTION (a name as the list prints it) adds that function's hottest machine instructions, its code read
+from this process and disassembled with objdump: a sample lands on the instruction after the one that stalls (a
+load that missed the cache, a division), so read each hot line with the one above it.
 
 perf must be installed (linux-tools; `perf_event_paranoid` at 2 or below lets a user sample its own processes).
 """
@@ -123,6 +127,42 @@ def parse_report(text: str) -> list[tuple[float, str, str]]:
     return sorted(((p, dso, f) for (dso, f), p in rows.items()), key=lambda row: -row[0])
 
 
+def code_bytes(symbol: CodeSymbol) -> bytes:
+    """The machine code of a function of this process (as far as it is mapped: its size is a bound)."""
+    code = b""
+    with open("/proc/self/mem", "rb", buffering=0) as memory:
+        for page in range(0, symbol.size, 4096):
+            try:
+                memory.seek(symbol.address + page)
+                code += memory.read(min(4096, symbol.size - page))
+            except OSError:
+                break
+    return code
+
+
+def disassemble(code: bytes, address: int) -> dict[int, str]:
+    """objdump's x86-64 disassembly of `code` placed at `address`: each instruction's address and text."""
+    with tempfile.NamedTemporaryFile(suffix=".bin") as raw:
+        raw.write(code)
+        raw.flush()
+        command = ["objdump", "-D", "-b", "binary", "-m", "i386:x86-64", f"--adjust-vma={address:#x}", raw.name]
+        text = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+    found = (re.match(r"\s*([0-9a-f]+):\s+(?:[0-9a-f]{2} )+\s*(\S.*)", line) for line in text.splitlines())
+    return {int(m[1], 16): m[2].strip() for m in found if m}
+
+
+def hot_instructions(ips: list[int], symbol: CodeSymbol, listing: dict[int, str], top: int) -> list[str]:
+    """The `top` instructions of `listing` with the most of the sampled instruction pointers `ips`, as lines."""
+    inside = [ip for ip in ips if symbol.address <= ip < symbol.address + symbol.size]
+    counts: dict[int, int] = {}
+    for ip in inside:
+        counts[ip] = counts.get(ip, 0) + 1
+    lines = [f"  {symbol.name}: {len(inside)} of {len(ips)} samples; its hottest instructions, % of its samples:"]
+    for ip, n in sorted(counts.items(), key=lambda kv: -kv[1])[:top]:
+        lines.append(f"  {100 * n / len(inside):12.2f}  {ip - symbol.address:#7x}: {listing.get(ip, '?')}")
+    return lines
+
+
 def library_of(dso: str) -> str:
     """The kind of library a perf dso is: numba's code, embree, libgomp, Python, the kernel, or itself."""
     if dso.startswith("[JIT]"):
@@ -140,10 +180,13 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--frequency", type=int, default=999, help="samples per second per CPU")
     ap.add_argument("--top", type=int, default=25)
+    ap.add_argument("--annotate", metavar="FUNCTION", help="also the hottest instructions of this function")
     args = ap.parse_args()
     perf = shutil.which("perf")
     if perf is None:
         sys.exit("perf is not installed (a Linux distribution's linux-tools or linux-perf package)")
+    if args.annotate and shutil.which("objdump") is None:
+        sys.exit("--annotate needs objdump (binutils)")
 
     scene, profile = load_scene(args.scene), get_profile(args.profile)
     requests = left_eye_requests(scene, profile, max(args.frames, args.warmup + 1), args.trace, args.gaze)
@@ -152,7 +195,12 @@ def main() -> None:
         out = np.empty((profile.height, profile.width, 3), np.float32)
         for request in requests[: args.warmup]:
             method.render(request, FrameStats(), out)
-        perf_map = write_perf_map(code_symbols())
+        symbols = code_symbols()
+        perf_map = write_perf_map(symbols)
+        annotated = [s for s in symbols if s.name == args.annotate]
+        if args.annotate and not annotated:
+            sys.exit(f"--annotate {args.annotate}: no such function of numba's code in this process")
+        code = [(s, code_bytes(s)) for s in annotated]
         data = Path(tmp) / "perf.data"
         record = [perf, "record", "-q", "-F", str(args.frequency), "-p", str(os.getpid()), "-o", str(data)]
         sampler = subprocess.Popen([*record, "--", "sleep", str(args.seconds)], stderr=subprocess.PIPE, text=True)
@@ -168,6 +216,12 @@ def main() -> None:
             text=True,
             check=True,
         ).stdout
+        annotation = []
+        if code:
+            script = [perf, "script", "-i", str(data), "-F", "ip"]
+            ips = [int(ip, 16) for ip in subprocess.run(script, capture_output=True, text=True).stdout.split()]
+            symbol, raw = max(code, key=lambda sc: sum(sc[0].address <= ip < sc[0].address + sc[0].size for ip in ips))
+            annotation = hot_instructions(ips, symbol, disassemble(raw, symbol.address), args.top)
         perf_map.unlink(missing_ok=True)
 
     rows = parse_report(report)
@@ -185,6 +239,8 @@ def main() -> None:
     print(f"  {'% of samples':>12s}  function")
     for percent, dso, function in rows[: args.top]:
         print(f"  {percent:12.2f}  {function if dso.startswith('[JIT]') else f'{function} ({dso})'}")
+    for line in annotation:
+        print(line)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@ here, attributes a method's frames to those names."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
@@ -60,6 +61,17 @@ def test_numba_symbols_read_as_dotted_names(perf_profile):
     assert perf_profile.symbol_name("NRT_incref") == "NRT_incref"
 
 
+@pytest.mark.skipif(shutil.which("objdump") is None, reason="objdump (binutils) is not installed")
+def test_hot_instructions_are_counted_in_objdumps_listing_of_the_code(perf_profile):
+    code = bytes([0x48, 0x01, 0xD8, 0x90, 0xC3])  # add %rbx,%rax; nop; ret
+    listing = perf_profile.disassemble(code, 0x1000)
+    assert [(a, text.split()[0]) for a, text in listing.items()] == [(0x1000, "add"), (0x1003, "nop"), (0x1004, "ret")]
+    symbol = perf_profile.CodeSymbol(0x1000, len(code), "f")
+    lines = perf_profile.hot_instructions([0x1003, 0x1003, 0x1000, 0x9999], symbol, listing, 5)
+    assert "3 of 4 samples" in lines[0]
+    assert lines[1].split()[:3] == ["66.67", "0x3:", "nop"] and lines[2].split()[:3] == ["33.33", "0x0:", "add"]
+
+
 def _perf_samples_here() -> bool:
     perf = shutil.which("perf")
     if perf is None:
@@ -71,10 +83,17 @@ def _perf_samples_here() -> bool:
 @pytest.mark.skipif(not _perf_samples_here(), reason="perf is not installed or may not sample here")
 def test_a_methods_frames_are_attributed_to_its_kernels_by_name():
     run = [sys.executable, str(BENCH / "perf_profile.py"), "rrm", "--profile", "sim-cpu", "--seconds", "2"]
+    annotate = shutil.which("objdump") is not None
+    run += ["--annotate", "hmdrt.trace.surface.surface_block"] if annotate else []
     done = subprocess.run(run, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
     assert "numba's code" in lines[1]
-    functions = [line.split(maxsplit=1)[1] for line in lines[3:]]
+    table = lines[3:]
+    if annotate:  # the surface records' instructions follow the table, each with its share of their samples
+        at = next(i for i, line in enumerate(lines) if line.startswith("  hmdrt.trace.surface.surface_block: "))
+        table, hot = lines[3:at], lines[at + 1 :]
+        assert hot and all(re.match(r"\s+[\d.]+\s+0x[0-9a-f]+: \w+", line) for line in hot), done.stdout
+    functions = [line.split(maxsplit=1)[1] for line in table]
     assert any(f.startswith("hmdrt.foveation.rrm.") for f in functions), done.stdout  # rrm's own kernels, by name
     assert any(f.startswith("hmdrt.trace.") for f in functions), done.stdout
