@@ -5,6 +5,7 @@ test_stages.py)."""
 import numpy as np
 import pytest
 
+from hmdrt.foveation.stages import reproject as rp
 from hmdrt.foveation.stages.dof import (
     Blur,
     combine,
@@ -27,7 +28,7 @@ from hmdrt.foveation.stages.pyramid import (
 from hmdrt.foveation.stages.reproject import CoarseMesh, backproject
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
-from hmdrt.optics.projection import FAR
+from hmdrt.optics.projection import FAR, camera_arrays
 from hmdrt.scene import Scene
 from hmdrt.scene.model import AreaLight, Material
 from hmdrt.scene.shapes import quad, sphere
@@ -81,6 +82,66 @@ def test_mesh_and_back_projection_agree_after_a_head_turn():
     assert ok.sum() > 5000
     np.testing.assert_allclose(xy[ok], np.moveaxis(mesh, 0, -1)[ok], atol=2e-2)
     np.testing.assert_allclose(dist_before[ok], 3.0, rtol=2e-3)  # on the chords of the sphere of radius 3
+
+
+def _reference_raster(screen, attr, width, height, near):
+    """weier2016 section 3.2's rasterisation written plainly: every triangle of every grid cell in the mesh's order,
+    culled at the near plane, each pixel centre inside it (its weights above 1e-6) blended in where its 1/z beats
+    what the pixel holds; and the centres within 1e-6 of an edge, where the rounding decides, to leave out."""
+    prev, zinv = np.zeros((2, height, width)), np.zeros((height, width))
+    edge = np.zeros((height, width), bool)
+    ys, xs = np.mgrid[0:height, 0:width] + 0.5
+    hs, ws = screen.shape[:2]
+    for j in range(hs - 1):
+        for i in range(ws - 1):
+            for a, b, c in (((j, i), (j, i + 1), (j + 1, i + 1)), ((j, i), (j + 1, i + 1), (j + 1, i))):
+                (ax, ay, az), (bx, by, bz), (cx, cy, cz) = screen[a], screen[b], screen[c]
+                area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+                if min(az, bz, cz) <= near or abs(area) < 1e-12:
+                    continue
+                wa = ((bx - xs) * (cy - ys) - (by - ys) * (cx - xs)) / area
+                wb = ((cx - xs) * (ay - ys) - (cy - ys) * (ax - xs)) / area
+                wc = 1.0 - wa - wb
+                low = np.minimum(np.minimum(wa, wb), wc)
+                edge |= np.abs(low) < 1e-6
+                iz = wa * attr[a][3] + wb * attr[b][3] + wc * attr[c][3]
+                win = (low > 1e-6) & (iz > zinv)
+                zp = wa * attr[a][2] + wb * attr[b][2] + wc * attr[c][2]
+                for k in range(2):
+                    prev[k][win] = ((wa * attr[a][k] + wb * attr[b][k] + wc * attr[c][k]) / zp)[win]
+                zinv[win] = iz[win]
+    return prev, zinv, edge
+
+
+@pytest.mark.parametrize(
+    "pose",
+    [((0.1, 1.6, -0.3), 10.0, -6.0), ((0.0, 1.4, -0.25), 0.0, 10.0)],
+    ids=["cells-culled-whole-or-half", "cells-folded-over-themselves"],
+)
+def test_mesh_raster_matches_every_triangle_drawn_in_order_with_a_depth_test(pose):
+    """Folds in the mesh (a near block before a far wall, seen after a step) overlap triangles, those of one cell
+    among them, and vertices behind the eye cull theirs: each pixel away from an edge holds the nearest triangle
+    that covers it."""
+    before = camera("sim-cpu", Pose.looking((0.0, 1.6, 0.0), 0.0, 0.0), 96, 108)
+    after = camera("sim-cpu", Pose.looking(*pose), 96, 108)
+    sw, sh = 24, 27
+    gx, gy = (np.arange(sw) + 0.5) * 4, (np.arange(sh) + 0.5) * 4
+    rng = np.random.default_rng(3)
+    depth = 4.0 + rng.random((sh, sw))
+    depth[8:18, 6:14] = 0.7 + 0.1 * rng.random((10, 8))  # a near block: its sides stretch into folds
+    # behind the new eye after its step forward: their triangles culled, both of a cell's or one
+    depth[:, :2] = depth[4, 16] = depth[20, 18] = 0.25
+    vertices = rp.MeshVertices(np.empty((sh, sw, 3)), np.empty((sh, sw, rp.VERTEX_ATTRS)))
+    rp._mesh_vertices(camera_arrays(before), gx, gy, depth, camera_arrays(after, 96, 108), vertices)
+    assert (vertices.screen[..., 2] <= rp.NEAR).any()
+    mesh, zinv = CoarseMesh().reproject(before, gx, gy, depth, after, 96, 108)
+    prev, ref, edge = _reference_raster(vertices.screen, vertices.attr, 96, 108, rp.NEAR)
+    away = ~edge
+    assert (ref[away] > 0).sum() > 5000 and (ref[away] == 0).sum() > 1000
+    np.testing.assert_array_equal(zinv[away] > 0, ref[away] > 0)
+    inside = away & (ref > 0)
+    np.testing.assert_allclose(zinv[inside], ref[inside], rtol=1e-6)
+    np.testing.assert_allclose(mesh[:, inside], prev[:, inside], atol=1e-3)
 
 
 def test_pull_push_keeps_samples_and_fills_holes():

@@ -70,12 +70,13 @@ class MeshVertices(NamedTuple):
     attr: np.ndarray  # (hs, ws, VERTEX_ATTRS) float64
 
 
-class TriangleRows(NamedTuple):
-    """The image rows each of the mesh's triangles can cover, and each row of grid cells: what a band of image
-    rows needs to find its triangles, in the mesh's order, without sorting them."""
+class CellRows(NamedTuple):
+    """The image rows each cell of the grid can cover with its two triangles, and each row of cells: what a band of
+    image rows needs to find its cells, in the mesh's order, without sorting them."""
 
-    rows: np.ndarray  # (triangles, 2) int64: the rows [r0, r1) a triangle can cover, empty when culled
-    spans: np.ndarray  # (hs - 1, 2) int64: the rows [r0, r1) the triangles of a row of cells cover together
+    rows: np.ndarray  # (cells, 2) int64: the rows [r0, r1) the cell's triangles can cover, empty when both culled
+    live: np.ndarray  # (cells,) uint8: bit t set where triangle t (_triangle) is not culled and covers a row
+    spans: np.ndarray  # (hs - 1, 2) int64: the rows [r0, r1) the cells of a row of cells cover together
     band_rows: int
 
 
@@ -123,89 +124,122 @@ def _row_range(screen, a, b, c, height):
 
 
 @serial
-def _grid_rows_triangles(j0, j1, screen, height, rows, spans):
+def _grid_rows_cells(j0, j1, screen, height, rows, live, spans):
     ws = screen.shape[1]
     for j in range(j0, j1):
         lo, hi = height, 0
         for i in range(ws - 1):
+            cell = j * (ws - 1) + i
+            c0, c1, bits = height, 0, np.uint8(0)
             for t in range(2):
                 a, b, c = _triangle(j, i, t)
                 r0, r1 = _row_range(screen, a, b, c, height)
-                rows[(j * (ws - 1) + i) * 2 + t, 0] = r0
-                rows[(j * (ws - 1) + i) * 2 + t, 1] = r1
                 if r1 > r0:
-                    lo, hi = min(lo, r0), max(hi, r1)
+                    c0, c1, bits = min(c0, r0), max(c1, r1), bits | np.uint8(1 << t)
+            rows[cell, 0], rows[cell, 1], live[cell] = c0, max(c0, c1), bits
+            if bits:
+                lo, hi = min(lo, c0), max(hi, c1)
         spans[j, 0], spans[j, 1] = lo, hi
 
 
 @kernel
-def _triangle_rows(screen, height, rows, spans):
+def _cell_rows(screen, height, rows, live, spans):
     cells = screen.shape[0] - 1
     for b in nb.prange((cells + ROWS - 1) // ROWS):
-        _grid_rows_triangles(b * ROWS, min(cells, (b + 1) * ROWS), screen, height, rows, spans)
+        _grid_rows_cells(b * ROWS, min(cells, (b + 1) * ROWS), screen, height, rows, live, spans)
+
+
+@inline
+def _inverse_area(ax, ay, bx, by, cx, cy, on):
+    """1 over a triangle's doubled signed area, 0 where it is not rasterised: culled (on false) or without area."""
+    area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+    return 1.0 / area if on and abs(area) >= 1e-12 else 0.0
+
+
+@inline
+def _weights(ax, ay, bx, by, cx, cy, sx, sy, inv_area):
+    """A triangle's barycentric weights of vertices a and b at (sx, sy); where it is not rasterised (inv_area 0),
+    weights that no pixel takes."""
+    if inv_area == 0.0:
+        return -1.0, -1.0
+    wa = ((bx - sx) * (cy - sy) - (by - sy) * (cx - sx)) * inv_area
+    wb = ((cx - sx) * (ay - sy) - (cy - sy) * (ax - sx)) * inv_area
+    return wa, wb
 
 
 @serial
-def _raster_band(y0, vertices, triangles, image):
-    """Rasterise into rows [y0, y0 + band_rows) the triangles that can cover them, in the mesh's order, with a
-    1/z depth test (the first of equal depths stays). (One flat loop: per-triangle helpers taking the arrays
-    would cost numba reference counting per call.)"""
-    screen, attr, rows, spans = vertices.screen, vertices.attr, triangles.rows, triangles.spans
+def _raster_band(y0, vertices, cells, image):
+    """Rasterise into rows [y0, y0 + band_rows) the cells that can cover them, in the mesh's order, with a 1/z
+    depth test (the first of equal depths stays). A cell's two triangles share its bounding box, which holds each of
+    their pixels about once where a box per triangle holds them twice: they are drawn in one pass over it, each pixel
+    from the first that covers its centre, or, where the cell folds over itself, one after the other. (One flat
+    loop: per-cell helpers taking the arrays would cost numba reference counting per call.)"""
+    screen, attr, rows, lives, spans = vertices.screen, vertices.attr, cells.rows, cells.live, cells.spans
     out_prev, out_zinv = image.prev, image.zinv
     ws = screen.shape[1]
-    y1, width = min(out_zinv.shape[0], y0 + triangles.band_rows), out_zinv.shape[1]
+    y1, width = min(out_zinv.shape[0], y0 + cells.band_rows), out_zinv.shape[1]
     out_zinv[y0:y1] = 0.0
     for j in range(spans.shape[0]):
         if spans[j, 0] >= y1 or spans[j, 1] <= y0:
             continue
-        for t in range(j * (ws - 1) * 2, (j + 1) * (ws - 1) * 2):
-            if rows[t, 0] >= y1 or rows[t, 1] <= y0:
+        for i in range(ws - 1):
+            cell = j * (ws - 1) + i
+            ry0, ry1, live = max(y0, rows[cell, 0]), min(y1, rows[cell, 1]), lives[cell]
+            if ry0 >= ry1:
                 continue
-            cell = t // 2
-            a, b, c = _triangle(j, cell % (ws - 1), t % 2)
-            ax, ay = screen[a[0], a[1], 0], screen[a[0], a[1], 1]
-            bx, by = screen[b[0], b[1], 0], screen[b[0], b[1], 1]
-            cx, cy = screen[c[0], c[1], 0], screen[c[0], c[1], 1]
-            ymin, ymax = min(ay, min(by, cy)), max(ay, max(by, cy))
-            ry0, ry1 = max(y0, int(math.ceil(ymin - 0.5))), min(y1, int(math.floor(ymax - 0.5)) + 1)
-            xmin, xmax = min(ax, min(bx, cx)), max(ax, max(bx, cx))
+            # triangle 0 is (p, q, r), triangle 1 (p, r, s) (_triangle); a culled one's own vertex leaves the box
+            px, py, qx, qy = screen[j, i, 0], screen[j, i, 1], screen[j, i + 1, 0], screen[j, i + 1, 1]
+            rx, ry, sx, sy = screen[j + 1, i + 1, 0], screen[j + 1, i + 1, 1], screen[j + 1, i, 0], screen[j + 1, i, 1]
+            on0, on1 = (live & 1) != 0, (live & 2) != 0
+            xmin = min(px, rx, qx if on0 else px, sx if on1 else px)
+            xmax = max(px, rx, qx if on0 else px, sx if on1 else px)
             rx0, rx1 = max(0, int(math.ceil(xmin - 0.5))), min(width, int(math.floor(xmax - 0.5)) + 1)
-            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-            if ry0 >= ry1 or rx0 >= rx1 or abs(area) < 1e-12:
+            if rx0 >= rx1:
                 continue
-            inv_area = 1.0 / area
             # per-vertex attributes, already over z (_mesh_vertices), so each pixel only blends them
-            a0, a1, a2, iza = attr[a[0], a[1], 0], attr[a[0], a[1], 1], attr[a[0], a[1], 2], attr[a[0], a[1], 3]
-            b0, b1, b2, izb = attr[b[0], b[1], 0], attr[b[0], b[1], 1], attr[b[0], b[1], 2], attr[b[0], b[1], 3]
-            c0, c1, c2, izc = attr[c[0], c[1], 0], attr[c[0], c[1], 1], attr[c[0], c[1], 2], attr[c[0], c[1], 3]
-            # barycentric weights are affine in the pixel position: stepped along x. On a still view the grid's
-            # vertices and edges pass through pixel centres: EDGE keeps the rounding of these sums from leaving
-            # such a centre out of both triangles, and the depth test keeps the first
-            dwa_dx, dwb_dx = (by - cy) * inv_area, (cy - ay) * inv_area
-            for y in range(ry0, ry1):
-                sy, sx = y + 0.5, rx0 + 0.5
-                wa = ((bx - sx) * (cy - sy) - (by - sy) * (cx - sx)) * inv_area
-                wb = ((cx - sx) * (ay - sy) - (cy - sy) * (ax - sx)) * inv_area
-                for x in range(rx0, rx1):
-                    wc = 1.0 - wa - wb
-                    if wa >= -EDGE and wb >= -EDGE and wc >= -EDGE:
-                        iz = wa * iza + wb * izb + wc * izc
-                        if iz > out_zinv[y, x]:
-                            out_zinv[y, x] = iz
-                            zp = wa * a2 + wb * b2 + wc * c2
-                            out_prev[0, y, x] = (wa * a0 + wb * b0 + wc * c0) / zp
-                            out_prev[1, y, x] = (wa * a1 + wb * b1 + wc * c1) / zp
-                    wa += dwa_dx
-                    wb += dwb_dx
+            vp = (attr[j, i, 0], attr[j, i, 1], attr[j, i, 2], attr[j, i, 3])
+            vq = (attr[j, i + 1, 0], attr[j, i + 1, 1], attr[j, i + 1, 2], attr[j, i + 1, 3])
+            vr = (attr[j + 1, i + 1, 0], attr[j + 1, i + 1, 1], attr[j + 1, i + 1, 2], attr[j + 1, i + 1, 3])
+            vs = (attr[j + 1, i, 0], attr[j + 1, i, 1], attr[j + 1, i, 2], attr[j + 1, i, 3])
+            inv0, inv1 = _inverse_area(px, py, qx, qy, rx, ry, on0), _inverse_area(px, py, rx, ry, sx, sy, on1)
+            # a cell whose triangles turn opposite ways folds over itself (a depth edge seen from aside): there they
+            # overlap, and each is drawn in a pass of its own, so that the depth test decides between them
+            folded = inv0 * inv1 < 0.0
+            for k in range(2 if folded else 1):
+                i0, i1 = (inv0 if k == 0 else 0.0, inv1 if k == 1 else 0.0) if folded else (inv0, inv1)
+                da0, db0, da1, db1 = (qy - ry) * i0, (ry - py) * i0, (ry - sy) * i1, (sy - py) * i1
+                # barycentric weights are affine in the pixel position: stepped along x. On a still view the grid's
+                # vertices and edges pass through pixel centres: EDGE keeps the rounding of these sums from leaving
+                # such a centre out of both triangles
+                for y in range(ry0, ry1):
+                    cy, cx = y + 0.5, rx0 + 0.5
+                    wa0, wb0 = _weights(px, py, qx, qy, rx, ry, cx, cy, i0)
+                    wa1, wb1 = _weights(px, py, rx, ry, sx, sy, cx, cy, i1)
+                    for x in range(rx0, rx1):
+                        wc0, wc1 = 1.0 - wa0 - wb0, 1.0 - wa1 - wb1
+                        in0 = wa0 >= -EDGE and wb0 >= -EDGE and wc0 >= -EDGE
+                        if in0 or (wa1 >= -EDGE and wb1 >= -EDGE and wc1 >= -EDGE):
+                            # the first that covers the centre: triangle 0 with weights (wp, wq, wr), or 1 (wp, wr, ws)
+                            wp, wq, wr, ws_ = (wa0, wb0, wc0, 0.0) if in0 else (wa1, 0.0, wb1, wc1)
+                            iz = wp * vp[3] + wq * vq[3] + wr * vr[3] + ws_ * vs[3]
+                            if iz > out_zinv[y, x]:
+                                out_zinv[y, x] = iz
+                                zp = wp * vp[2] + wq * vq[2] + wr * vr[2] + ws_ * vs[2]
+                                out_prev[0, y, x] = (wp * vp[0] + wq * vq[0] + wr * vr[0] + ws_ * vs[0]) / zp
+                                out_prev[1, y, x] = (wp * vp[1] + wq * vq[1] + wr * vr[1] + ws_ * vs[1]) / zp
+                        wa0 += da0
+                        wb0 += db0
+                        wa1 += da1
+                        wb1 += db1
 
 
 @kernel
-def _raster_mesh(vertices, triangles, image, counter, threads):
-    bands = (image.zinv.shape[0] + triangles.band_rows - 1) // triangles.band_rows
+def _raster_mesh(vertices, cells, image, counter, threads):
+    bands = (image.zinv.shape[0] + cells.band_rows - 1) // cells.band_rows
     for _ in nb.prange(threads):
         band = claim(counter)
         while band < bands:
-            _raster_band(band * triangles.band_rows, vertices, triangles, image)
+            _raster_band(band * cells.band_rows, vertices, cells, image)
             band = claim(counter)
 
 
@@ -248,7 +282,7 @@ class CoarseMesh:
     def __init__(self):
         self.image = MeshImage(np.empty((2, 0, 0), np.float32), np.empty((0, 0), np.float32))
         self._vertices = MeshVertices(np.empty((0, 0, 3)), np.empty((0, 0, VERTEX_ATTRS)))
-        self._rows, self._spans = np.empty((0, 2), np.int64), np.empty((0, 2), np.int64)
+        self._cells = CellRows(np.empty((0, 2), np.int64), np.empty(0, np.uint8), np.empty((0, 2), np.int64), 1)
         self._inputs: tuple[np.ndarray, ...] = ()  # the last call's inputs, copied (_unchanged)
         self.still = False
         self._current: CameraArrays | None = None  # the current camera, of the image
@@ -280,9 +314,10 @@ class CoarseMesh:
         hs, ws = depth.shape
         if self._vertices.screen.shape[:2] != (hs, ws):
             self._vertices = MeshVertices(np.empty((hs, ws, 3)), np.empty((hs, ws, VERTEX_ATTRS)))
-            cells = max(hs - 1, 0)
-            self._rows = np.empty((2 * cells * max(ws - 1, 0), 2), np.int64)
-            self._spans = np.empty((cells, 2), np.int64)
+            rows, cells = max(hs - 1, 0), max(hs - 1, 0) * max(ws - 1, 0)
+            self._cells = CellRows(
+                np.empty((cells, 2), np.int64), np.empty(cells, np.uint8), np.empty((rows, 2), np.int64), 1
+            )
         if self.image.zinv.shape != (height, width):
             self.image = MeshImage(np.empty((2, height, width), np.float32), np.empty((height, width), np.float32))
             self._inputs = ()
@@ -290,9 +325,9 @@ class CoarseMesh:
         if self._unchanged((*prev, *cur, grid_x, grid_y, depth)):
             return self.image
         _mesh_vertices(prev, grid_x, grid_y, depth, cur, self._vertices)
-        _triangle_rows(self._vertices.screen, height, self._rows, self._spans)
-        triangles = TriangleRows(self._rows, self._spans, max(1, height // BANDS))
-        dynamic(_raster_mesh, self._vertices, triangles, self.image)
+        cells = self._cells._replace(band_rows=max(1, height // BANDS))
+        _cell_rows(self._vertices.screen, height, cells.rows, cells.live, cells.spans)
+        dynamic(_raster_mesh, self._vertices, cells, self.image)
         self.still = _onto_itself(self.image)
         self._current, self._measured = cur, False
         return self.image
