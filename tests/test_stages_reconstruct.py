@@ -298,7 +298,7 @@ def test_sample_row_reads_every_pixels_own_level_and_leaves_the_unselected():
     values = scratch.values[0]
     values[:] = 7.0
     y = 9
-    sample_row(pyr.data, pyr.widths, pixel_axes(pyr), y, levels, values, scratch.texels[0])
+    sample_row(pyr.data, pyr.widths, pixel_axes(pyr), y, levels, values, scratch.texels[0], scratch.runs[0])
     for x, level in enumerate(levels):
         expected = np.full(3, 7.0) if level < 0 else _trilinear(pyr, level, x, y)
         np.testing.assert_allclose(values[x], expected, rtol=1e-5, atol=1e-6, err_msg=f"x={x} level={level}")

@@ -301,7 +301,7 @@ def _periphery(e, r0, r1):
 
 
 @serial
-def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y, out):
+def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, runs, y, out):
     """Row y of the second pass. Far field: the central Gaussian, the pyramid blur in the periphery (read at
     level log2 |CoC| for the row at once, sample_row, into values), blended across [r0, r1); the sharp image
     is interpolated towards it by |CoC|; the near field is alpha-blended over."""
@@ -314,7 +314,7 @@ def _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y,
         c = coc[y, x]
         read = c < 0.0 and _periphery(ecc[y, x], r0, r1) > 0.0
         levels[x] = (0.0 if -c <= 1.0 else math.log2(-c)) if read else -1.0
-    sample_row(pyramid.data, pyramid.widths, axes, y, levels, values, texels)
+    sample_row(pyramid.data, pyramid.widths, axes, y, levels, values, texels, runs)
     for x in range(out.shape[1]):
         c = coc[y, x]
         r, g, b = color[y, x, 0], color[y, x, 1], color[y, x, 2]
@@ -352,15 +352,24 @@ def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch
     compile to faster code than one that does both. Rows claimed (hmdrt.kernels.schedule): their cost varies."""
     for _ in nb.prange(threads):
         thread = nb.get_thread_id()
-        levels, values, texels = scratch.levels[thread], scratch.values[thread], scratch.texels[thread]
+        levels, values, texels, runs = (
+            scratch.levels[thread],
+            scratch.values[thread],
+            scratch.texels[thread],
+            scratch.runs[thread],
+        )
         y = claim(counter)
         while y < out.shape[0]:
             if dof:
-                _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, y, out)
+                _dof_row(color, ecc, layers, blur, pyramid, axes, levels, values, texels, runs, y, out)
+                if contrast.strength != 0.0:
+                    row = out[y].reshape(-1)  # one array in and out: the compiler sees the loop work in place
+                    enhance_row(ecc, contrast, blurred, axes, values, texels, runs, row, 3, y, row)
+            elif contrast.strength != 0.0:  # the sharp colour enhanced as it is copied
+                row = color[y].reshape(-1)
+                enhance_row(ecc, contrast, blurred, axes, values, texels, runs, row, CHANNELS, y, out[y].reshape(-1))
             else:
                 _copy_row(color, y, out)
-            if contrast.strength != 0.0:
-                enhance_row(ecc, contrast, blurred, axes, values, texels, y, out)
             y = claim(counter)
 
 

@@ -21,7 +21,7 @@ import numba as nb
 import numpy as np
 
 from hmdrt.foveation.stages.pyramid import Pyramid, pixel_texels, sample_row
-from hmdrt.kernels.jit import kernel, serial
+from hmdrt.kernels.jit import inline, kernel, serial
 
 DEGREES_PER_LEVEL = 5.0  # the blur's pyramid level grows by one every 5 degrees beyond r0
 
@@ -147,22 +147,23 @@ def enhance_windows(ecc: np.ndarray, contrast: Contrast, pyramid: Pyramid, spans
     return out
 
 
-@serial
-def enhance_row(ecc, contrast, blurred, axes, values, texels, y, out):
-    """Row y of out enhanced in place: color + strength x fade(e) x (color - blur_e(color)) at each pixel of
-    eccentricity e, the blur read trilinearly from the prefiltered pyramid `blurred` (prefilter; `axes` its
-    pixel_axes) at the pixel's centre, for the row at once (pyramid.sample_row at the contrast's own row of levels,
-    with `values` and `texels` its scratch). Negative results are cut at zero (light cannot be negative). Selects,
-    not branches, over rows flattened so that the channels' strides are constants: the loop vectorises (a pixel
-    inside r0, whose blur was not sampled, keeps its colour)."""
+@inline
+def enhance_row(ecc, contrast, blurred, axes, values, texels, runs, color, stride, y, rgb):
+    """Row y into rgb (flat, 3 floats a pixel): color + strength x fade(e) x (color - blur_e(color)) at each pixel of
+    eccentricity e, the colour read from `color` (row y's, flat, `stride` floats a pixel: rgb itself, in place, or a
+    pyramid level's, copied as it is enhanced), the blur read trilinearly from the prefiltered pyramid `blurred`
+    (prefilter; `axes` its pixel_axes) at the pixel's centre, for the row at once (pyramid.sample_row at the
+    contrast's own row of levels, with `values`, `texels` and `runs` its scratch). Negative results are cut at zero
+    (light cannot be negative). Selects, not branches, over rows flattened: inlined where it is called, with a
+    constant stride, the loop vectorises (a pixel inside r0, whose blur was not sampled, keeps its colour)."""
     strength, r0, r1, blur_levels = contrast
-    sample_row(blurred.data, blurred.widths, axes, y, blur_levels[y], values, texels)
-    rgb, blur, e = out[y].reshape(-1), values.reshape(-1), ecc[y]
-    for x in range(out.shape[1]):
+    sample_row(blurred.data, blurred.widths, axes, y, blur_levels[y], values, texels, runs)
+    blur, e = values.reshape(-1), ecc[y]
+    for x in range(e.shape[0]):
         fade = _fade(e[x], r0, r1)
         gain = strength * fade
-        i = 3 * x
-        r, g, b = rgb[i], rgb[i + 1], rgb[i + 2]
+        i, j = 3 * x, stride * x
+        r, g, b = color[j], color[j + 1], color[j + 2]
         er = max(r + gain * (r - blur[i]), 0.0)
         eg = max(g + gain * (g - blur[i + 1]), 0.0)
         eb = max(b + gain * (b - blur[i + 2]), 0.0)

@@ -318,12 +318,16 @@ class RowSamples(NamedTuple):
     levels: np.ndarray  # (threads, width) float64
     values: np.ndarray  # (threads, width, 3) float64: colour
     texels: np.ndarray  # (threads, 2, width, 3) float32: colour
+    runs: np.ndarray  # (threads, width + 1, 2) int64: a row's runs of pixels on one level
 
     @classmethod
     def empty(cls, width: int) -> RowSamples:
         threads = nb.config.NUMBA_NUM_THREADS
         return cls(
-            np.zeros((threads, width)), np.zeros((threads, width, 3)), np.zeros((threads, 2, width, 3), np.float32)
+            np.zeros((threads, width)),
+            np.zeros((threads, width, 3)),
+            np.zeros((threads, 2, width, 3), np.float32),
+            np.zeros((threads, width + 1, 2), np.int64),
         )
 
 
@@ -339,23 +343,28 @@ def _vertical(data, first, second, weight, n, out):
 
 
 @serial
-def sample_row(data, widths, axes, y, levels, values, texels):
+def sample_row(data, widths, axes, y, levels, values, texels, runs):
     """values[x] = colour at the centre of full-resolution pixel (x, y) on level levels[x] (fractional,
     clamped to the top level), trilinearly, of the pyramid with `data` and level widths `widths`, for every pixel
     of row y whose level is >= 0; the others are left as they are (levels and values: at least a row long).
-    `axes`: its PixelAxes (pixel_axes); `texels`: a (2, width, 3) float32 scratch. One pass per integer level
-    the row holds: a pass keeps one level's tables and constants out of its loop, where a loop that picks each
-    pixel's level reloads them per pixel (2.5x slower at rift_s). Each pass blends the next level's two texel rows
-    about y once per texel (the first pass its own level's too; the others have it from the pass before), then
-    each pixel blends two of those: two taps per pixel and level, not four. Level 0 is the texel itself."""
+    `axes`: its PixelAxes (pixel_axes); `texels`: a (2, width, 3) float32 scratch; `runs`: a (width + 1, 2) int64
+    scratch. One pass per integer level the row holds, over the runs of pixels on that level (listed in a first
+    scan): a pass keeps one level's tables and constants out of its loop, where a loop that picks each pixel's level
+    reloads them per pixel (2.5x slower at rift_s). Each pass blends the next level's two texel rows about y once
+    per texel (the first pass its own level's too; the others have it from the pass before), then each pixel blends
+    two of those: two taps per pixel and level, not four. Level 0 is the texel itself."""
     col0, col1, col_weight, row0, row1, row_weight = axes
     top = len(widths) - 1
     width, ftop = col0.shape[1], float(top)
-    lo, hi = top, -1
-    for x in range(width):
-        if levels[x] >= 0.0:
-            k = int(min(levels[x], ftop))
-            lo, hi = min(lo, k), max(hi, k)
+    lo, hi, n, current = top, -1, 0, -2
+    for x in range(width):  # the runs: each one's first pixel and integer level (-1: not read)
+        k = int(min(levels[x], ftop)) if levels[x] >= 0.0 else -1
+        if k != current:
+            runs[n, 0], runs[n, 1], current = x, k, k
+            n += 1
+            if k >= 0:
+                lo, hi = min(lo, k), max(hi, k)
+    runs[n, 0] = width
     first = np.uint64(y * width)
     for k in range(lo, hi + 1):
         up = min(k + 1, top)  # blended in where the level has a fraction (not above the top one)
@@ -365,21 +374,22 @@ def sample_row(data, widths, axes, y, levels, values, texels):
             _vertical(data, row0[k, y], row1[k, y], row_weight[k, y], widths[k], here)
         if k < top:
             _vertical(data, row0[up, y], row1[up, y], row_weight[up, y], widths[up], above)
-        for x in range(width):
-            level = min(levels[x], ftop)
-            if level < 0.0 or int(level) != k:
+        for run in range(n):
+            if runs[run, 1] != k:
                 continue
-            if k == 0:
-                i = first + np.uint64(x)
-                r, g, b = data[i, 0], data[i, 1], data[i, 2]
-            else:
-                r, g, b = rgb_blend(here, k0[x], k1[x], kw[x])
-            if k < top:  # level - k is 0 on integer levels, where this adds 0 to finite values
-                values[x, 0], values[x, 1], values[x, 2] = rgb_lerp_to_blend(
-                    r, g, b, above, u0[x], u1[x], uw[x], level - k
-                )
-            else:
-                values[x, 0], values[x, 1], values[x, 2] = r, g, b
+            for x in range(runs[run, 0], runs[run + 1, 0]):
+                level = min(levels[x], ftop)
+                if k == 0:
+                    i = first + np.uint64(x)
+                    r, g, b = data[i, 0], data[i, 1], data[i, 2]
+                else:
+                    r, g, b = rgb_blend(here, k0[x], k1[x], kw[x])
+                if k < top:  # level - k is 0 on integer levels, where this adds 0 to finite values
+                    values[x, 0], values[x, 1], values[x, 2] = rgb_lerp_to_blend(
+                        r, g, b, above, u0[x], u1[x], uw[x], level - k
+                    )
+                else:
+                    values[x, 0], values[x, 1], values[x, 2] = r, g, b
 
 
 @inline
