@@ -45,6 +45,7 @@ from hmdrt.foveation.stages.pyramid import (
     PixelAxes,
     Pyramid,
     RowSamples,
+    level_runs,
     pixel_axes,
     pull_push,
     push_columns,
@@ -129,11 +130,14 @@ class Reprojected(NamedTuple):
     y: np.ndarray
     expected: np.ndarray
     level: np.ndarray
+    runs: np.ndarray  # (threads, BLOCK + 1, 2) int64: the block's runs of samples on one level (pyramid.level_runs)
 
     @classmethod
     def empty(cls) -> Reprojected:
-        shape = (nb.config.NUMBA_NUM_THREADS, BLOCK)
-        return cls(np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape))
+        threads = nb.config.NUMBA_NUM_THREADS
+        shape = (threads, BLOCK)
+        runs = np.zeros((threads, BLOCK + 1, 2), np.int64)
+        return cls(np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), runs)
 
 
 class Tangents(NamedTuple):
@@ -174,13 +178,13 @@ def _taa_block(traced, tangents, view, blend, previous, history, start, stop, wh
     """Samples [start, stop): with history, each one's point in the current eye frame (along its pixel centre's ray,
     Tangents) seen from the previous frame (its relative_view `view`) into `where`, in a loop of selects that
     vectorises, then the previous pyramid's quincunx taps there blended into its rgb, in one pass per level the block
-    reads (as pyramid.sample_row: a pass's level constants stay put, where a loop that picks each sample's level
-    reloads them); a sample on a whole level reads that level alone. Last, each sample's depth capped at FAR: what
-    level 0 is to hold, which the pull-push writes there (pyramid.LevelSamples)."""
+    reads, over its runs of samples on that level (as pyramid.sample_row: a pass's level constants stay put, where a
+    loop that picks each sample's level reloads them); a sample on a whole level reads that level alone. Last, each
+    sample's depth capped at FAR: what level 0 is to hold, which the pull-push writes there (pyramid.LevelSamples)."""
     _, xy, levels, offsets, depth, rgb = traced
     alpha_min, tol = blend
     p_data, p_offsets, p_widths, p_heights, p_sx, p_sy = previous
-    at_x, at_y, expected, at_level = where
+    at_x, at_y, expected, at_level, runs = where
     top = len(p_offsets) - 1
     pw, ph = p_widths[0], p_heights[0]
     if history:
@@ -196,32 +200,29 @@ def _taa_block(traced, tangents, view, blend, previous, history, start, stop, wh
             expected[j] = dist if block_depth[j] < FAR else math.inf
             inside = (qx >= 0.0) & (qy >= 0.0) & (qx < pw) & (qy < ph)
             at_level[j] = min(max(block_levels[j], 0.0), ftop) if inside else -1.0
-        lo, hi = top, -1
-        for j in range(stop - start):
-            if at_level[j] >= 0.0:
-                lo, hi = min(lo, int(at_level[j])), max(hi, int(at_level[j]))
+        count, lo, hi = level_runs(at_level, stop - start, top, runs)
         for k in range(lo, hi + 1):
             up = min(k + 1, top)
             lower = (p_offsets[k], p_widths[k], p_heights[k], p_sx[k], p_sy[k])
             upper = (p_offsets[up], p_widths[up], p_heights[up], p_sx[up], p_sy[up])
-            for s in range(start, stop):
-                j = s - start
-                level = at_level[j]
-                if level < 0.0 or int(level) != k:
+            for run in range(count):
+                if runs[run, 1] != k:
                     continue
-                qx, qy, off, e = at_x[j], at_y[j], offsets[s], expected[j]
-                t = level - k  # 0 on the top level and on whole levels, where the next level adds nothing
-                taps = quincunx(p_data, lower, upper, t, off, qx, qy)
-                valid, tr, tg, tb = _tap(taps[0], e, tol, 0, 0.0, 0.0, 0.0)
-                valid, tr, tg, tb = _tap(taps[1], e, tol, valid, tr, tg, tb)
-                valid, tr, tg, tb = _tap(taps[2], e, tol, valid, tr, tg, tb)
-                valid, tr, tg, tb = _tap(taps[3], e, tol, valid, tr, tg, tb)
-                valid, tr, tg, tb = _tap(taps[4], e, tol, valid, tr, tg, tb)
-                if valid > 0:
-                    alpha = max(alpha_min, 1.0 - valid / 5.0)
-                    rgb[s, 0] = alpha * rgb[s, 0] + (1.0 - alpha) * tr / valid
-                    rgb[s, 1] = alpha * rgb[s, 1] + (1.0 - alpha) * tg / valid
-                    rgb[s, 2] = alpha * rgb[s, 2] + (1.0 - alpha) * tb / valid
+                for j in range(runs[run, 0], runs[run + 1, 0]):
+                    s, level = start + j, at_level[j]
+                    qx, qy, off, e = at_x[j], at_y[j], offsets[s], expected[j]
+                    t = level - k  # 0 on the top level and on whole levels, where the next level adds nothing
+                    taps = quincunx(p_data, lower, upper, t, off, qx, qy)
+                    valid, tr, tg, tb = _tap(taps[0], e, tol, 0, 0.0, 0.0, 0.0)
+                    valid, tr, tg, tb = _tap(taps[1], e, tol, valid, tr, tg, tb)
+                    valid, tr, tg, tb = _tap(taps[2], e, tol, valid, tr, tg, tb)
+                    valid, tr, tg, tb = _tap(taps[3], e, tol, valid, tr, tg, tb)
+                    valid, tr, tg, tb = _tap(taps[4], e, tol, valid, tr, tg, tb)
+                    if valid > 0:
+                        alpha = max(alpha_min, 1.0 - valid / 5.0)
+                        rgb[s, 0] = alpha * rgb[s, 0] + (1.0 - alpha) * tr / valid
+                        rgb[s, 1] = alpha * rgb[s, 1] + (1.0 - alpha) * tg / valid
+                        rgb[s, 2] = alpha * rgb[s, 2] + (1.0 - alpha) * tb / valid
     for s in range(start, stop):
         depth[s] = min(depth[s], FAR)
 
@@ -234,7 +235,7 @@ def _taa_blocks(traced, tangents, view, blend, previous, history, where, counter
     blocks = (n + BLOCK - 1) // BLOCK
     for _ in nb.prange(threads):
         t = nb.get_thread_id()
-        rows = Reprojected(where.x[t], where.y[t], where.expected[t], where.level[t])
+        rows = Reprojected(where.x[t], where.y[t], where.expected[t], where.level[t], where.runs[t])
         block = claim(counter)
         while block < blocks:
             start, stop = block * BLOCK, min(n, (block + 1) * BLOCK)

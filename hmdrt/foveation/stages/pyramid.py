@@ -343,6 +343,24 @@ def _vertical(data, first, second, weight, n, out):
 
 
 @serial
+def level_runs(levels, n, top, runs):
+    """The runs of one integer level among levels[:n], each clamped to `top` (a negative one: -1, not read): each
+    run's first index and level into runs (at least (n + 1, 2) int64), its end the next one's first (runs[count, 0]
+    is n). Returns the count and the lowest and highest level read (top and -1 when none): a pass per level then
+    visits its runs, not every element."""
+    count, lo, hi, current, ftop = 0, top, -1, -2, float(top)
+    for i in range(n):
+        k = int(min(levels[i], ftop)) if levels[i] >= 0.0 else -1
+        if k != current:
+            runs[count, 0], runs[count, 1], current = i, k, k
+            count += 1
+            if k >= 0:
+                lo, hi = min(lo, k), max(hi, k)
+    runs[count, 0] = n
+    return count, lo, hi
+
+
+@serial
 def sample_row(data, widths, axes, y, levels, values, texels, runs):
     """values[x] = colour at the centre of full-resolution pixel (x, y) on level levels[x] (fractional,
     clamped to the top level), trilinearly, of the pyramid with `data` and level widths `widths`, for every pixel
@@ -356,15 +374,7 @@ def sample_row(data, widths, axes, y, levels, values, texels, runs):
     col0, col1, col_weight, row0, row1, row_weight = axes
     top = len(widths) - 1
     width, ftop = col0.shape[1], float(top)
-    lo, hi, n, current = top, -1, 0, -2
-    for x in range(width):  # the runs: each one's first pixel and integer level (-1: not read)
-        k = int(min(levels[x], ftop)) if levels[x] >= 0.0 else -1
-        if k != current:
-            runs[n, 0], runs[n, 1], current = x, k, k
-            n += 1
-            if k >= 0:
-                lo, hi = min(lo, k), max(hi, k)
-    runs[n, 0] = width
+    n, lo, hi = level_runs(levels, width, top, runs)
     first = np.uint64(y * width)
     for k in range(lo, hi + 1):
         up = min(k + 1, top)  # blended in where the level has a fraction (not above the top one)
