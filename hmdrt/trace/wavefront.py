@@ -332,71 +332,6 @@ def _spawn(scene, w, rays, children, spawners, count, depth):
 
 
 @inline
-def _block(scene, frame, lane, start, stop):
-    """Trace, shade and write samples [start, stop) of the frame."""
-    plan, tally, clock, packet, radiance = scene.plan, lane.tally, lane.clock, lane.packet, lane.radiance
-    n_point, n_area, n_ao = scene.lights.point_position.shape[0], plan.area_total, plan.ao_samples
-    t = meter.now(clock)
-    rays, children = lane.rays, lane.children
-    count = stop - start
-    if count > rays.owner.shape[0]:
-        rays = rays_empty(count)
-    _raygen(frame, rays, radiance, start, count)
-    t = meter.tick(tally, clock, meter.RAYGEN, t)
-    for depth in range(scene.max_depth + 1):
-        if count == 0:
-            break
-        tally[meter.NEED] = max(tally[meter.NEED], count)
-        w = lane.work if count <= lane.work.kr.shape[0] else work_empty(count, n_point, n_area, n_ao)
-        _listed_rays(frame, rays, w.listed, start, count, depth)
-        _intersect(scene, packet, rays, w.hits, w.listed, count)
-        kind = meter.PRIMARY if depth == 0 else meter.SECONDARY
-        tally[meter.RAYS_PRIMARY if depth == 0 else meter.RAYS_SECONDARY] += count
-        t = meter.tick(tally, clock, kind, t)
-        surface_block(
-            scene.geometry, scene.materials, rays.directions, w.hits.prim, w.hits.u, w.hits.v, w.surf, 0, count
-        )
-        t = meter.tick(tally, clock, meter.SURFACE, t)
-        if n_point + n_area + n_ao:
-            light_rays_block(scene.lights, plan, w.surf, rays.key, w.point, w.area, w.ao, 0, count)
-            t = meter.tick(tally, clock, meter.LIGHTGEN, t)
-        if n_point:
-            tally[meter.RAYS_SHADOW] += _occlude(scene, packet, w.point, w.listed, count, n_point)
-            t = meter.tick(tally, clock, meter.SHADOW, t)
-        if n_area:
-            tally[meter.RAYS_AREA] += _occlude(scene, packet, w.area, w.listed, count, n_area)
-            t = meter.tick(tally, clock, meter.AREA, t)
-        if n_ao:
-            tally[meter.RAYS_AO] += _occlude(scene, packet, w.ao, w.listed, count, n_ao)
-            t = meter.tick(tally, clock, meter.AO, t)
-        _shade(scene, w, rays, count)
-        _accumulate(frame, w, rays, radiance, start, count, depth)
-        t = meter.tick(tally, clock, meter.SHADE, t)
-        spawn = depth < scene.max_depth and scene.secondary
-        store = frame.has_gbuffer and (depth == 0 or (depth == 1 and holds_samples(frame.gbuffer.secondary)))
-        spawners = 0
-        if spawn or store:
-            spawners = interaction_block(
-                scene.materials, w.surf, rays, spawn, w.kr, w.kt, w.counts, w.spawners, 0, count
-            )
-            t = meter.tick(tally, clock, meter.SECONDARY if spawn else meter.GBUFFER, t)
-        if store:
-            _store_gbuffer(frame, scene, w, rays, start, count, depth)
-            t = meter.tick(tally, clock, meter.GBUFFER, t)
-        if not spawn:
-            break
-        next_rays, count = _spawn(scene, w, rays, children, spawners, count, depth)
-        rays, children = next_rays, rays
-        tally[meter.NEED] = max(tally[meter.NEED], count)
-        t = meter.tick(tally, clock, meter.SECONDARY, t)
-    out = frame.out
-    for i in range(stop - start):
-        for c in range(3):
-            out[start + i, c] = radiance[i, c]
-    meter.tick(tally, clock, meter.SHADE, t)
-
-
-@inline
 def _band_start(xy, s, reach):
     """Where block boundary s moves to: back to the start of its band of TILE_ROWS rows if that lies at most `reach`
     samples before it, so that _tile_order sees whole bands; else s."""
@@ -412,14 +347,76 @@ def _band_start(xy, s, reach):
 @serial
 def _trace_blocks(scene, frame, lane, block, counter):
     """One thread's share of a trace call: blocks of about `block` samples (their bounds moved back to the starts of
-    bands of rows, by up to half a block: _band_start) claimed from `counter` until none is left."""
+    bands of rows, by up to half a block: _band_start) claimed from `counter` until none is left; each block's
+    samples [start, stop) traced, shaded and written. (The block's body is written here, not in an inlined helper:
+    numba copies an inlined function's IR block by block, each copy with all its variables, 2.2 s of compiling.)"""
     n = frame.xy.shape[0]
     blocks = (n + block - 1) // block
     reach = block // 2
     b = claim(counter)
     while b < blocks:
         start = _band_start(frame.xy, b * block, reach)
-        _block(scene, frame, lane, start, _band_start(frame.xy, min(n, (b + 1) * block), reach))
+        stop = _band_start(frame.xy, min(n, (b + 1) * block), reach)
+        plan, tally, clock, packet, radiance = scene.plan, lane.tally, lane.clock, lane.packet, lane.radiance
+        n_point, n_area, n_ao = scene.lights.point_position.shape[0], plan.area_total, plan.ao_samples
+        t = meter.now(clock)
+        rays, children = lane.rays, lane.children
+        count = stop - start
+        if count > rays.owner.shape[0]:
+            rays = rays_empty(count)
+        _raygen(frame, rays, radiance, start, count)
+        t = meter.tick(tally, clock, meter.RAYGEN, t)
+        for depth in range(scene.max_depth + 1):
+            if count == 0:
+                break
+            tally[meter.NEED] = max(tally[meter.NEED], count)
+            w = lane.work if count <= lane.work.kr.shape[0] else work_empty(count, n_point, n_area, n_ao)
+            _listed_rays(frame, rays, w.listed, start, count, depth)
+            _intersect(scene, packet, rays, w.hits, w.listed, count)
+            kind = meter.PRIMARY if depth == 0 else meter.SECONDARY
+            tally[meter.RAYS_PRIMARY if depth == 0 else meter.RAYS_SECONDARY] += count
+            t = meter.tick(tally, clock, kind, t)
+            surface_block(
+                scene.geometry, scene.materials, rays.directions, w.hits.prim, w.hits.u, w.hits.v, w.surf, 0, count
+            )
+            t = meter.tick(tally, clock, meter.SURFACE, t)
+            if n_point + n_area + n_ao:
+                light_rays_block(scene.lights, plan, w.surf, rays.key, w.point, w.area, w.ao, 0, count)
+                t = meter.tick(tally, clock, meter.LIGHTGEN, t)
+            if n_point:
+                tally[meter.RAYS_SHADOW] += _occlude(scene, packet, w.point, w.listed, count, n_point)
+                t = meter.tick(tally, clock, meter.SHADOW, t)
+            if n_area:
+                tally[meter.RAYS_AREA] += _occlude(scene, packet, w.area, w.listed, count, n_area)
+                t = meter.tick(tally, clock, meter.AREA, t)
+            if n_ao:
+                tally[meter.RAYS_AO] += _occlude(scene, packet, w.ao, w.listed, count, n_ao)
+                t = meter.tick(tally, clock, meter.AO, t)
+            _shade(scene, w, rays, count)
+            _accumulate(frame, w, rays, radiance, start, count, depth)
+            t = meter.tick(tally, clock, meter.SHADE, t)
+            spawn = depth < scene.max_depth and scene.secondary
+            store = frame.has_gbuffer and (depth == 0 or (depth == 1 and holds_samples(frame.gbuffer.secondary)))
+            spawners = 0
+            if spawn or store:
+                spawners = interaction_block(
+                    scene.materials, w.surf, rays, spawn, w.kr, w.kt, w.counts, w.spawners, 0, count
+                )
+                t = meter.tick(tally, clock, meter.SECONDARY if spawn else meter.GBUFFER, t)
+            if store:
+                _store_gbuffer(frame, scene, w, rays, start, count, depth)
+                t = meter.tick(tally, clock, meter.GBUFFER, t)
+            if not spawn:
+                break
+            next_rays, count = _spawn(scene, w, rays, children, spawners, count, depth)
+            rays, children = next_rays, rays
+            tally[meter.NEED] = max(tally[meter.NEED], count)
+            t = meter.tick(tally, clock, meter.SECONDARY, t)
+        out = frame.out
+        for i in range(stop - start):
+            for c in range(3):
+                out[start + i, c] = radiance[i, c]
+        meter.tick(tally, clock, meter.SHADE, t)
         b = claim(counter)
 
 
@@ -436,10 +433,11 @@ def compile_part(scene: SceneArgs, lane: Lane, gbuffer: object, part: int) -> No
     """Compiles into numba's cache (or loads from it) the kernels that the steps of a block call, those of a level's
     first steps (part 0: intersection, surfaces, light rays and G-buffer rows, about 6 s of a first run's CPU) or of
     its last ones (part 1: occlusion, shading, interactions and spawning, about 6.5 s), each with the argument types
-    _block calls it with, here from the scene's arguments, a lane's scratch and a G-buffer. Two processes compile the
-    two parts side by side on a first run, and the tracer's kernel then loads both (hmdrt.trace.compile_aside):
-    calling them from a kernel of its own would have LLVM compile them again in it. A call site's types that differ
-    from these leave that kernel to the tracer's compile; tests/test_compile_aside.py checks that none does."""
+    _trace_blocks calls it with, here from the scene's arguments, a lane's scratch and a G-buffer. Two processes
+    compile the two parts side by side on a first run, and the tracer's kernel then loads both
+    (hmdrt.trace.compile_aside): calling them from a kernel of its own would have LLVM compile them again in it. A call
+    site's types that differ from these leave that kernel to the tracer's compile; tests/test_compile_aside.py checks
+    that none does."""
     w, rays, count, zero = lane.work, lane.rays, 0, LITERAL_ZERO
     lights, plan, mats, surf = scene.lights, scene.plan, scene.materials, w.surf
     embree_args = (scene.handle, scene.args, lane.packet)
@@ -452,6 +450,7 @@ def compile_part(scene: SceneArgs, lane: Lane, gbuffer: object, part: int) -> No
         _compile(_ao_rays, plan, surf, rays.key, w.ao, zero, count)
         attrs = (gbuffer.primary, w.rows, gbuffer.kept, hits.t, surf, scene.textured, w.shadow_count, w.kr, w.kt)
         _compile(store_block, *attrs, zero, count)
+        _compile(holds_samples, gbuffer.secondary)
     elif part == 1:
         o, d, far, occluded = w.point
         _compile(embree.occluded_rays, *embree_args, o, d, far, occluded, count, count, w.listed)
