@@ -349,7 +349,8 @@ def _copy_row(level, y, out):
 @kernel
 def _combine(color, ecc, layers, blur, pyramid, contrast, blurred, axes, scratch, dof, out, counter, threads):
     """Row by row, the depth of field then the contrast over the row while it is in cache: two simple loops
-    compile to faster code than one that does both. Rows claimed (hmdrt.kernels.schedule): their cost varies."""
+    compile to faster code than one that does both. Without depth of field the contrast enhancement reads the sharp
+    colour and writes the row (no copy first). Rows claimed (hmdrt.kernels.schedule): their cost varies."""
     for _ in nb.prange(threads):
         thread = nb.get_thread_id()
         levels, values, texels, runs = (
