@@ -28,7 +28,7 @@ from hmdrt.foveation.stages.pyramid import (
 from hmdrt.foveation.stages.reproject import CoarseMesh, backproject
 from hmdrt.optics import EyeCamera, get_profile
 from hmdrt.optics.camera import pixel_centres
-from hmdrt.optics.projection import FAR, camera_arrays
+from hmdrt.optics.projection import FAR
 from hmdrt.scene import Scene
 from hmdrt.scene.model import AreaLight, Material
 from hmdrt.scene.shapes import quad, sphere
@@ -131,8 +131,7 @@ def test_mesh_raster_matches_every_triangle_drawn_in_order_with_a_depth_test(pos
     depth[8:18, 6:14] = 0.7 + 0.1 * rng.random((10, 8))  # a near block: its sides stretch into folds
     # behind the new eye after its step forward: their triangles culled, both of a cell's or one
     depth[:, :2] = depth[4, 16] = depth[20, 18] = 0.25
-    vertices = rp.MeshVertices(np.empty((sh, sw, 3)), np.empty((sh, sw, rp.VERTEX_ATTRS)))
-    rp._mesh_vertices(camera_arrays(before), gx, gy, depth, camera_arrays(after, 96, 108), vertices)
+    vertices = rp.GridProjection().project(before, gx, gy, depth, after, (96, 108))
     assert (vertices.screen[..., 2] <= rp.NEAR).any()
     mesh, zinv = CoarseMesh().reproject(before, gx, gy, depth, after, 96, 108)
     prev, ref, edge = _reference_raster(vertices.screen, vertices.attr, 96, 108, rp.NEAR)
@@ -142,6 +141,31 @@ def test_mesh_raster_matches_every_triangle_drawn_in_order_with_a_depth_test(pos
     inside = away & (ref > 0)
     np.testing.assert_allclose(zinv[inside], ref[inside], rtol=1e-6)
     np.testing.assert_allclose(mesh[:, inside], prev[:, inside], atol=1e-3)
+
+
+def test_meshes_of_one_projection_match_meshes_of_their_own_and_project_once_per_change():
+    """weier16's two meshes (full and support resolution) share one projection of the grid: each image the same bits
+    as a mesh projecting for itself, the vertices projected once per change of the inputs, none on a still view."""
+    before = camera("sim-cpu", Pose.looking((0.0, 1.6, 0.0), 0.0, 0.0), 96, 108)
+    after = camera("sim-cpu", Pose.looking((0.03, 1.6, -0.02), 3.0, -1.0), 96, 108)
+    sw, sh = 24, 27
+    gx, gy = (np.arange(sw) + 0.5) * 4, (np.arange(sh) + 0.5) * 4
+    depth = 2.0 + np.random.default_rng(5).random((sh, sw))
+    projection = rp.GridProjection()
+    full, low = CoarseMesh(projection), CoarseMesh(projection)
+    moves = []
+    for cur in (after, before, before):
+        versions = projection.version
+        shared = [m.reproject(before, gx, gy, depth, cur, w, h) for m, (w, h) in ((full, (96, 108)), (low, (sw, sh)))]
+        own = [CoarseMesh().reproject(before, gx, gy, depth, cur, w, h) for w, h in ((96, 108), (sw, sh))]
+        for a, b in zip(shared, own, strict=True):
+            covered = a.zinv > 0  # the mesh image's coordinates where it covers a pixel
+            assert covered.any()
+            np.testing.assert_array_equal(a.zinv.view(np.uint32), b.zinv.view(np.uint32))
+            np.testing.assert_array_equal(a.prev[:, covered].view(np.uint32), b.prev[:, covered].view(np.uint32))
+        moves.append(projection.version - versions)
+    assert moves == [2, 1, 0]  # the first call meets the sizes one at a time; a still view projects nothing
+    assert full.still and low.image.zinv.shape == (sh, sw)
 
 
 def test_pull_push_keeps_samples_and_fills_holes():

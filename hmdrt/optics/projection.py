@@ -43,13 +43,13 @@ def pixel_tangents(f, x, y):
 
 
 @serial
-def _pixel(f, tx, ty):
+def pixel_of(f, tx, ty):
     """Continuous pixel coordinates of the view ray with tangents (tx, ty) in frustum f."""
     return np.divide(tx - f[0], f[1] - f[0]) * f[4], np.divide(f[2] - ty, f[2] - f[3]) * f[5]
 
 
 @inline
-def _to_eye(cam, px, py, pz):
+def to_eye(cam, px, py, pz):
     """World point p in the camera's eye frame (x right, y up, looking along -z)."""
     dx, dy, dz = px - cam.position[0], py - cam.position[1], pz - cam.position[2]
     r = cam.rotation
@@ -77,11 +77,11 @@ def ray_direction(cam, x, y):
 @inline
 def project(cam, px, py, pz):
     """Continuous pixel coordinates and distance from the camera of world point p; x is NaN behind it."""
-    lx, ly, lz = _to_eye(cam, px, py, pz)
+    lx, ly, lz = to_eye(cam, px, py, pz)
     dist = math.sqrt(lx * lx + ly * ly + lz * lz)
     if lz >= 0.0:
         return math.nan, math.nan, dist
-    x, y = _pixel(cam.frustum, np.divide(lx, -lz), np.divide(ly, -lz))
+    x, y = pixel_of(cam.frustum, np.divide(lx, -lz), np.divide(ly, -lz))
     return x, y, dist
 
 
@@ -157,9 +157,9 @@ def view_distance(cam, x, y, z):
 @inline
 def project_view(cam, px, py, pz):
     """Continuous pixel coordinates and view depth (along -Z, positive in front) of world point p."""
-    lx, ly, lz = _to_eye(cam, px, py, pz)
+    lx, ly, lz = to_eye(cam, px, py, pz)
     z = -lz
     if z <= NEAR:
         return 0.0, 0.0, z
-    x, y = _pixel(cam.frustum, np.divide(lx, z), np.divide(ly, z))
+    x, y = pixel_of(cam.frustum, np.divide(lx, z), np.divide(ly, z))
     return x, y, z

@@ -24,8 +24,10 @@ from hmdrt.optics.projection import (
     CameraArrays,
     bilinear3,
     camera_arrays,
+    pixel_of,
     project,
     project_view,
+    to_eye,
     view_distance,
     world_point,
 )
@@ -90,14 +92,20 @@ class MeshImage(NamedTuple):
 
 
 @kernel
-def _mesh_vertices(prev, grid_x, grid_y, depth, cur, vertices):
-    screen, attr = vertices.screen, vertices.attr  # written through locals: see hmdrt/trace/blocks.py
+def _mesh_vertices(prev, grid_x, grid_y, depth, cur, frustums, screens, attr):
+    """The grid's vertices in the current view, their pixel coordinates at each image size (frustums: the current
+    camera's frustum over each, CameraArrays.frustum) and view depth into screens (sizes, hs, ws, 3): each vertex
+    unprojected and its view ray divided once for every size, the same steps as project_view at each."""
     hs, ws = depth.shape
     for j in nb.prange(hs):
         for i in range(ws):
             px, py, pz = world_point(prev, grid_x[i], grid_y[j], depth[j, i])
-            sx, sy, sz = project_view(cur, px, py, pz)
-            screen[j, i, 0], screen[j, i, 1], screen[j, i, 2] = sx, sy, sz
+            lx, ly, lz = to_eye(cur, px, py, pz)
+            sz = -lz
+            tx, ty = np.divide(lx, sz), np.divide(ly, sz)
+            for k in range(frustums.shape[0]):
+                sx, sy = pixel_of(frustums[k], tx, ty) if sz > NEAR else (0.0, 0.0)
+                screens[k, j, i, 0], screens[k, j, i, 1], screens[k, j, i, 2] = sx, sy, sz
             zp = project_view(prev, px, py, pz)[2]
             iz = np.divide(1.0, sz) if sz > NEAR else 0.0  # a vertex at or behind the near plane culls its triangles
             attr[j, i, 0], attr[j, i, 1], attr[j, i, 2] = grid_x[i] * zp * iz, grid_y[j] * zp * iz, zp * iz
@@ -267,27 +275,18 @@ def _onto_itself(image):
     return True
 
 
-class CoarseMesh:
-    """weier2016 section 3.2's coarse-mesh reprojection: the support grid (pixel centres grid_x, grid_y of the
-    previous full-resolution image, hit distances depth (hs, ws)) unprojected with the previous camera,
-    projected with the current one and rasterised at width x height with a 1/z depth test.
-
-    Its buffers persist across frames and are replaced only when the grid or the image changes size. The image
-    depends on nothing but those inputs, so a call with the same inputs as the last one, bit for bit (a still
-    view: the same cameras and support depth), returns the image it left, rasterised once. `still`: whether
-    the image reprojects every covered pixel onto its own centre (_onto_itself). distances() measures the
-    image's pixels once per rasterisation.
-    """
+class GridProjection:
+    """The support grid of weier2016 section 3.2 (pixel centres grid_x, grid_y of the previous full-resolution image,
+    hit distances depth (hs, ws)) unprojected with the previous camera and projected into the current one, once per
+    change of those inputs, at every image size a coarse mesh of it rasterises: the meshes of one grid at several
+    sizes (weier16's at full and at support resolution) share it. `version` counts the projections."""
 
     def __init__(self):
-        self.image = MeshImage(np.empty((2, 0, 0), np.float32), np.empty((0, 0), np.float32))
-        self._vertices = MeshVertices(np.empty((0, 0, 3)), np.empty((0, 0, VERTEX_ATTRS)))
-        self._cells = CellRows(np.empty((0, 2), np.int64), np.empty(0, np.uint8), np.empty((0, 2), np.int64), 1)
-        self._inputs: tuple[np.ndarray, ...] = ()  # the last call's inputs, copied (_unchanged)
-        self.still = False
-        self._current: CameraArrays | None = None  # the current camera, of the image
-        self._distance = np.empty((0, 0), np.float32)
-        self._measured = False  # whether _distance holds the image's distances
+        self.sizes: list[tuple[int, int]] = []  # (width, height) of each image the meshes rasterise
+        self._screens = np.empty((0, 0, 0, 3))  # (sizes, hs, ws, 3)
+        self._attr = np.empty((0, 0, VERTEX_ATTRS))
+        self._inputs: tuple[np.ndarray, ...] = ()  # the last projection's inputs, copied (_unchanged)
+        self.version = 0
 
     def _unchanged(self, inputs: tuple[np.ndarray, ...]) -> bool:
         """Whether these inputs are the last call's, bit for bit; remembers them for the next call."""
@@ -299,6 +298,53 @@ class CoarseMesh:
         for a, b in zip(inputs, self._inputs, strict=True):
             np.copyto(b, a)
         return same
+
+    def project(
+        self,
+        previous: EyeCamera,
+        grid_x: np.ndarray,
+        grid_y: np.ndarray,
+        depth: np.ndarray,
+        current: EyeCamera,
+        size: tuple[int, int],
+    ) -> MeshVertices:
+        """The vertices, with pixel coordinates at `size` (width, height): projected anew where the inputs changed
+        since the last call, or where `size` is new."""
+        hs, ws = depth.shape
+        if size not in self.sizes:
+            self.sizes.append(size)
+            self._inputs = ()
+        if self._screens.shape[:3] != (len(self.sizes), hs, ws):
+            self._screens = np.empty((len(self.sizes), hs, ws, 3))
+            self._attr = np.empty((hs, ws, VERTEX_ATTRS))
+        prev, cur = camera_arrays(previous), camera_arrays(current)
+        if not self._unchanged((*prev, *cur, grid_x, grid_y, depth)):
+            frustums = np.stack([camera_arrays(current, w, h).frustum for w, h in self.sizes])
+            _mesh_vertices(prev, grid_x, grid_y, depth, cur, frustums, self._screens, self._attr)
+            self.version += 1
+        return MeshVertices(self._screens[self.sizes.index(size)], self._attr)
+
+
+class CoarseMesh:
+    """weier2016 section 3.2's coarse-mesh reprojection: a GridProjection's vertices rasterised at width x height
+    with a 1/z depth test.
+
+    Its buffers persist across frames and are replaced only when the grid or the image changes size. The image
+    depends on nothing but the projection's inputs, so a call with the same inputs as the last one, bit for bit (a
+    still view: the same cameras and support depth), returns the image it left, rasterised once. `still`: whether
+    the image reprojects every covered pixel onto its own centre (_onto_itself). distances() measures the
+    image's pixels once per rasterisation. Meshes of one grid at other sizes share its `projection`.
+    """
+
+    def __init__(self, projection: GridProjection | None = None):
+        self.projection = projection or GridProjection()
+        self.image = MeshImage(np.empty((2, 0, 0), np.float32), np.empty((0, 0), np.float32))
+        self._cells = CellRows(np.empty((0, 2), np.int64), np.empty(0, np.uint8), np.empty((0, 2), np.int64), 1)
+        self._version = -1  # the projection's version the image was rasterised from
+        self.still = False
+        self._current: CameraArrays | None = None  # the current camera, of the image
+        self._distance = np.empty((0, 0), np.float32)
+        self._measured = False  # whether _distance holds the image's distances
 
     def reproject(
         self,
@@ -312,24 +358,24 @@ class CoarseMesh:
     ) -> MeshImage:
         """The mesh rasterised at width x height (a view of buffers that the next call overwrites)."""
         hs, ws = depth.shape
-        if self._vertices.screen.shape[:2] != (hs, ws):
-            self._vertices = MeshVertices(np.empty((hs, ws, 3)), np.empty((hs, ws, VERTEX_ATTRS)))
-            rows, cells = max(hs - 1, 0), max(hs - 1, 0) * max(ws - 1, 0)
+        cells = max(hs - 1, 0) * max(ws - 1, 0)
+        if self._cells.live.shape[0] != cells or self._cells.spans.shape[0] != max(hs - 1, 0):
+            rows = max(hs - 1, 0)
             self._cells = CellRows(
                 np.empty((cells, 2), np.int64), np.empty(cells, np.uint8), np.empty((rows, 2), np.int64), 1
             )
         if self.image.zinv.shape != (height, width):
             self.image = MeshImage(np.empty((2, height, width), np.float32), np.empty((height, width), np.float32))
-            self._inputs = ()
-        cur, prev = camera_arrays(current, width, height), camera_arrays(previous)
-        if self._unchanged((*prev, *cur, grid_x, grid_y, depth)):
+            self._version = -1
+        vertices = self.projection.project(previous, grid_x, grid_y, depth, current, (width, height))
+        if self.projection.version == self._version:
             return self.image
-        _mesh_vertices(prev, grid_x, grid_y, depth, cur, self._vertices)
         cells = self._cells._replace(band_rows=max(1, height // BANDS))
-        _cell_rows(self._vertices.screen, height, cells.rows, cells.live, cells.spans)
-        dynamic(_raster_mesh, self._vertices, cells, self.image)
+        _cell_rows(vertices.screen, height, cells.rows, cells.live, cells.spans)
+        dynamic(_raster_mesh, vertices, cells, self.image)
         self.still = _onto_itself(self.image)
-        self._current, self._measured = cur, False
+        self._version = self.projection.version
+        self._current, self._measured = camera_arrays(current, width, height), False
         return self.image
 
     def distances(self) -> np.ndarray:

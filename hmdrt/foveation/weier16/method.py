@@ -11,7 +11,7 @@ import numpy as np
 
 from hmdrt.foveation.base import HISTORY, STOCHASTIC, Checks, Configurable, FrameRequest, Stage, plan, scene_features
 from hmdrt.foveation.registry import register
-from hmdrt.foveation.stages.reproject import CoarseMesh, MeshImage
+from hmdrt.foveation.stages.reproject import CoarseMesh, GridProjection, MeshImage
 from hmdrt.foveation.stages.sampling import FOVEAL_REGION_KNOBS
 from hmdrt.foveation.stages.temporal import AGES, age_table
 from hmdrt.foveation.weier16.buffers import (
@@ -40,7 +40,8 @@ from hmdrt.trace.integrator import Whitted
 class _EyeState:
     """One eye's history: the camera of its newest frame, its final colour and cache info double-buffered
     (the newest is read while the next is written), the newest support image and G-buffer, and the two coarse meshes
-    made of it, each eye's own so that a view that holds still rasterises them once (CoarseMesh)."""
+    made of it, each eye's own so that a view that holds still rasterises them once (CoarseMesh), both of one
+    projection of the support grid (GridProjection)."""
 
     def __init__(self, w: int, h: int, sw: int, sh: int):
         self.size = (w, h, sw, sh)
@@ -48,8 +49,9 @@ class _EyeState:
         self.finals = (Final.empty(w, h), Final.empty(w, h))
         self.newest = 0
         self.support = Support.empty(sw, sh)
-        self.mesh = CoarseMesh()  # at full resolution
-        self.low_mesh = CoarseMesh()  # at support resolution, for the resampling info
+        projection = GridProjection()
+        self.mesh = CoarseMesh(projection)  # at full resolution
+        self.low_mesh = CoarseMesh(projection)  # at support resolution, for the resampling info
 
 
 class _Frame(NamedTuple):
