@@ -110,6 +110,52 @@ def test_the_two_parts_are_every_kernel_the_tracer_calls(tmp_path) -> None:
     assert run.stdout.split() == ["hmdrt.kernels.schedule.claim", "hmdrt.trace.wavefront._trace_blocks"]
 
 
+AHEAD = """
+import sys
+
+from numba.core.registry import CPUDispatcher
+
+from hmdrt.api import render_frame
+from hmdrt.foveation import make_method
+from hmdrt.scene import load_scene
+from hmdrt.trace.integrator import Whitted
+
+
+def signatures():
+    return {
+        f"{m}.{k}": len(v.signatures)
+        for m, mod in list(sys.modules.items())
+        if m.startswith("hmdrt")
+        for k, v in vars(mod).items()
+        if isinstance(v, CPUDispatcher)
+    }
+
+
+with Whitted(load_scene("whitted"), threads=1) as tracer:
+    method = make_method(sys.argv[1], tracer)
+    before = signatures()
+    method.compile_ahead()
+    ahead = signatures()
+render_frame(load_scene("whitted"), "sim-cpu", sys.argv[1], resolution=(32, 36), threads=1)
+after = signatures()
+print(" ".join(sorted(k for k, n in ahead.items() if n > before.get(k, 0))))
+print(" ".join(sorted(k for k, n in ahead.items() if before.get(k, 0) < n < after[k])))
+"""
+
+
+@pytest.mark.parametrize("method", ["rrm", "full"])
+def test_compiled_ahead_is_what_a_frame_calls_after_its_trace(method) -> None:
+    """Method.compile_ahead compiles, without a trace, the kernels a frame runs after it, with the frame's types: a
+    frame then compiles none of them again (in a process of its own, which has compiled nothing yet). rrm compiles
+    its update; a method that leaves it out compiles nothing."""
+    run = subprocess.run([sys.executable, "-c", AHEAD, method], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    ahead, again = (run.stdout.split("\n") + [""])[:2]
+    assert ("hmdrt.foveation.rrm._update" in ahead.split()) == (method == "rrm")  # with what it calls, if compiled
+    assert method == "rrm" or ahead.split() == []
+    assert again.split() == []
+
+
 def test_a_part_then_the_tracer_once_the_caller_releases_the_process() -> None:
     """--part compiles (here: loads) its part, then waits for its input to close before it traces."""
     command = [sys.executable, "-m", compile_aside.__name__, "--part", "0"]

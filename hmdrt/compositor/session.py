@@ -65,12 +65,14 @@ class Session:
         """Render one frame with a throwaway instance of the method and timewarp it, so that the kernels are
         compiled and the tracer's buffers allocated before the first VSync (a compile on the display thread would
         stall it for seconds); the method itself starts without history. The timewarp goes first, on a tiny frame
-        (its kernel's types do not depend on the size): on a first run it compiles while a second process compiles
-        the tracer (Whitted's aside), which the frame's first trace waits for."""
+        (its kernel's types do not depend on the size), then the method's kernels that run after its trace
+        (Method.compile_ahead): on a first run they compile while a second process compiles the tracer (Whitted's
+        aside), which the frame's first trace waits for."""
         tiny = EyeCamera.for_eye(self.profile.with_resolution(8, 8), self.head(None), self.eyes[0])
         timewarp(np.zeros((8, 8, 3), np.float32), tiny, tiny)
         method, self.method = self.method, self.choice.make(self.tracer)
         try:
+            self.method.compile_ahead()
             images, cameras, _ = self.render(0, None, None, 0, FrameStats())
             camera = next(iter(cameras.values()))
             timewarp(images[0], camera, camera)
