@@ -287,19 +287,23 @@ def test_a_frame_that_cannot_be_written_is_reported_without_a_traceback(tmp_path
     assert "cannot write" in r.stdout + r.stderr
 
 
-def test_the_warm_up_compiles_every_kernel_a_frame_uses():
+@pytest.mark.parametrize("method", ["rrm", "weier16", "kim21"])
+def test_the_warm_up_compiles_every_kernel_a_frame_uses(method):
     """A kernel compiled mid-run holds the GIL for a fraction of a second: every thread stalls, frames miss
     and the gaze shown ages. After the warm-up (in a fresh process, so that no earlier test has compiled
-    them), frames at other gazes and sizes of sample batch compile no new kernel signature."""
+    them), frames at other gazes and sizes of sample batch compile no new kernel signature: the default config's
+    method, and temporal methods whose stages that need a history run from their second frame."""
     code = (
-        "import sys, numpy as np\n"
+        "import sys, msgspec, numpy as np\n"
         "from numba.core.registry import CPUDispatcher\n"
         "from hmdrt.compositor.config import load_config, reload_plan; from hmdrt.compositor.session import Session\n"
         "from hmdrt.compositor.samples import GazeEstimate; from hmdrt.telemetry.stats import FrameStats\n"
         "def signatures():\n"
         "    return {(m, k): len(v.signatures) for m, mod in list(sys.modules.items()) if m.startswith('hmdrt')\n"
         "            for k, v in vars(mod).items() if isinstance(v, CPUDispatcher)}\n"
-        "s = Session(load_config('configs/default.toml')); s.warm_up(); before = signatures()\n"
+        "config = load_config('configs/default.toml')\n"
+        f"config = msgspec.structs.replace(config, method=msgspec.structs.replace(config.method, name={method!r}))\n"
+        "s = Session(config); s.warm_up(); before = signatures()\n"
         "for f, yaw in enumerate((0.0, 0.3, -0.5, 0.6)):\n"
         "    g = np.array([yaw, 0.1, -1.0]); g /= np.linalg.norm(g)\n"
         "    s.render(f + 1, GazeEstimate(g, g, None, 0, 0, 0, 0, 0.0, 'x'), None, 0, FrameStats())\n"

@@ -30,6 +30,7 @@ from hmdrt.views import FrameInput, compose_pose, eye_cameras, frame_requests
 
 AHEAD = np.array([0.0, 0.0, -1.0])
 READY_RENDERED, READY_WARPED = 3, 2  # image buffers per eye made before the first VSync (BufferPool ready)
+WARM_UP_FRAMES = 2  # the first without history, the second with it: every stage a frame may run (Session.warm_up)
 
 
 def display_profile(config: RunConfig) -> HmdProfile:
@@ -62,18 +63,19 @@ class Session:
             raise
 
     def warm_up(self) -> None:
-        """Render one frame with a throwaway instance of the method and timewarp it, so that the kernels are
-        compiled and the tracer's buffers allocated before the first VSync (a compile on the display thread would
-        stall it for seconds); the method itself starts without history. The timewarp goes first, on a tiny frame
-        (its kernel's types do not depend on the size), then the method's kernels that run after its trace
-        (Method.compile_ahead): on a first run they compile while a second process compiles the tracer (Whitted's
-        aside), which the frame's first trace waits for."""
+        """Render WARM_UP_FRAMES frames with a throwaway instance of the method and timewarp one, so that the kernels
+        are compiled and the tracer's buffers allocated before the first VSync (a compile on the display thread would
+        stall it for seconds): the first frame has no history, the second runs the stages that need one. The method
+        itself starts without history. The timewarp goes first, on a tiny frame (its kernel's types do not depend on
+        the size), then the method's kernels that run after its trace (Method.compile_ahead): on a first run they
+        compile while a second process compiles the tracer (Whitted's aside), which the first trace waits for."""
         tiny = EyeCamera.for_eye(self.profile.with_resolution(8, 8), self.head(None), self.eyes[0])
         timewarp(np.zeros((8, 8, 3), np.float32), tiny, tiny)
         method, self.method = self.method, self.choice.make(self.tracer)
         try:
             self.method.compile_ahead()
-            images, cameras, _ = self.render(0, None, None, 0, FrameStats())
+            for frame in range(WARM_UP_FRAMES):
+                images, cameras, _ = self.render(frame, None, None, 0, FrameStats())
             camera = next(iter(cameras.values()))
             timewarp(images[0], camera, camera)
         finally:

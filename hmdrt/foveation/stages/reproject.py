@@ -279,10 +279,11 @@ class GridProjection:
     """The support grid of weier2016 section 3.2 (pixel centres grid_x, grid_y of the previous full-resolution image,
     hit distances depth (hs, ws)) unprojected with the previous camera and projected into the current one, once per
     change of those inputs, at every image size a coarse mesh of it rasterises: the meshes of one grid at several
-    sizes (weier16's at full and at support resolution) share it. `version` counts the projections."""
+    sizes (weier16's at full and at support resolution) share it, the sizes given at the start or met as they come.
+    `version` counts the projections."""
 
-    def __init__(self):
-        self.sizes: list[tuple[int, int]] = []  # (width, height) of each image the meshes rasterise
+    def __init__(self, sizes: tuple[tuple[int, int], ...] = ()):
+        self.sizes: list[tuple[int, int]] = list(sizes)  # (width, height) of each image the meshes rasterise
         self._screens = np.empty((0, 0, 0, 3))  # (sizes, hs, ws, 3)
         self._attr = np.empty((0, 0, VERTEX_ATTRS))
         self._inputs: tuple[np.ndarray, ...] = ()  # the last projection's inputs, copied (_unchanged)

@@ -49,7 +49,7 @@ class _EyeState:
         self.finals = (Final.empty(w, h), Final.empty(w, h))
         self.newest = 0
         self.support = Support.empty(sw, sh)
-        projection = GridProjection()
+        projection = GridProjection(((w, h), (sw, sh)))
         self.mesh = CoarseMesh(projection)  # at full resolution
         self.low_mesh = CoarseMesh(projection)  # at support resolution, for the resampling info
 
