@@ -31,6 +31,7 @@ from hmdrt.views import FrameInput, compose_pose, eye_cameras, frame_requests
 AHEAD = np.array([0.0, 0.0, -1.0])
 READY_RENDERED, READY_WARPED = 3, 2  # image buffers per eye made before the first VSync (BufferPool ready)
 WARM_UP_FRAMES = 2  # the first without history, the second with it: every stage a frame may run (Session.warm_up)
+COMPILE_SIZE = (32, 36)  # pixels of the warm-up's frames against an empty scene: the kernels' types do not depend on it
 
 
 def display_profile(config: RunConfig) -> HmdProfile:
@@ -63,17 +64,24 @@ class Session:
             raise
 
     def warm_up(self) -> None:
-        """Render WARM_UP_FRAMES frames with a throwaway instance of the method and timewarp one, so that the kernels
-        are compiled and the tracer's buffers allocated before the first VSync (a compile on the display thread would
-        stall it for seconds): the first frame has no history, the second runs the stages that need one. The method
-        itself starts without history. The timewarp goes first, on a tiny frame (its kernel's types do not depend on
-        the size), then the method's kernels that run after its trace (Method.compile_ahead): on a first run they
-        compile while a second process compiles the tracer (Whitted's aside), which the first trace waits for."""
+        """Compile the kernels and allocate the tracer's buffers before the first VSync (a compile on the display
+        thread would stall it for seconds). The timewarp first, on a tiny frame (its kernel's types do not depend on
+        the size); then the method's own kernels, in WARM_UP_FRAMES small frames of a throwaway instance against an
+        empty scene (Whitted.empty_scene: on a first run they compile while a second process compiles the tracer,
+        hmdrt.trace.compile_aside); then WARM_UP_FRAMES frames of another throwaway instance at the display's size,
+        whose first trace waits for that process, and a timewarp of one. The first frame has no history, the second
+        runs the stages that need one. The method itself starts without history."""
         tiny = EyeCamera.for_eye(self.profile.with_resolution(8, 8), self.head(None), self.eyes[0])
         timewarp(np.zeros((8, 8, 3), np.float32), tiny, tiny)
+        small = eye_cameras(self.profile.with_resolution(*COMPILE_SIZE), self.head(None), self.eyes)
+        directions, depth = self.directions(None)
+        with self.tracer.empty_scene():
+            ahead = self.choice.make(self.tracer)
+            for frame in range(WARM_UP_FRAMES):
+                for request in frame_requests(FrameInput(frame, 0, self.head(None), directions, depth), small, 0):
+                    ahead.render(request, FrameStats())
         method, self.method = self.method, self.choice.make(self.tracer)
         try:
-            self.method.compile_ahead()
             for frame in range(WARM_UP_FRAMES):
                 images, cameras, _ = self.render(frame, None, None, 0, FrameStats())
             camera = next(iter(cameras.values()))

@@ -151,12 +151,6 @@ class Method(Protocol):
         another method's Params and ConfigError for values only the method can refuse, unchanged then."""
         ...
 
-    def compile_ahead(self) -> None:
-        """Compile (or load from numba's cache) the kernels a frame runs after its trace, on inputs of their types,
-        without rendering: a start-up runs this while the tracer's own kernel still compiles in a second process
-        (hmdrt.trace.compile_aside), which its first trace waits for. Nothing for a method that leaves it out."""
-        ...
-
 
 class Configurable(ABC):
     """Method.set_params for a method whose parameter-derived state all comes from _configure."""
@@ -175,9 +169,6 @@ class Configurable(ABC):
     def warmup_frames(self) -> int:
         """One previous frame, unless the method declares the history it needs (Method.warmup_frames)."""
         return 1
-
-    def compile_ahead(self) -> None:  # noqa: B027 (a hook, empty unless a method has kernels to compile ahead)
-        """Nothing ahead: the kernels compile at the first frame (Method.compile_ahead)."""
 
     def set_params(self, params: msgspec.Struct) -> None:
         if not isinstance(params, self.Params):

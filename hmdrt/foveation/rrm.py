@@ -227,14 +227,6 @@ class Rrm(Configurable):
         """The refresh cycle N: from a black buffer, every peripheral pixel has been traced once after N frames."""
         return self.params.cycle
 
-    def compile_ahead(self) -> None:
-        """The update's kernel, on a one-pixel image: its types do not depend on the size."""
-        pixel = np.zeros((1, 1, 3), np.float32)
-        samples = Samples(
-            np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros(2, np.int64)
-        )
-        dynamic(_update, samples.color, samples, pixel, pixel.copy())
-
     def _sample_arrays(self, camera: EyeCamera) -> Samples:
         """The persistent sample arrays, grown to most_samples when the parameters or the image need more."""
         s, most = self._samples, most_samples(camera, self.params)

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -59,6 +61,7 @@ class Whitted:
             self.secondary,
         )
         self._lock = threading.Lock()
+        self._empty = False  # empty_scene(): trace_samples answers every sample with a miss, tracing nothing
         self._no_gbuffer, self._no_light = GBuffer.empty(0), LightBuffer.empty(0)
         # one lane of scratch per tracer thread, with room for a block and its children at first, each growing to the
         # largest level it met (meter.NEED)
@@ -69,6 +72,18 @@ class Whitted:
                 self.compile_part(1 - compile_aside.PART)
             finally:
                 compile_aside.release(self._aside)
+
+    @contextmanager
+    def empty_scene(self) -> Iterator[None]:
+        """Within it, trace_samples answers as if the scene were empty, without the tracer's kernel: every sample a
+        miss (black, infinite depth, no light), its G-buffer and light buffer too. A start-up renders throwaway
+        frames in it, so that a method's own kernels compile while the tracer's still compiles in a second process
+        (hmdrt.trace.compile_aside), which a real trace waits for."""
+        self._empty = True
+        try:
+            yield
+        finally:
+            self._empty = False
 
     def compile_part(self, part: int) -> None:
         """Part `part` of the kernels the tracer's steps call, compiled or loaded from the cache (compile_part)."""
@@ -132,6 +147,8 @@ class Whitted:
             raise ValueError(f"gbuffer.kept holds {len(gbuffer.kept)} samples, fewer than the {n} traced")
         if n == 0:
             return out
+        if self._empty:
+            return _misses(out, gbuffer, light, n)
         frame = Frame(
             camera.rays(),
             xy,
@@ -154,3 +171,17 @@ class Whitted:
             meter.credit(stats, wall_ms, [lane.tally for lane in self._lanes])
             self._grow()
         return out
+
+
+def _misses(out: np.ndarray, gbuffer: GBuffer | None, light: LightBuffer | None, n: int) -> np.ndarray:
+    """The first n samples' results as misses of an empty scene (Whitted.empty_scene): black, their G-buffer rows
+    misses, no light."""
+    out.fill(0.0)
+    if gbuffer is not None:
+        rows = gbuffer.rows(n)
+        rows.primary.clear()
+        rows.secondary.clear()
+    if light is not None:
+        light.irradiance[:n] = 0.0
+        light.albedo[:n] = 0.0
+    return out
