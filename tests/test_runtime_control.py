@@ -315,3 +315,35 @@ def test_the_warm_up_compiles_every_kernel_a_frame_uses(method):
     count, compiled = out.stdout.split(" ", 1)
     assert int(count) > 10  # the kernels were found
     assert compiled.strip() == "[]", f"compiled after the warm-up: {compiled}"
+
+
+def test_a_method_that_cannot_render_the_small_frames_is_warmed_up_at_the_display_size(tmp_path, caplog):
+    """The warm-up's frames against an empty scene only save time: a method that refuses their size is logged and
+    still warmed up at the display's size, where the run renders it."""
+    from hmdrt.compositor.session import COMPILE_SIZE, Session
+    from hmdrt.foveation.reference import Full
+    from hmdrt.foveation.registry import register, unregister
+
+    sizes = []
+
+    @register
+    class Wide(Full):
+        name = "wide_only"
+
+        def render(self, request, stats, out=None):
+            sizes.append(request.camera.width)
+            if request.camera.width <= COMPILE_SIZE[0]:
+                raise ValueError("wide_only renders 64 pixels across or more")
+            return super().render(request, stats, out)
+
+    try:
+        session = Session(load_config(write_config(tmp_path / "run.toml", "wide_only")))
+        try:
+            with caplog.at_level("WARNING", logger="hmdrt.compositor.session"):
+                session.warm_up()
+        finally:
+            session.close()
+    finally:
+        unregister("wide_only")
+    assert "compiling wide_only ahead at 32x36 failed (wide_only renders 64 pixels across or more)" in caplog.text
+    assert sizes == [COMPILE_SIZE[0]] + [64] * 4  # the first small frame, then two frames of both eyes at 64x72

@@ -9,6 +9,7 @@ once the display and the frame writer have let go of them.
 
 from __future__ import annotations
 
+import logging
 import time
 
 import msgspec
@@ -27,6 +28,8 @@ from hmdrt.spatial import Pose
 from hmdrt.telemetry.stats import FrameStats
 from hmdrt.trace.integrator import Whitted
 from hmdrt.views import FrameInput, compose_pose, eye_cameras, frame_requests
+
+log = logging.getLogger(__name__)
 
 AHEAD = np.array([0.0, 0.0, -1.0])
 READY_RENDERED, READY_WARPED = 3, 2  # image buffers per eye made before the first VSync (BufferPool ready)
@@ -73,13 +76,7 @@ class Session:
         runs the stages that need one. The method itself starts without history."""
         tiny = EyeCamera.for_eye(self.profile.with_resolution(8, 8), self.head(None), self.eyes[0])
         timewarp(np.zeros((8, 8, 3), np.float32), tiny, tiny)
-        small = eye_cameras(self.profile.with_resolution(*COMPILE_SIZE), self.head(None), self.eyes)
-        directions, depth = self.directions(None)
-        with self.tracer.empty_scene():
-            ahead = self.choice.make(self.tracer)
-            for frame in range(WARM_UP_FRAMES):
-                for request in frame_requests(FrameInput(frame, 0, self.head(None), directions, depth), small, 0):
-                    ahead.render(request, FrameStats())
+        self._compile_ahead()
         method, self.method = self.method, self.choice.make(self.tracer)
         try:
             for frame in range(WARM_UP_FRAMES):
@@ -88,6 +85,25 @@ class Session:
             timewarp(images[0], camera, camera)
         finally:
             self.method = method
+
+    def _compile_ahead(self) -> None:
+        """warm_up's small frames against an empty scene. They only save time: one that fails (a method of a size it
+        cannot render) is logged and leaves its kernels to the frames at the display's size."""
+        small = eye_cameras(self.profile.with_resolution(*COMPILE_SIZE), self.head(None), self.eyes)
+        directions, depth = self.directions(None)
+        with self.tracer.empty_scene():
+            try:
+                ahead = self.choice.make(self.tracer)
+                for frame in range(WARM_UP_FRAMES):
+                    for request in frame_requests(FrameInput(frame, 0, self.head(None), directions, depth), small, 0):
+                        ahead.render(request, FrameStats())
+            except Exception as exc:  # noqa: BLE001 - a failure here only loses the head start
+                log.warning(
+                    "compiling %s ahead at %dx%d failed (%s); its frames compile it",
+                    self.choice.name,
+                    *COMPILE_SIZE,
+                    exc,
+                )
 
     @property
     def spec(self) -> str:
