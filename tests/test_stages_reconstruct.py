@@ -131,7 +131,7 @@ def test_mesh_raster_matches_every_triangle_drawn_in_order_with_a_depth_test(pos
     depth[8:18, 6:14] = 0.7 + 0.1 * rng.random((10, 8))  # a near block: its sides stretch into folds
     # behind the new eye after its step forward: their triangles culled, both of a cell's or one
     depth[:, :2] = depth[4, 16] = depth[20, 18] = 0.25
-    vertices = rp.GridProjection().project(before, gx, gy, depth, after, (96, 108))
+    vertices = rp.GridProjection().project(rp.SupportGrid(before, gx, gy, depth, after), (96, 108))
     assert (vertices.screen[..., 2] <= rp.NEAR).any()
     mesh, zinv = CoarseMesh().reproject(before, gx, gy, depth, after, 96, 108)
     prev, ref, edge = _reference_raster(vertices.screen, vertices.attr, 96, 108, rp.NEAR)

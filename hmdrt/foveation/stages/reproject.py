@@ -275,6 +275,17 @@ def _onto_itself(image):
     return True
 
 
+class SupportGrid(NamedTuple):
+    """What a GridProjection projects: the support grid's pixel centres in the previous full-resolution image, their
+    hit distances (hs, ws), and the previous and current cameras."""
+
+    previous: EyeCamera
+    grid_x: np.ndarray
+    grid_y: np.ndarray
+    depth: np.ndarray
+    current: EyeCamera
+
+
 class GridProjection:
     """The support grid of weier2016 section 3.2 (pixel centres grid_x, grid_y of the previous full-resolution image,
     hit distances depth (hs, ws)) unprojected with the previous camera and projected into the current one, once per
@@ -300,17 +311,10 @@ class GridProjection:
             np.copyto(b, a)
         return same
 
-    def project(
-        self,
-        previous: EyeCamera,
-        grid_x: np.ndarray,
-        grid_y: np.ndarray,
-        depth: np.ndarray,
-        current: EyeCamera,
-        size: tuple[int, int],
-    ) -> MeshVertices:
-        """The vertices, with pixel coordinates at `size` (width, height): projected anew where the inputs changed
-        since the last call, or where `size` is new."""
+    def project(self, grid: SupportGrid, size: tuple[int, int]) -> MeshVertices:
+        """The vertices, with pixel coordinates at `size` (width, height): projected anew where the grid's inputs
+        changed since the last call, or where `size` is new."""
+        previous, grid_x, grid_y, depth, current = grid
         hs, ws = depth.shape
         if size not in self.sizes:
             self.sizes.append(size)
@@ -368,7 +372,7 @@ class CoarseMesh:
         if self.image.zinv.shape != (height, width):
             self.image = MeshImage(np.empty((2, height, width), np.float32), np.empty((height, width), np.float32))
             self._version = -1
-        vertices = self.projection.project(previous, grid_x, grid_y, depth, current, (width, height))
+        vertices = self.projection.project(SupportGrid(previous, grid_x, grid_y, depth, current), (width, height))
         if self.projection.version == self._version:
             return self.image
         cells = self._cells._replace(band_rows=max(1, height // BANDS))
