@@ -28,6 +28,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
@@ -154,11 +155,8 @@ def disassemble(code: bytes, address: int) -> dict[int, str]:
 def hot_instructions(ips: list[int], symbol: CodeSymbol, listing: dict[int, str], top: int) -> list[str]:
     """The `top` instructions of `listing` with the most of the sampled instruction pointers `ips`, as lines."""
     inside = [ip for ip in ips if symbol.address <= ip < symbol.address + symbol.size]
-    counts: dict[int, int] = {}
-    for ip in inside:
-        counts[ip] = counts.get(ip, 0) + 1
     lines = [f"  {symbol.name}: {len(inside)} of {len(ips)} samples; its hottest instructions, % of its samples:"]
-    for ip, n in sorted(counts.items(), key=lambda kv: -kv[1])[:top]:
+    for ip, n in Counter(inside).most_common(top):
         lines.append(f"  {100 * n / len(inside):12.2f}  {ip - symbol.address:#7x}: {listing.get(ip, '?')}")
     return lines
 
