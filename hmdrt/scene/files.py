@@ -112,7 +112,9 @@ def _capped_resolver() -> type:
 def _image_to_linear(image, source: Path) -> np.ndarray:
     """A PIL image (of a file, or one a mesh file holds) as linear float32 (h, w, 3), decoding sRGB."""
     if image.width * image.height > MAX_TEXTURE_PIXELS:
-        raise SceneError(f"texture of {image.width}x{image.height} pixels exceeds the limit of {MAX_TEXTURE_PIXELS}")
+        raise SceneError(
+            f"texture image of {source}: {image.width}x{image.height} pixels exceeds the limit of {MAX_TEXTURE_PIXELS}"
+        )
     try:
         rgb = image.convert("RGB")  # PIL decodes the pixels only now
     except (OSError, SyntaxError, ValueError) as exc:  # truncated or corrupt image data

@@ -124,6 +124,14 @@ def test_image_headers_pil_refuses_with_value_error_are_scene_errors(data):
         load_image(path)
 
 
+def test_a_texture_over_the_pixel_limit_is_a_scene_error_naming_the_file():
+    """Regression (found by a clean clone's run of the fuzz test above): a GIF header of 2048 x 33024 pixels, over
+    MAX_TEXTURE_PIXELS and under PIL's own bomb limit, was refused without naming the file."""
+    path = scratch("big.gif", b"GIF87a\x00\x00\x00\x00\x00\x00\x00,\x00\x00\x00\x00\x00\x08\x00\x81\x00\x00")
+    with pytest.raises(SceneError, match="big.gif: 2048x33024 pixels exceeds the limit"):
+        load_image(path)
+
+
 def test_texture_decompression_bombs_and_corrupt_mesh_textures_are_scene_errors(tmp_path):
     """Regression: a PNG header claiming 20000 x 20000 pixels raised PIL's DecompressionBombError out of
     load_image, and an OBJ whose texture was truncated raised OSError out of load_mesh_file (PIL decodes lazily).
