@@ -171,6 +171,62 @@ def test_frames_of_an_empty_scene_compile_what_a_traced_frame_runs(method) -> No
     assert again.split() == []
 
 
+TWICE = """
+import sys
+from collections import defaultdict
+
+import numba.core.event as ev
+import numpy as np
+
+compiled = defaultdict(set)  # each function compiled here, with the argument types of each of its compiles
+
+
+class Compiles(ev.Listener):
+    def on_start(self, event):
+        pass
+
+    def on_end(self, event):
+        f = event.data["dispatcher"].py_func
+        compiled[f"{f.__module__}.{f.__qualname__}"].add(tuple(str(a) for a in event.data["args"]))
+
+
+ev.register("numba:compile", Compiles())
+from hmdrt.foveation import make_method
+from hmdrt.optics import get_profile
+from hmdrt.scene import load_scene
+from hmdrt.spatial import Pose
+from hmdrt.telemetry.stats import FrameStats
+from hmdrt.trace.integrator import Whitted
+from hmdrt.views import FrameInput, eye_cameras, frame_requests
+
+pose = Pose.looking([0.0, 1.6, 0.0])
+cameras = eye_cameras(get_profile("sim-cpu").with_resolution(32, 36), pose, ("left", "right"))
+ahead = {"left": np.array([0.0, 0.0, -1.0]), "right": np.array([0.0, 0.0, -1.0])}
+with Whitted(load_scene("whitted"), threads=2) as tracer, tracer.empty_scene():
+    method = make_method(sys.argv[1], tracer)
+    for frame in range(2):
+        for request in frame_requests(FrameInput(frame, 0, pose, ahead, None), cameras, 0):
+            method.render(request, FrameStats())
+print(" ".join(sorted(
+    name for name, versions in compiled.items()
+    if name.startswith("hmdrt.")
+    and len({tuple("int64" if a == "uint64" else a for a in args) for args in versions}) < len(versions)
+)))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["rrm", "weier16", "weier18", "kim21"])
+def test_no_helper_compiles_for_a_signed_and_an_unsigned_index(method, tmp_path) -> None:
+    """A prange's index is uint64 in the loop numba runs and int64 where numba first types the kernel, so a helper
+    given it as it is compiles twice, once for nothing (hmdrt/kernels/jit.py): from an empty cache, a method's
+    kernels (compiled against the empty scene) compile no function for both."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    run = subprocess.run([sys.executable, "-c", TWICE, method], env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == []
+
+
 def test_a_part_then_the_tracer_once_the_caller_releases_the_process() -> None:
     """--part compiles (here: loads) its part, then waits for its input to close before it traces."""
     command = [sys.executable, "-m", compile_aside.__name__, "--part", "0"]

@@ -9,6 +9,12 @@ serial function into a library in which LLVM optimises and compiles again everyt
 of steps costs a compile of all below it. Each inlining re-types its caller, so only those: with every helper
 of the tracer inlined, its cold compile takes 70 s of CPU, not 21 s.
 
+A prange's index is unsigned (uint64) in the loop numba runs, and signed (int64) where numba first types the
+kernel, before it makes the loop parallel: a serial helper given the index as it is compiles for both, the int64
+version for nothing. So a kernel hands a helper the index converted: np.uint64(index), the type the loop runs with,
+or np.int64(index) where the helper's other callers pass an int64 (kim21's first start compiled 28 functions fewer;
+tests/test_compile_aside.py checks every method).
+
 SPIN_COUNT: how long the threads of numba's OpenMP layer (libgomp) poll for the next parallel kernel before they
 sleep. libgomp's own default, 300,000 polls (several milliseconds on the Xeon), has them burn a core after every
 kernel, which the tracer's threads, the display thread and the next kernel's Python need on a 2-core machine; 20,000

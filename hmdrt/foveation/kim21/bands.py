@@ -135,11 +135,11 @@ def _foveation(ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov):
     and the extra samples of section 4.6.2 when every subpixel of each is problematic."""
     central = most = 0
     for y in nb.prange(ecc.shape[0]):
-        row_central, row_most = _foveation_row(y, ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov)
+        row_central, row_most = _foveation_row(np.uint64(y), ecc, ctrl, bounds, counts, e_np, alpha_x, alpha_y, fov)
         central += row_central
         most += row_most
     for y in nb.prange(ecc.shape[0]):
-        _near_central_row(y, ecc.shape[1], fov.samples, fov.table1)
+        _near_central_row(np.uint64(y), ecc.shape[1], fov.samples, fov.table1)
     return central, 4 * most
 
 

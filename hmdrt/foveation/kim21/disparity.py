@@ -190,7 +190,7 @@ def _inspect(width, ref, primary, secondary, fov, flags, tests, sub_mask, row_sa
     for y in nb.prange(flags.shape[0] // width):
         t = nb.get_thread_id()
         row_samples[y], sub = _inspect_row(
-            y, width, ref, primary, secondary, fov, flags, tests, sub_mask, box[t], passes[t]
+            np.uint64(y), width, ref, primary, secondary, fov, flags, tests, sub_mask, box[t], passes[t]
         )
         subpixels += sub
     return subpixels

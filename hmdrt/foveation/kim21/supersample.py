@@ -55,7 +55,7 @@ def _subpixel_samples(width, sub_mask, samples, spans, first, seed_key, xy, keys
     row y's start at first[y]. seed_key is the frame's (kim21.method), so the jitter changes from frame to frame.
     sub_mask is read in each row's central columns (spans: Foveation.spans), where the inspection wrote it."""
     for y in nb.prange(first.shape[0] - 1):
-        _subpixel_samples_row(y, width, sub_mask, samples, spans, first, seed_key, xy, keys)
+        _subpixel_samples_row(np.uint64(y), width, sub_mask, samples, spans, first, seed_key, xy, keys)
 
 
 @serial

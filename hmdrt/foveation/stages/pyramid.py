@@ -287,7 +287,7 @@ def _push_level(pyramid, k, samples, columns):
             _push_row(data, row, wf, None, col0, col1, col_weight, o_coarse, wc, ay, scratch)
         else:
             _push_row(data, row, wf, samples.mask, col0, col1, col_weight, o_coarse, wc, ay, scratch)
-            _place_row(data, samples, y)
+            _place_row(data, samples, np.int64(y))
 
 
 def pull_push(pyramid: Pyramid, samples: LevelSamples | None = None, columns: Columns | None = None) -> None:

@@ -313,7 +313,7 @@ def _smooth(frustum, depth, color, alpha, earlier, rel_depth, out, counter, thre
     h = depth.shape[0]
     if earlier.same.all():
         for y in nb.prange(h):
-            _smooth_still_row(y, depth, color, alpha, earlier, rel_depth, out)
+            _smooth_still_row(np.uint64(y), depth, color, alpha, earlier, rel_depth, out)
     else:
         for _ in nb.prange(threads):
             t = nb.get_thread_id()

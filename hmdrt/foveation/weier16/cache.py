@@ -54,7 +54,7 @@ def _unsampled_cells(flags, unsampled, rows):
     h, w = flags.shape
     sh, sw = unsampled.shape
     for j in nb.prange(sh):
-        y0, y1 = cell_span(j, h, sh)
+        y0, y1 = cell_span(np.int64(j), h, sh)
         row = rows[nb.get_thread_id()]
         for x in range(w):
             row[x] = flags[y0, x]
