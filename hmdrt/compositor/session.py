@@ -68,15 +68,16 @@ class Session:
 
     def warm_up(self) -> None:
         """Compile the kernels and allocate the tracer's buffers before the first VSync (a compile on the display
-        thread would stall it for seconds). The timewarp first, on a tiny frame (its kernel's types do not depend on
-        the size); then the method's own kernels, in WARM_UP_FRAMES small frames of a throwaway instance against an
-        empty scene (Whitted.empty_scene: on a first run they compile while a second process compiles the tracer,
-        hmdrt.trace.compile_aside); then WARM_UP_FRAMES frames of another throwaway instance at the display's size,
-        whose first trace waits for that process, and a timewarp of one. The first frame has no history, the second
-        runs the stages that need one. The method itself starts without history."""
+        thread would stall it for seconds). First the method's own kernels, in WARM_UP_FRAMES small frames of a
+        throwaway instance against an empty scene (Whitted.empty_scene: on a first run they compile while a second
+        process compiles the tracer, hmdrt.trace.compile_aside); then the timewarp, on a tiny frame (its kernel's
+        types do not depend on the size: loaded from the cache where that process, done with the tracer, compiled
+        it first); then WARM_UP_FRAMES frames of another throwaway instance at the display's size, whose first trace
+        waits for that process, and a timewarp of one. The first frame has no history, the second runs the stages
+        that need one. The method itself starts without history."""
+        self._compile_ahead()
         tiny = EyeCamera.for_eye(self.profile.with_resolution(8, 8), self.head(None), self.eyes[0])
         timewarp(np.zeros((8, 8, 3), np.float32), tiny, tiny)
-        self._compile_ahead()
         method, self.method = self.method, self.choice.make(self.tracer)
         try:
             for frame in range(WARM_UP_FRAMES):

@@ -1,6 +1,8 @@
 """The tracer compiled into numba's cache by a second process on a first run, while the start-up that asked for it
 compiles everything else (the method's own kernels, the timewarp, a driver's clock fit) on the other core: the
 tracer is 21 s of the 27 s that a first run of the default config compiles (docs/performance.md, "The first run").
+Then the process warps a tiny frame, so that a start-up still compiling a method's kernels (kim21's take longer than
+the tracer) finds the timewarp in the cache, where a start-up that has come to it first compiles it itself.
 
     python -m hmdrt.trace.compile_aside [--part 0]
 
@@ -94,6 +96,7 @@ def main(argv: list[str] | None = None) -> None:
     import numpy as np
 
     from hmdrt.optics import EyeCamera, get_profile
+    from hmdrt.present.timewarp import timewarp
     from hmdrt.scene import load_scene
     from hmdrt.spatial import Pose
     from hmdrt.telemetry.stats import FrameStats
@@ -107,6 +110,7 @@ def main(argv: list[str] | None = None) -> None:
             tracer.compile_part(args.part)
             sys.stdin.read()  # until the caller has its part in the cache (release)
         tracer.trace_samples(camera, xy, np.arange(len(xy), dtype=np.int64), FrameStats())
+    timewarp(np.zeros((8, 8, 3), np.float32), camera, camera)  # for a start-up still compiling its method
 
 
 if __name__ == "__main__":
