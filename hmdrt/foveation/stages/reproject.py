@@ -363,9 +363,9 @@ class CoarseMesh:
     ) -> MeshImage:
         """The mesh rasterised at width x height (a view of buffers that the next call overwrites)."""
         hs, ws = depth.shape
-        cells = max(hs - 1, 0) * max(ws - 1, 0)
-        if self._cells.live.shape[0] != cells or self._cells.spans.shape[0] != max(hs - 1, 0):
-            rows = max(hs - 1, 0)
+        rows = max(hs - 1, 0)
+        cells = rows * max(ws - 1, 0)
+        if self._cells.live.shape[0] != cells or self._cells.spans.shape[0] != rows:
             self._cells = CellRows(
                 np.empty((cells, 2), np.int64), np.empty(cells, np.uint8), np.empty((rows, 2), np.int64), 1
             )
