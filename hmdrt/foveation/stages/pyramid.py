@@ -173,7 +173,8 @@ def _pull_samples(pyramid, samples, sums):
     """Level 1 from level 0's samples (LevelSamples): the mean of each texel's, as _pull_level takes it with weights
     1 and 0 (the same sums: the children that count added in the same order, those that do not adding 0). Reads the
     samples' 16 bytes each in place of every texel of level 0 (20 bytes, most of them not samples where they are
-    sparse). `sums`: a row of scratch per numba thread."""
+    sparse). A texel without samples gets weight 0 and colour and depth 0, which no pull or push reads. `sums`: a row
+    of scratch per numba thread."""
     data = pyramid.data
     texels, starts, rgb, depth = samples.texels, samples.starts, samples.rgb, samples.depth
     wf, hf = pyramid.widths[0], pyramid.heights[0]
@@ -192,15 +193,15 @@ def _pull_samples(pyramid, samples, sums):
                 row[2, x] += rgb[s, 2]
                 row[DEPTH, x] += depth[s]
                 row[WEIGHT, x] += 1.0
-        o = o_coarse + y * wc
+        for c in range(WEIGHT):  # the means, a channel at a time with selects: the divisions vectorise
+            for x in range(wc):
+                wsum = row[WEIGHT, x]
+                row[c, x] /= wsum if wsum > 0.0 else 1.0
+        o = np.uint64(o_coarse + y * wc)
         for x in range(wc):
-            wsum, j = row[WEIGHT, x], o + x
-            if wsum > 0.0:
-                data[j, 0] = row[0, x] / wsum
-                data[j, 1] = row[1, x] / wsum
-                data[j, 2] = row[2, x] / wsum
-                data[j, DEPTH] = row[DEPTH, x] / wsum
-            data[j, WEIGHT] = min(1.0, wsum)
+            j = o + np.uint64(x)
+            data[j, 0], data[j, 1], data[j, 2] = row[0, x], row[1, x], row[2, x]
+            data[j, DEPTH], data[j, WEIGHT] = row[DEPTH, x], min(1.0, row[WEIGHT, x])
 
 
 class Columns(NamedTuple):
