@@ -103,13 +103,13 @@ class BareRays:
     parts() in turn: a bench that times them beside each round of its frames sets each round against what the
     machine ran at just then, since these machines slow down and speed up by 1.5-2x for minutes at a time. The
     floor of a method's frame is its rays of each kind at these rates: what the scene's rays cost before any of
-    our own work."""
+    our own work. `xy`: the camera rays' pixel coordinates (n, 2), in their order; by default every pixel centre."""
 
-    def __init__(self, scene: Scene, camera: EyeCamera, threads: int):
+    def __init__(self, scene: Scene, camera: EyeCamera, threads: int, xy: np.ndarray | None = None):
         packed, self._bare = _embree(scene)
         self._pool = ThreadPoolExecutor(threads)
         self._threads = threads
-        origins, dirs = _primary_rays(camera)
+        origins, dirs = _primary_rays(camera, pixel_centres(camera.width, camera.height) if xy is None else xy)
         self._bare.run(origins[:1], dirs[:1])  # commit the BVH outside the timing
         self.kinds: dict[str, _Kind | None] = {"primary": _Kind(origins, dirs, None)}
         first = self._bare.run(origins, dirs, output=1)
@@ -197,8 +197,8 @@ def _embree(scene: Scene):
     return packed, bare
 
 
-def _primary_rays(camera: EyeCamera) -> tuple[np.ndarray, np.ndarray]:
-    dirs = camera.directions(pixel_centres(camera.width, camera.height))
+def _primary_rays(camera: EyeCamera, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    dirs = camera.directions(xy)
     origins = np.empty_like(dirs)
     origins[:] = camera.position
     return origins, dirs

@@ -66,7 +66,7 @@ def test_a_registered_method_is_in_every_checklist(toy):
     assert {("whitted", "toy"), ("whitted", "toy?gain=2")} <= set(golden_cases())
     assert {("whitted", "toy"), ("whitted", "toy?gain=2")} <= set(allocation_cases())
     assert "toy" in temporal_methods()
-    for bench in ("stage_budget", "foveation_speedup"):
+    for bench in ("stage_budget", "foveation_speedup", "own_rays"):
         assert bench_module(bench).default_methods() == bench_methods(), bench
     assert {"toy", "toy?gain=2"} <= set(bench_methods())
 
