@@ -90,7 +90,8 @@ def main() -> None:
 
     camera = frames[-1].camera
     view = BareRays(scene, camera, threads)
-    own = {spec: BareRays(scene, camera, threads, np.concatenate(xy)) for spec, xy in samples.items() if xy}
+    traced = {spec: np.concatenate(xy) for spec, xy in samples.items() if sum(map(len, xy))}
+    own = {spec: BareRays(scene, camera, threads, xy) for spec, xy in traced.items()}
     kinds = [kind for kind, rays in view.kinds.items() if rays is not None]
     rates: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
     try:
@@ -118,7 +119,9 @@ def main() -> None:
             for kind in kinds
             if median[spec][kind] == median[spec][kind]  # nan: the method's rays have none of that kind
         )
-        print(f"  {spec:20s} {sum(len(xy) for xy in samples[spec]):9,d}  {rays}")
+        print(f"  {spec:20s} {len(traced[spec]):9,d}  {rays}")
+    for spec in sorted(set(methods) - set(own)):
+        print(f"  {spec:20s} {0:9,d}  (no rays in its last frame)")
     print(
         f"\n  {'method':20s} {'ms/frame':>9s} {'mix floor ms':>12s} {'over mix':>8s}"
         f" {'own floor ms':>12s} {'over own':>8s}  (the last frame's rays at the view's rates and at its own)"
