@@ -127,6 +127,7 @@ def main() -> None:
         f" {'own floor ms':>12s} {'over own':>8s}  (the last frame's rays at the view's rates and at its own)"
     )
     for spec in own:
+        # a kind none of the method's hits spawned at depth 1 (deeper ones may have) at the view's rate
         own_rates = {k: r if r == r else median["view"][k] for k, r in median[spec].items()}
         frame, mix, floor = (
             statistics.median(ms[spec]),
