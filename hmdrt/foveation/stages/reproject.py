@@ -232,9 +232,17 @@ def _raster_band(y0, vertices, cells, image):
                             iz = wp * vp[3] + wq * vq[3] + wr * vr[3] + ws_ * vs[3]
                             if iz > out_zinv[y, x]:
                                 out_zinv[y, x] = iz
-                                zp = wp * vp[2] + wq * vq[2] + wr * vr[2] + ws_ * vs[2]
-                                out_prev[0, y, x] = (wp * vp[0] + wq * vq[0] + wr * vr[0] + ws_ * vs[0]) / zp
-                                out_prev[1, y, x] = (wp * vp[1] + wq * vq[1] + wr * vr[1] + ws_ * vs[1]) / zp
+                                # over the triangle's own three vertices, in a branch each: a fourth term, a zero
+                                # product, would add no bit, and selects cost more than the branch
+                                if in0:
+                                    zp = wa0 * vp[2] + wb0 * vq[2] + wc0 * vr[2]
+                                    u = (wa0 * vp[0] + wb0 * vq[0] + wc0 * vr[0]) / zp
+                                    v = (wa0 * vp[1] + wb0 * vq[1] + wc0 * vr[1]) / zp
+                                else:
+                                    zp = wa1 * vp[2] + wb1 * vr[2] + wc1 * vs[2]
+                                    u = (wa1 * vp[0] + wb1 * vr[0] + wc1 * vs[0]) / zp
+                                    v = (wa1 * vp[1] + wb1 * vr[1] + wc1 * vs[1]) / zp
+                                out_prev[0, y, x], out_prev[1, y, x] = u, v
                         wa0 += da0
                         wb0 += db0
                         wa1 += da1
