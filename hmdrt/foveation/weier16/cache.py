@@ -27,12 +27,12 @@ def _moved(depth, dist, eps_cache):
     return far_sample != far_cache or (not far_sample and abs(dist - depth) > eps_cache * depth)
 
 
-@serial
+@kernel
 def _gather_support(grid, index, samples, normals, support):
     """Section 3.4: the support image and support G-buffer "extracted" from the frame's samples, each support
-    pixel's own (grid: where they lie; index: each traced pixel's sample)."""
+    pixel's own (grid: where they lie; index: each traced pixel's sample); a support row per task."""
     depth, normal, color, light = support.depth, support.normal, support.color, support.light
-    for j in range(grid.y.shape[0]):
+    for j in nb.prange(grid.y.shape[0]):
         y = int(grid.y[j])
         for i in range(grid.x.shape[0]):
             s = index[y, int(grid.x[i])]
